@@ -1,0 +1,1 @@
+"""Analysis: FRFs, modal parameters, the 3D ODS, correlation and export."""

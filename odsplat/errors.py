@@ -1,0 +1,25 @@
+"""Exceptions that carry the file, field or device at fault, so a user sees one clear line."""
+from __future__ import annotations
+
+from os import PathLike
+
+
+class OdsplatError(Exception):
+    """Base class of every error odsplat raises on purpose."""
+
+
+class InputError(OdsplatError, ValueError):
+    """Bad input: names the source (file, field or device) and what was expected."""
+
+    def __init__(self, source: str | PathLike, problem: str):
+        self.source = str(source)
+        self.problem = problem
+        super().__init__(f"{self.source}: {problem}")
+
+
+class SchemaError(InputError):
+    """A file written by a newer, unknown or foreign schema."""
+
+
+class IncompleteTakeError(InputError):
+    """A take that was never finalised (its writer died); it must be recovered explicitly."""

@@ -1,0 +1,1 @@
+"""Importers: video and signal files from other equipment, read into odsplat's in-memory types."""

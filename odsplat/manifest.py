@@ -1,0 +1,253 @@
+"""The capture manifest (`capture.json`): the rig, the viewpoint plan and the list of takes."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import types
+import typing
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from .errors import InputError, SchemaError
+from .units import SI_UNITS
+
+SCHEMA_VERSION = "1.0"
+SCHEMA_MAJOR = 1
+
+CHANNEL_KINDS: dict[str, str] = {
+    "force": "N",
+    "acceleration": "m/s^2",
+    "velocity": "m/s",
+    "displacement": "m",
+    "ttl": "V",
+    "voltage": "V",
+    "pressure": "Pa",
+}
+TAKE_STATUSES = ("complete", "recovered")
+QC_STATUSES = ("unchecked", "accepted", "rejected")
+
+
+def utc_now() -> str:
+    return datetime.now(timezone.utc).isoformat(timespec="seconds")
+
+
+def check_schema(version: Any, *, where: str) -> None:
+    """Refuse a schema version whose major number this odsplat does not know."""
+    try:
+        major = int(str(version).split(".")[0])
+    except ValueError:
+        raise SchemaError(where, f"schema version {version!r} is not of the form MAJOR.MINOR") from None
+    if major != SCHEMA_MAJOR:
+        raise SchemaError(
+            where,
+            f"schema version {version} has major {major}; this odsplat reads major {SCHEMA_MAJOR} only "
+            f"({'upgrade odsplat' if major > SCHEMA_MAJOR else 'convert the file'})",
+        )
+
+
+@dataclass
+class Intrinsics:
+    """Pinhole intrinsics in pixels, with OpenCV's distortion vector (k1, k2, p1, p2[, k3...])."""
+
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    dist: list[float] = field(default_factory=list)
+
+
+@dataclass
+class CameraInfo:
+    model: str = "unknown"
+    width_px: int | None = None
+    height_px: int | None = None
+    fps: float | None = None
+    bit_depth: int | None = None
+    n_colors: int = 1
+    exposure_s: float | None = None
+    intrinsics: Intrinsics | None = None
+
+
+@dataclass
+class ChannelInfo:
+    """One DAQ channel; `position_m` and `direction` place the sensor on the structure (world frame)."""
+
+    name: str
+    kind: str
+    unit: str
+    sensitivity_v_per_unit: float | None = None
+    position_m: list[float] | None = None
+    direction: list[float] | None = None
+    node: int | None = None
+    device: str = ""
+
+    def validate(self, where: str) -> None:
+        if not self.name or "/" in self.name:
+            raise InputError(where, f"channel name {self.name!r} must be non-empty and contain no '/'")
+        if self.kind not in CHANNEL_KINDS:
+            raise InputError(f"{where}.kind", f"expected one of {', '.join(CHANNEL_KINDS)}; got {self.kind!r}")
+        if self.unit not in SI_UNITS:
+            raise InputError(f"{where}.unit", f"expected an SI unit ({', '.join(SI_UNITS)}); got {self.unit!r}")
+        if self.unit != CHANNEL_KINDS[self.kind]:
+            raise InputError(f"{where}.unit", f"a {self.kind} channel is stored in {CHANNEL_KINDS[self.kind]}, got {self.unit!r}")
+        for name in ("position_m", "direction"):
+            value = getattr(self, name)
+            if value is not None and len(value) != 3:
+                raise InputError(f"{where}.{name}", f"expected 3 numbers (x, y, z); got {value!r}")
+
+
+@dataclass
+class TagPlacement:
+    """A tag's four corners in world coordinates, in the normalised corner order (see sync docs)."""
+
+    id: int
+    corners_m: list[list[float]]
+    on_structure: bool = False
+
+
+@dataclass
+class TagLayout:
+    family: str = "tag36h11"
+    size_m: float | None = None
+    tags: list[TagPlacement] = field(default_factory=list)
+
+
+@dataclass
+class Viewpoint:
+    index: int
+    azimuth_deg: float
+    elevation_deg: float
+    distance_m: float
+    target_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+
+@dataclass
+class TakeRecord:
+    """A finalised take file under `takes/`, as listed in the manifest."""
+
+    name: str
+    file: str
+    view: int | None = None
+    status: str = "complete"
+    qc: str = "unchecked"
+    n_frames: int = 0
+    n_samples: int = 0
+    created_utc: str = ""
+
+
+@dataclass
+class Manifest:
+    name: str
+    camera: CameraInfo = field(default_factory=CameraInfo)
+    daq_sample_rate_hz: float | None = None
+    channels: list[ChannelInfo] = field(default_factory=list)
+    tags: TagLayout | None = None
+    views: list[Viewpoint] = field(default_factory=list)
+    takes: list[TakeRecord] = field(default_factory=list)
+    structure: dict[str, Any] = field(default_factory=dict)
+    notes: str = ""
+    created_utc: str = field(default_factory=utc_now)
+    schema_version: str = SCHEMA_VERSION
+
+    def validate(self, where: str = "capture.json") -> None:
+        names = [c.name for c in self.channels]
+        for i, ch in enumerate(self.channels):
+            ch.validate(f"{where}: channels[{i}]")
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise InputError(f"{where}: channels", f"duplicate channel names {sorted(dup)}")
+        for i, take in enumerate(self.takes):
+            if take.status not in TAKE_STATUSES:
+                raise InputError(f"{where}: takes[{i}].status", f"expected one of {TAKE_STATUSES}; got {take.status!r}")
+            if take.qc not in QC_STATUSES:
+                raise InputError(f"{where}: takes[{i}].qc", f"expected one of {QC_STATUSES}; got {take.qc!r}")
+
+    def channel(self, name: str) -> ChannelInfo:
+        for ch in self.channels:
+            if ch.name == name:
+                return ch
+        raise KeyError(f"no channel {name!r}; the manifest has {[c.name for c in self.channels]}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2, sort_keys=False) + "\n"
+
+    @classmethod
+    def from_dict(cls, data: Any, *, where: str = "capture.json") -> Manifest:
+        if not isinstance(data, dict):
+            raise InputError(where, "expected a JSON object at the top level")
+        check_schema(data.get("schema_version", "missing"), where=f"{where}: schema_version")
+        manifest = from_plain(cls, data, where)
+        manifest.validate(where)
+        return manifest
+
+    @classmethod
+    def load(cls, path: str | Path) -> Manifest:
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError(path, "no capture manifest here; is this a capture directory?") from None
+        except json.JSONDecodeError as exc:
+            raise InputError(path, f"not valid JSON: {exc}") from None
+        return cls.from_dict(data, where=str(path))
+
+
+def from_plain(cls: type, data: Any, where: str) -> Any:
+    """Build dataclass `cls` from JSON-like data, naming the field path in any error."""
+    if not isinstance(data, dict):
+        raise InputError(where, f"expected an object for {cls.__name__}; got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    known = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(data) - set(known)
+    if unknown:
+        raise InputError(where, f"unknown field(s) {sorted(unknown)}; expected some of {sorted(known)}")
+    kwargs = {}
+    for name, f in known.items():
+        if name in data:
+            kwargs[name] = _convert(hints[name], data[name], f"{where}.{name}")
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+            raise InputError(f"{where}.{name}", "required field is missing")
+    return cls(**kwargs)
+
+
+def _convert(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if value is None and type(None) in args:
+            return None
+        (inner,) = [a for a in args if a is not type(None)]
+        return _convert(inner, value, where)
+    if dataclasses.is_dataclass(tp):
+        return from_plain(tp, value, where)
+    if origin is list:
+        if not isinstance(value, list):
+            raise InputError(where, f"expected a list; got {type(value).__name__}")
+        (inner,) = typing.get_args(tp)
+        return [_convert(inner, v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise InputError(where, f"expected an object; got {type(value).__name__}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(where, f"expected a number; got {value!r}")
+        return float(value)
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(where, f"expected an integer; got {value!r}")
+        return value
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise InputError(where, f"expected true or false; got {value!r}")
+        return value
+    if tp is str:
+        if not isinstance(value, str):
+            raise InputError(where, f"expected a string; got {value!r}")
+        return value
+    return value

@@ -1,0 +1,663 @@
+"""The capture store: a directory with a manifest and one crash-safe HDF5 file per take.
+
+Layout of a capture directory::
+
+    capture.json          the manifest (odsplat.manifest.Manifest)
+    takes/<name>.h5       raw takes, written once: <name>.h5.partial while recording
+    static/               optional photos of the still structure
+    derived/              everything later stages write
+
+Layout of a take file (schema 1.x), see docs/store.md::
+
+    /frames               (T,H,W) or (T,H,W,3) uint8|uint16, one frame per chunk, Blosc-zstd + bitshuffle
+    /frame_times_s        (T,) float64, frame exposure starts in the DAQ time base (NaN when unknown)
+    /frame_counter        (T,) int64, the camera's own frame number (gaps reveal dropped frames)
+    /daq/<channel>        (N,) float32 in SI units, attrs unit, kind
+    /trigger, /qc         attributes, written when the take is finalised
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import hdf5plugin
+import numpy as np
+
+from .errors import IncompleteTakeError, InputError, OdsplatError, SchemaError
+from .manifest import SCHEMA_VERSION, ChannelInfo, Manifest, TakeRecord, check_schema, utc_now
+
+log = logging.getLogger(__name__)
+
+MANIFEST_NAME = "capture.json"
+PARTIAL_SUFFIX = ".h5.partial"
+CRASHED_SUFFIX = ".h5.crashed"
+_FRAME_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
+
+
+def _compression() -> Mapping[str, Any]:
+    return hdf5plugin.Blosc(cname="zstd", clevel=3, shuffle=hdf5plugin.Blosc.BITSHUFFLE)
+
+
+def fsync_path(path: Path) -> None:
+    """fsync a file or a directory (the latter makes a rename durable)."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write text to `path` so that a crash leaves either the old file or the new one, never half."""
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    fsync_path(path.parent)
+
+
+@dataclass(frozen=True)
+class TriggerInfo:
+    """Where the trigger lies in a take: DAQ sample, samples kept before it, and the camera's trigger frame."""
+
+    trigger_sample: int | None = None
+    pretrigger_samples: int | None = None
+    camera_trigger_frame: int | None = None
+    trigger_time_s: float | None = None
+
+
+@dataclass(frozen=True)
+class QCInfo:
+    status: str = "unchecked"
+    flags: tuple[str, ...] = ()
+    notes: str = ""
+
+
+@dataclass(frozen=True)
+class RecoveryReport:
+    """What `recover_partial` did with one unfinished take file."""
+
+    name: str
+    recovered: bool
+    n_frames: int
+    n_samples: int
+    message: str
+    path: Path | None = None
+
+
+class TakeWriter:
+    """Records one take into `<name>.h5.partial` (SWMR, flushed per frame), then finalises it.
+
+    All datasets are created up front, because an HDF5 SWMR writer may only append.
+    `finalize()` writes the trigger and QC attributes, verifies, fsyncs and renames to `<name>.h5`.
+    """
+
+    def __init__(
+        self,
+        final_path: str | Path,
+        *,
+        frame_shape: Sequence[int] | None,
+        dtype: Any = np.uint16,
+        bit_depth: int | None = None,
+        channels: Sequence[ChannelInfo] = (),
+        daq_sample_rate_hz: float | None = None,
+        daq_t0_s: float = 0.0,
+        attrs: Mapping[str, Any] | None = None,
+        swmr: bool = True,
+        on_finalize: Any = None,
+    ):
+        self.final_path = Path(final_path)
+        self.partial_path = self.final_path.with_name(self.final_path.name[: -len(".h5")] + PARTIAL_SUFFIX)
+        if self.final_path.exists():
+            raise OdsplatError(f"{self.final_path}: take already exists; raw takes are written once")
+        if self.partial_path.exists():
+            raise OdsplatError(f"{self.partial_path}: an unfinished take is in the way; run `odsplat recover` first")
+        self.name = self.final_path.name[: -len(".h5")]
+        self.dtype = np.dtype(dtype)
+        if frame_shape is not None and self.dtype not in _FRAME_DTYPES:
+            raise InputError(self.name, f"frames must be uint8 or uint16; got {self.dtype}")
+        self.frame_shape = tuple(int(s) for s in frame_shape) if frame_shape is not None else None
+        if self.frame_shape is not None and not (
+            len(self.frame_shape) == 2 or (len(self.frame_shape) == 3 and self.frame_shape[2] == 3)
+        ):
+            raise InputError(self.name, f"frame shape must be (H, W) or (H, W, 3); got {self.frame_shape}")
+        self.bit_depth = int(bit_depth or self.dtype.itemsize * 8)
+        if self.bit_depth > self.dtype.itemsize * 8:
+            raise InputError(self.name, f"bit depth {self.bit_depth} does not fit in {self.dtype}")
+        self.channels = list(channels)
+        if self.channels and not daq_sample_rate_hz:
+            raise InputError(self.name, "DAQ channels need a sample rate")
+        self._on_finalize = on_finalize
+        self._trigger = TriggerInfo()
+        self._qc = QCInfo()
+        self._n_frames = 0
+        self._n_samples = {c.name: 0 for c in self.channels}
+        self._closed = False
+        self._view = (attrs or {}).get("view")
+
+        self.partial_path.parent.mkdir(parents=True, exist_ok=True)
+        f = h5py.File(self.partial_path, "w", libver="latest")
+        self._file = f
+        f.attrs.update(
+            {
+                "odsplat_schema": SCHEMA_VERSION,
+                "kind": "take",
+                "take": self.name,
+                "created_utc": utc_now(),
+                "complete": False,
+                "recovered": False,
+            }
+        )
+        for key, value in (attrs or {}).items():
+            f.attrs[key] = value if not isinstance(value, (dict, list)) else json.dumps(value)
+        if self.frame_shape is not None:
+            self._frames = f.create_dataset(
+                "frames",
+                shape=(0, *self.frame_shape),
+                maxshape=(None, *self.frame_shape),
+                chunks=(1, *self.frame_shape),
+                dtype=self.dtype,
+                **_compression(),
+            )
+            self._frames.attrs["bit_depth"] = self.bit_depth
+            self._times = f.create_dataset("frame_times_s", shape=(0,), maxshape=(None,), chunks=(4096,), dtype="f8")
+            self._counter = f.create_dataset("frame_counter", shape=(0,), maxshape=(None,), chunks=(4096,), dtype="i8")
+        daq = f.create_group("daq")
+        daq.attrs["sample_rate_hz"] = float(daq_sample_rate_hz or 0.0)
+        daq.attrs["t0_s"] = float(daq_t0_s)
+        daq.attrs["channel_order"] = json.dumps([c.name for c in self.channels])
+        self._daq = {}
+        for ch in self.channels:
+            ch.validate(f"{self.name}: channel {ch.name!r}")
+            ds = daq.create_dataset(ch.name, shape=(0,), maxshape=(None,), chunks=(16384,), dtype="f4")
+            ds.attrs["unit"] = ch.unit
+            ds.attrs["kind"] = ch.kind
+            ds.attrs["info"] = json.dumps(asdict(ch))
+            self._daq[ch.name] = ds
+        if swmr:
+            f.swmr_mode = True
+
+    # -- recording -------------------------------------------------------------------------
+
+    @property
+    def n_frames(self) -> int:
+        return self._n_frames
+
+    def append_frames(
+        self,
+        frames: np.ndarray,
+        times_s: Sequence[float] | np.ndarray | None = None,
+        counter: Sequence[int] | np.ndarray | None = None,
+    ) -> None:
+        """Append one frame (H,W[,3]) or a block (n,H,W[,3]); each frame is flushed before the next."""
+        if self.frame_shape is None:
+            raise OdsplatError(f"{self.name}: this take was created without frames")
+        frames = np.asarray(frames)
+        if frames.shape == self.frame_shape:
+            frames = frames[None]
+        if frames.shape[1:] != self.frame_shape:
+            raise InputError(self.name, f"frame shape {frames.shape[1:]} differs from the take's {self.frame_shape}")
+        if frames.dtype != self.dtype:
+            raise InputError(self.name, f"frame dtype {frames.dtype} differs from the take's {self.dtype}")
+        n = len(frames)
+        times = np.full(n, np.nan) if times_s is None else np.asarray(times_s, dtype="f8").reshape(n)
+        counts = np.arange(self._n_frames, self._n_frames + n) if counter is None else np.asarray(counter).reshape(n)
+        for i in range(n):
+            k = self._n_frames
+            self._frames.resize(k + 1, axis=0)
+            self._frames[k] = frames[i]
+            self._frames.flush()
+            # The times and counter are written after the pixels: their length is the count of
+            # frames whose pixels reached the file, which is what recovery trusts.
+            self._times.resize(k + 1, axis=0)
+            self._times[k] = times[i]
+            self._counter.resize(k + 1, axis=0)
+            self._counter[k] = counts[i]
+            self._times.flush()
+            self._counter.flush()
+            self._n_frames = k + 1
+
+    def append_samples(self, block: Mapping[str, np.ndarray]) -> None:
+        """Append a block of samples for every channel (same length for all, in SI units)."""
+        if set(block) != set(self._daq):
+            raise InputError(self.name, f"sample block has channels {sorted(block)}; expected {sorted(self._daq)}")
+        lengths = {len(v) for v in block.values()}
+        if len(lengths) != 1:
+            raise InputError(self.name, f"sample block channels differ in length: { {k: len(v) for k, v in block.items()} }")
+        for name, values in block.items():
+            ds = self._daq[name]
+            k = self._n_samples[name]
+            n = len(values)
+            ds.resize(k + n, axis=0)
+            ds[k:] = np.asarray(values, dtype="f4")
+            ds.flush()
+            self._n_samples[name] = k + n
+
+    def set_trigger(self, trigger: TriggerInfo) -> None:
+        self._trigger = trigger
+
+    def set_qc(self, qc: QCInfo) -> None:
+        if qc.status not in ("unchecked", "accepted", "rejected"):
+            raise InputError(self.name, f"QC status must be unchecked, accepted or rejected; got {qc.status!r}")
+        self._qc = qc
+
+    # -- finishing -------------------------------------------------------------------------
+
+    def finalize(self, *, recovered: bool = False) -> TakeRecord:
+        """Write trigger and QC, verify, fsync and rename to the final name. Returns the manifest record."""
+        self._file.close()
+        self._closed = True
+        with h5py.File(self.partial_path, "r+") as f:
+            trig = f.require_group("trigger")
+            for key, value in asdict(self._trigger).items():
+                trig.attrs[key] = _none_to_nan(value)
+            qc = f.require_group("qc")
+            qc.attrs["status"] = self._qc.status
+            qc.attrs["flags"] = json.dumps(list(self._qc.flags))
+            qc.attrs["notes"] = self._qc.notes
+            f.attrs["complete"] = not recovered
+            f.attrs["recovered"] = recovered
+            f.attrs["finalized_utc"] = utc_now()
+        self._verify()
+        fsync_path(self.partial_path)
+        os.replace(self.partial_path, self.final_path)
+        fsync_path(self.final_path.parent)
+        record = TakeRecord(
+            name=self.name,
+            file=f"takes/{self.final_path.name}",
+            view=_maybe_int(self._view),
+            status="recovered" if recovered else "complete",
+            qc=self._qc.status,
+            n_frames=self._n_frames,
+            n_samples=max(self._n_samples.values(), default=0),
+            created_utc=utc_now(),
+        )
+        log.info("take %s finalised: %d frames, %d samples", self.name, record.n_frames, record.n_samples)
+        if self._on_finalize is not None:
+            self._on_finalize(record)
+        return record
+
+    def close_unfinished(self) -> None:
+        """Close without finalising: the `.partial` file stays for `recover_partial` to deal with."""
+        if not self._closed:
+            self._file.close()
+            self._closed = True
+
+    def _verify(self) -> None:
+        with h5py.File(self.partial_path, "r") as f:
+            if self.frame_shape is not None:
+                n = (f["frames"].shape[0], f["frame_times_s"].shape[0], f["frame_counter"].shape[0])
+                if len(set(n)) != 1 or n[0] != self._n_frames:
+                    raise OdsplatError(f"{self.partial_path}: verification failed, frame datasets hold {n}")
+                if self._n_frames:
+                    f["frames"][self._n_frames - 1]  # decompresses the last chunk
+            for name, k in self._n_samples.items():
+                if f["daq"][name].shape[0] != k:
+                    raise OdsplatError(f"{self.partial_path}: verification failed for channel {name}")
+
+    def __enter__(self) -> TakeWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        # An exception leaves the partial file closed and in place: recorded data is never deleted.
+        self.close_unfinished()
+
+
+def _none_to_nan(value: Any) -> Any:
+    return np.nan if value is None else value
+
+
+def _nan_to_none(value: Any) -> Any:
+    if value is None:
+        return None
+    if isinstance(value, (float, np.floating)) and np.isnan(value):
+        return None
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _maybe_int(value: Any) -> int | None:
+    value = _nan_to_none(value)
+    return None if value is None or value == "" else int(value)
+
+
+class TakeReader:
+    """Reads a finalised take file; frames are streamed in chunks, never loaded whole."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if self.path.name.endswith(PARTIAL_SUFFIX):
+            raise IncompleteTakeError(self.path, "this take was never finalised; run `odsplat recover` on its capture")
+        try:
+            self._file = h5py.File(self.path, "r")
+        except FileNotFoundError:
+            raise InputError(self.path, "no such take file") from None
+        except OSError as exc:
+            raise InputError(self.path, f"cannot be opened as HDF5 ({exc})") from None
+        attrs = self._file.attrs
+        if attrs.get("kind") != "take" or "odsplat_schema" not in attrs:
+            self._file.close()
+            raise SchemaError(self.path, "not an odsplat take file (no odsplat_schema attribute)")
+        try:
+            check_schema(attrs["odsplat_schema"], where=f"{self.path}: odsplat_schema")
+        except SchemaError:
+            self._file.close()
+            raise
+        if not attrs.get("complete") and not attrs.get("recovered"):
+            self._file.close()
+            raise IncompleteTakeError(self.path, "the take was not finalised")
+        self.name = str(attrs.get("take", self.path.stem))
+        self.recovered = bool(attrs.get("recovered"))
+
+    # -- metadata ---------------------------------------------------------------------------
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        return {k: _nan_to_none(v) for k, v in self._file.attrs.items()}
+
+    @property
+    def view(self) -> int | None:
+        return _maybe_int(self._file.attrs.get("view"))
+
+    @property
+    def has_frames(self) -> bool:
+        return "frames" in self._file
+
+    @property
+    def frames(self) -> h5py.Dataset:
+        """The frames dataset itself: index it to read a slice, it is never read whole here."""
+        if not self.has_frames:
+            raise InputError(self.path, "this take holds no frames")
+        return self._file["frames"]
+
+    @property
+    def n_frames(self) -> int:
+        return self.frames.shape[0] if self.has_frames else 0
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        return tuple(self.frames.shape[1:])
+
+    @property
+    def bit_depth(self) -> int:
+        return int(self.frames.attrs["bit_depth"])
+
+    @property
+    def fps(self) -> float | None:
+        return _nan_to_none(self._file.attrs.get("fps"))
+
+    @property
+    def frame_times_s(self) -> np.ndarray:
+        return self._file["frame_times_s"][:] if self.has_frames else np.empty(0)
+
+    @property
+    def frame_counter(self) -> np.ndarray:
+        return self._file["frame_counter"][:] if self.has_frames else np.empty(0, dtype="i8")
+
+    @property
+    def sample_rate_hz(self) -> float:
+        return float(self._file["daq"].attrs["sample_rate_hz"])
+
+    @property
+    def daq_t0_s(self) -> float:
+        return float(self._file["daq"].attrs["t0_s"])
+
+    @property
+    def channel_names(self) -> list[str]:
+        return json.loads(self._file["daq"].attrs["channel_order"])
+
+    @property
+    def n_samples(self) -> int:
+        names = self.channel_names
+        return self._file["daq"][names[0]].shape[0] if names else 0
+
+    def channel_info(self, name: str) -> ChannelInfo:
+        return ChannelInfo(**json.loads(self._channel(name).attrs["info"]))
+
+    def channel(self, name: str) -> np.ndarray:
+        """A DAQ channel's samples in SI units (float32)."""
+        return self._channel(name)[:]
+
+    def _channel(self, name: str) -> h5py.Dataset:
+        if name not in self.channel_names:
+            raise InputError(self.path, f"no DAQ channel {name!r}; the take has {self.channel_names}")
+        return self._file["daq"][name]
+
+    @property
+    def trigger(self) -> TriggerInfo:
+        a = self._file["trigger"].attrs
+        return TriggerInfo(
+            trigger_sample=_maybe_int(a.get("trigger_sample")),
+            pretrigger_samples=_maybe_int(a.get("pretrigger_samples")),
+            camera_trigger_frame=_maybe_int(a.get("camera_trigger_frame")),
+            trigger_time_s=_nan_to_none(a.get("trigger_time_s")),
+        )
+
+    @property
+    def qc(self) -> QCInfo:
+        a = self._file["qc"].attrs
+        return QCInfo(status=str(a["status"]), flags=tuple(json.loads(a["flags"])), notes=str(a["notes"]))
+
+    @property
+    def size_bytes(self) -> int:
+        return self.path.stat().st_size
+
+    # -- frames -----------------------------------------------------------------------------
+
+    def read_frames(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        stop = self.n_frames if stop is None else min(stop, self.n_frames)
+        if not 0 <= start <= stop:
+            raise InputError(self.path, f"frame range {start}:{stop} outside 0:{self.n_frames}")
+        return self.frames[start:stop]
+
+    def iter_frames(self, chunk_frames: int = 64, start: int = 0, stop: int | None = None) -> Iterator[np.ndarray]:
+        """Yield blocks of at most `chunk_frames` frames; memory stays bounded by one block."""
+        stop = self.n_frames if stop is None else min(stop, self.n_frames)
+        for k in range(start, stop, chunk_frames):
+            yield self.frames[k : min(k + chunk_frames, stop)]
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> TakeReader:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> RecoveryReport:
+    """Turn an unfinished take into a finalised one holding every frame and sample that was flushed.
+
+    The unfinished file is kept, renamed to `<name>.h5.crashed`; the recovered take is marked
+    `recovered` with a QC flag, so it is never mistaken for a complete one.
+    """
+    partial_path = Path(partial_path)
+    name = partial_path.name[: -len(PARTIAL_SUFFIX)]
+    final_path = partial_path.with_name(name + ".h5")
+    try:
+        src = h5py.File(partial_path, "r", swmr=True)
+    except OSError as exc:
+        return RecoveryReport(name, False, 0, 0, f"{partial_path}: unreadable, left in place ({exc})")
+    with src:
+        try:
+            check_schema(src.attrs.get("odsplat_schema", "missing"), where=str(partial_path))
+            has_frames = "frames" in src
+            n_frames = min(src["frames"].shape[0], src["frame_counter"].shape[0], src["frame_times_s"].shape[0]) if has_frames else 0
+            daq = src["daq"]
+            names = json.loads(daq.attrs["channel_order"])
+            n_samples = min((daq[n].shape[0] for n in names), default=0)
+            channels = [ChannelInfo(**json.loads(daq[n].attrs["info"])) for n in names]
+            attrs = {k: v for k, v in src.attrs.items() if k not in ("odsplat_schema", "kind", "complete", "recovered")}
+            tmp_final = final_path.with_name(name + ".recovering.h5")
+            for leftover in (tmp_final, tmp_final.with_name(name + ".recovering" + PARTIAL_SUFFIX)):
+                leftover.unlink(missing_ok=True)
+            writer = TakeWriter(
+                tmp_final,
+                frame_shape=src["frames"].shape[1:] if has_frames else None,
+                dtype=src["frames"].dtype if has_frames else np.uint16,
+                bit_depth=int(src["frames"].attrs["bit_depth"]) if has_frames else None,
+                channels=channels,
+                daq_sample_rate_hz=float(daq.attrs["sample_rate_hz"]) or None,
+                daq_t0_s=float(daq.attrs["t0_s"]),
+                attrs=attrs,
+                swmr=False,
+            )
+            for k in range(0, n_frames, chunk_frames):
+                stop = min(k + chunk_frames, n_frames)
+                writer.append_frames(src["frames"][k:stop], src["frame_times_s"][k:stop], src["frame_counter"][k:stop])
+            if names and n_samples:
+                writer.append_samples({n: daq[n][:n_samples] for n in names})
+        except (OSError, KeyError, ValueError) as exc:
+            return RecoveryReport(name, False, 0, 0, f"{partial_path}: could not be recovered, left in place ({exc})")
+    message = f"recovered after a crash: {n_frames} frames and {n_samples} samples were flushed before the writer stopped"
+    writer.set_qc(QCInfo(status="unchecked", flags=("recovered",), notes=message))
+    writer.finalize(recovered=True)
+    os.replace(partial_path, partial_path.with_name(name + CRASHED_SUFFIX))
+    os.replace(tmp_final, final_path)
+    fsync_path(final_path.parent)
+    log.warning("%s: %s", partial_path, message)
+    return RecoveryReport(name, True, n_frames, n_samples, message, final_path)
+
+
+class Capture:
+    """A capture directory: the manifest, the raw takes and the derived results."""
+
+    def __init__(self, root: str | Path, manifest: Manifest):
+        self.root = Path(root)
+        self.manifest = manifest
+
+    @classmethod
+    def create(cls, root: str | Path, manifest: Manifest) -> Capture:
+        root = Path(root)
+        if (root / MANIFEST_NAME).exists():
+            raise OdsplatError(f"{root}: a capture exists here already")
+        manifest.validate(str(root / MANIFEST_NAME))
+        for sub in ("takes", "static", "derived"):
+            (root / sub).mkdir(parents=True, exist_ok=True)
+        capture = cls(root, manifest)
+        capture.save_manifest()
+        return capture
+
+    @classmethod
+    def open(cls, root: str | Path) -> Capture:
+        root = Path(root)
+        if not root.is_dir():
+            raise InputError(root, "no such capture directory")
+        return cls(root, Manifest.load(root / MANIFEST_NAME))
+
+    @property
+    def takes_dir(self) -> Path:
+        return self.root / "takes"
+
+    @property
+    def derived_dir(self) -> Path:
+        path = self.root / "derived"
+        path.mkdir(exist_ok=True)
+        return path
+
+    @property
+    def static_dir(self) -> Path:
+        return self.root / "static"
+
+    def save_manifest(self) -> None:
+        atomic_write_text(self.root / MANIFEST_NAME, self.manifest.to_json())
+
+    # -- takes ------------------------------------------------------------------------------
+
+    def take_names(self) -> list[str]:
+        return [t.name for t in self.manifest.takes]
+
+    def next_take_name(self, view: int | None = None) -> str:
+        stem = f"v{view:02d}" if view is not None else "take"
+        existing = {p.name.split(".")[0] for p in self.takes_dir.iterdir()} if self.takes_dir.exists() else set()
+        k = 0
+        while f"{stem}_{k:03d}" in existing:
+            k += 1
+        return f"{stem}_{k:03d}"
+
+    def new_take(
+        self,
+        name: str | None = None,
+        *,
+        view: int | None = None,
+        frame_shape: Sequence[int] | None = None,
+        dtype: Any = np.uint16,
+        bit_depth: int | None = None,
+        channels: Sequence[ChannelInfo] | None = None,
+        fps: float | None = None,
+        attrs: Mapping[str, Any] | None = None,
+        daq_t0_s: float = 0.0,
+    ) -> TakeWriter:
+        """Start recording a take; the manifest lists it once `finalize()` succeeds."""
+        name = name or self.next_take_name(view)
+        if name in self.take_names():
+            raise OdsplatError(f"{self.root}: take {name!r} exists already; raw takes are written once")
+        channels = self.manifest.channels if channels is None else channels
+        all_attrs = {"view": -1 if view is None else view, "fps": np.nan if fps is None else fps, "capture": self.manifest.name}
+        all_attrs.update(attrs or {})
+        return TakeWriter(
+            self.takes_dir / f"{name}.h5",
+            frame_shape=frame_shape,
+            dtype=dtype,
+            bit_depth=bit_depth,
+            channels=channels,
+            daq_sample_rate_hz=self.manifest.daq_sample_rate_hz,
+            daq_t0_s=daq_t0_s,
+            attrs=all_attrs,
+            on_finalize=self._register,
+        )
+
+    def _register(self, record: TakeRecord) -> None:
+        record.view = None if record.view is not None and record.view < 0 else record.view
+        self.manifest.takes = [t for t in self.manifest.takes if t.name != record.name] + [record]
+        self.save_manifest()
+
+    def open_take(self, name: str) -> TakeReader:
+        for t in self.manifest.takes:
+            if t.name == name:
+                return TakeReader(self.root / t.file)
+        raise InputError(self.root, f"no take {name!r}; the capture has {self.take_names()}")
+
+    def partial_takes(self) -> list[Path]:
+        """Unfinished take files left by a writer that stopped before finalising."""
+        return sorted(self.takes_dir.glob("*" + PARTIAL_SUFFIX)) if self.takes_dir.exists() else []
+
+    def unlisted_takes(self) -> list[Path]:
+        """Finalised take files the manifest does not list (a crash between rename and manifest write)."""
+        listed = {t.file for t in self.manifest.takes}
+        return [p for p in sorted(self.takes_dir.glob("*.h5")) if f"takes/{p.name}" not in listed]
+
+    def recover(self) -> list[RecoveryReport]:
+        """Recover every unfinished take and list finalised takes the manifest missed."""
+        reports = []
+        for partial in self.partial_takes():
+            report = recover_partial(partial)
+            reports.append(report)
+        for path in self.unlisted_takes():
+            with TakeReader(path) as reader:
+                record = TakeRecord(
+                    name=path.name[:-3],
+                    file=f"takes/{path.name}",
+                    view=reader.view,
+                    status="recovered" if reader.recovered else "complete",
+                    qc=reader.qc.status,
+                    n_frames=reader.n_frames,
+                    n_samples=reader.n_samples,
+                    created_utc=str(reader.attrs.get("created_utc", "")),
+                )
+            self._register(record)
+        return reports
+
+    def copy_static(self, files: Sequence[Path]) -> None:
+        self.static_dir.mkdir(exist_ok=True)
+        for src in files:
+            shutil.copy2(src, self.static_dir / Path(src).name)

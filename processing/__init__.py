@@ -1,0 +1,1 @@
+"""Processing: video motion magnification of every view, streamed in bounded memory."""

@@ -1,0 +1,1 @@
+"""Reconstruction: camera poses with metric scale and dynamic 3D Gaussians."""
