@@ -365,7 +365,8 @@ class TakeReader:
 
     @property
     def view(self) -> int | None:
-        return _maybe_int(self._file.attrs.get("view"))
+        view = _maybe_int(self._file.attrs.get("view"))
+        return None if view is None or view < 0 else view
 
     @property
     def has_frames(self) -> bool:

@@ -1,0 +1,269 @@
+"""`odsplat import`: build a capture from recordings of other equipment plus a small rig file.
+
+The rig file format is documented in docs/import.md. The capture is assembled in a temporary
+directory beside the target and renamed into place only when every take has been written,
+so a bad input leaves nothing behind.
+"""
+from __future__ import annotations
+
+import glob
+import logging
+import os
+import shutil
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from .errors import InputError
+from .io.signals import SignalSet, read_signals
+from .io.video import VideoSource, open_video
+from .manifest import CHANNEL_KINDS, CameraInfo, ChannelInfo, Intrinsics, Manifest, TagLayout, Viewpoint, from_plain
+from .store import Capture, QCInfo, TriggerInfo, fsync_path
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RigChannel:
+    """A channel of the rig file: the manifest's ChannelInfo plus where to find it in the files."""
+
+    name: str
+    kind: str
+    column: str | None = None
+    unit: str | None = None
+    sensitivity_v_per_unit: float | None = None
+    position_m: list[float] | None = None
+    direction: list[float] | None = None
+    node: int | None = None
+    device: str = ""
+
+    def info(self) -> ChannelInfo:
+        return ChannelInfo(
+            name=self.name,
+            kind=self.kind,
+            unit=CHANNEL_KINDS.get(self.kind, "?"),
+            sensitivity_v_per_unit=self.sensitivity_v_per_unit,
+            position_m=self.position_m,
+            direction=self.direction,
+            node=self.node,
+            device=self.device,
+        )
+
+
+@dataclass
+class RigTake:
+    name: str | None = None
+    view: int | None = None
+    video: str | None = None
+    signals: str | None = None
+    fps: float | None = None
+    pretrigger_samples: int | None = None
+    camera_trigger_time_s: float | None = None
+    notes: str = ""
+
+
+@dataclass
+class RigCamera:
+    model: str | None = None
+    intrinsics: Intrinsics | None = None
+    exposure_s: float | None = None
+
+
+@dataclass
+class Rig:
+    name: str
+    takes: list[RigTake]
+    camera: RigCamera = field(default_factory=RigCamera)
+    channels: list[RigChannel] = field(default_factory=list)
+    tags: TagLayout | None = None
+    views: list[Viewpoint] = field(default_factory=list)
+    static: list[str] = field(default_factory=list)
+    structure: dict[str, Any] = field(default_factory=dict)
+    notes: str = ""
+
+    @classmethod
+    def load(cls, path: str | Path) -> Rig:
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError(path, "no such rig file") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise InputError(path, f"not valid TOML: {exc}") from None
+        rig = from_plain(cls, data, str(path))
+        if not rig.takes:
+            raise InputError(f"{path}: takes", "the rig lists no takes; add at least one [[takes]] table")
+        for i, take in enumerate(rig.takes):
+            if take.video is None and take.signals is None:
+                raise InputError(f"{path}: takes[{i}]", "a take needs a video, a signals file, or both")
+        for i, ch in enumerate(rig.channels):
+            ch.info().validate(f"{path}: channels[{i}]")
+        return rig
+
+
+def import_capture(rig_path: str | Path, out: str | Path, *, data_dir: str | Path | None = None,
+                   chunk_frames: int = 64) -> Capture:
+    """Build the capture `out` from the rig file; relative paths resolve against `data_dir` (default: the rig's folder)."""
+    rig_path = Path(rig_path)
+    rig = Rig.load(rig_path)
+    base = Path(data_dir) if data_dir is not None else rig_path.parent
+    out = Path(out)
+    if out.exists():
+        raise InputError(out, "exists already; choose a new capture directory")
+    tmp = out.with_name(f".{out.name}.importing-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        capture = _build(rig, rig_path, base, tmp, chunk_frames)
+        os.replace(tmp, out)
+        fsync_path(out.parent)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    capture.root = out
+    log.info("imported %d takes into %s", len(capture.manifest.takes), out)
+    return capture
+
+
+def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) -> Capture:
+    # Open and check every input before writing anything, so errors surface early.
+    videos: list[VideoSource | None] = []
+    signals: list[SignalSet | None] = []
+    for i, take in enumerate(rig.takes):
+        videos.append(open_video(_resolve(base, take.video), fps=take.fps) if take.video else None)
+        signals.append(_read_take_signals(rig, base, take) if take.signals else None)
+    camera = _camera_info(rig, rig_path, videos)
+    rates = {s.sample_rate_hz for s in signals if s is not None}
+    if len(rates) > 1:
+        raise InputError(f"{rig_path}: takes", f"signal files disagree on the sample rate: {sorted(rates)} Hz")
+    manifest = Manifest(
+        name=rig.name,
+        camera=camera,
+        daq_sample_rate_hz=rates.pop() if rates else None,
+        channels=[c.info() for c in rig.channels],
+        tags=rig.tags,
+        views=rig.views,
+        structure=rig.structure,
+        notes=rig.notes,
+    )
+    capture = Capture.create(root, manifest)
+    static = [Path(p) for pattern in rig.static for p in sorted(glob.glob(str(_resolve(base, pattern))))]
+    capture.copy_static(static)
+    for take, video, sigs in zip(rig.takes, videos, signals):
+        _write_take(capture, take, video, sigs, chunk_frames)
+    return capture
+
+
+def _resolve(base: Path, name: str) -> Path:
+    path = Path(name)
+    return path if path.is_absolute() else base / path
+
+
+def _read_take_signals(rig: Rig, base: Path, take: RigTake) -> SignalSet:
+    path = _resolve(base, take.signals)
+    columns = [c.column or c.name for c in rig.channels]
+    if not columns:
+        raise InputError(path, "the rig declares no [[channels]], so there is nothing to read from the signal file")
+    units = {c.column or c.name: c.unit for c in rig.channels if c.unit}
+    sigs = read_signals(path, units=units, columns=columns)
+    for ch, col in zip(rig.channels, columns):
+        si = sigs.channel(col).unit
+        if si != CHANNEL_KINDS[ch.kind]:
+            raise InputError(path, f"column {col!r} is in {si}, but channel {ch.name!r} is a {ch.kind} channel "
+                                   f"({CHANNEL_KINDS[ch.kind]}); fix the rig's kind or unit")
+    return sigs
+
+
+def _camera_info(rig: Rig, rig_path: Path, videos: list[VideoSource | None]) -> CameraInfo:
+    present = [v for v in videos if v is not None]
+    if not present:
+        return CameraInfo(model=rig.camera.model or "none", intrinsics=rig.camera.intrinsics)
+    first = present[0]
+    for v in present[1:]:
+        if (v.frame_shape, v.fps, v.bit_depth) != (first.frame_shape, first.fps, first.bit_depth):
+            raise InputError(v.path, f"{v.frame_shape} at {v.fps} fps, {v.bit_depth} bit differs from the first "
+                                     f"take's {first.frame_shape} at {first.fps} fps, {first.bit_depth} bit ({first.path.name})")
+    return CameraInfo(
+        model=rig.camera.model or first.camera_model or "unknown",
+        width_px=first.width_px,
+        height_px=first.height_px,
+        fps=first.fps,
+        bit_depth=first.bit_depth,
+        n_colors=first.n_colors,
+        exposure_s=rig.camera.exposure_s,
+        intrinsics=rig.camera.intrinsics,
+    )
+
+
+def _write_take(capture: Capture, take: RigTake, video: VideoSource | None, sigs: SignalSet | None,
+                chunk_frames: int) -> None:
+    manifest = capture.manifest
+    attrs: dict[str, Any] = {"source": "import", "notes": take.notes}
+    if video is not None:
+        attrs["source_video"] = str(video.path)
+        attrs["video_header"] = video.header
+    if sigs is not None:
+        attrs["source_signals"] = str(sigs.path)
+    writer = capture.new_take(
+        take.name,
+        view=take.view,
+        frame_shape=video.frame_shape if video else None,
+        dtype=video.dtype if video else np.uint16,
+        bit_depth=video.bit_depth if video else None,
+        channels=manifest.channels if sigs else [],
+        fps=video.fps if video else None,
+        attrs=attrs,
+        daq_t0_s=sigs.t0_s if sigs else 0.0,
+    )
+    with writer:
+        trigger_sample = take.pretrigger_samples
+        trigger_time_s = None
+        if sigs is not None:
+            # The signals were read with the rig's columns in the manifest's channel order.
+            writer.append_samples({ch.name: sc.values for ch, sc in zip(manifest.channels, sigs.channels, strict=True)})
+            if trigger_sample is not None:
+                trigger_time_s = sigs.t0_s + trigger_sample / sigs.sample_rate_hz
+        camera_trigger = video.trigger_frame if video else None
+        if video is not None:
+            counter = _camera_frame_numbers(video)
+            times = _frame_times(video, counter, take)
+            progress = tqdm(total=video.n_frames, desc=f"import {writer.name}", unit="frame", leave=False,
+                            disable=None)
+            k = 0
+            for block in video.iter_chunks(chunk_frames):
+                n = len(block)
+                writer.append_frames(block, times[k:k + n], counter[k:k + n])
+                k += n
+                progress.update(n)
+            progress.close()
+            if k != video.n_frames:
+                raise InputError(video.path, f"delivered {k} frames, but its header declares {video.n_frames}")
+        writer.set_trigger(TriggerInfo(
+            trigger_sample=trigger_sample,
+            pretrigger_samples=take.pretrigger_samples,
+            camera_trigger_frame=camera_trigger,
+            trigger_time_s=trigger_time_s,
+        ))
+        writer.set_qc(QCInfo(status="unchecked", notes="imported; hit QC not yet run"))
+        writer.finalize()
+
+
+def _camera_frame_numbers(video: VideoSource) -> np.ndarray:
+    """The camera's frame number of each file frame; Photron numbers from the trigger (frame 0)."""
+    index = np.arange(video.n_frames)
+    if video.start_frame is None:
+        return index
+    return video.start_frame + index * video.frame_step
+
+
+def _frame_times(video: VideoSource, counter: np.ndarray, take: RigTake) -> np.ndarray:
+    """Frame times in the DAQ time base when the rig says when the camera's trigger frame was exposed."""
+    if take.camera_trigger_time_s is None or not video.fps:
+        return np.full(video.n_frames, np.nan)
+    # Without a camera numbering the trigger is the header's trigger frame, or the first frame.
+    trigger_number = 0 if video.start_frame is not None else (video.trigger_frame or 0)
+    record_rate = video.fps * video.frame_step
+    return take.camera_trigger_time_s + (counter - trigger_number) / record_rate

@@ -1,0 +1,146 @@
+"""`odsplat import`: real recordings into a capture; bad input stops with one line and leaves nothing."""
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from odsplat.errors import InputError
+from odsplat.importer import import_capture
+from odsplat.store import Capture
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _nothing_left(out: Path) -> bool:
+    return not out.exists() and not list(out.parent.glob(f".{out.name}.importing-*"))
+
+
+def test_ladisk_example_rig(shared_data, tmp_path):
+    out = tmp_path / "beam"
+    cap = import_capture(REPO / "examples" / "ladisk-beam.toml", out, data_dir=shared_data)
+    assert cap.root == out and Capture.open(out).take_names() == ["hit_acc", "hit_cam", "showcase"]
+    m = cap.manifest
+    assert m.daq_sample_rate_hz == pytest.approx(50_000.0)
+    assert (m.camera.width_px, m.camera.height_px, m.camera.bit_depth) == (640, 40, 8)
+    with cap.open_take("hit_acc") as r:
+        assert r.n_samples == 50_030 and not r.has_frames
+        assert r.channel("force")[0] == pytest.approx(0.232147, rel=1e-6)
+        assert r.channel("acc")[0] == pytest.approx(-0.007387 * 9.80665, rel=1e-6)
+        assert r.channel_info("acc").unit == "m/s^2"
+        assert r.trigger.trigger_sample == 30 and r.trigger.trigger_time_s == pytest.approx(30 / 50_000)
+        # The hammer hit lies just after the 30 pre-samples.
+        assert 30 <= int(np.argmax(r.channel("force"))) < 200
+    with cap.open_take("showcase") as r:
+        assert (r.n_frames, r.frame_shape, r.frames.dtype) == (75, (40, 640), np.uint8)
+        assert r.fps == pytest.approx(m.camera.fps) and r.view == 0
+        raw = np.fromfile(shared_data / "pyidi-samples" / "data_showcase.mraw", dtype=np.uint8).reshape(75, 40, 640)
+        np.testing.assert_array_equal(np.concatenate(list(r.iter_frames(16))), raw)
+
+
+def test_truncated_mraw_leaves_nothing(shared_data, tmp_path):
+    src = shared_data / "pyidi-samples"
+    shutil.copy(src / "data_showcase.cih", tmp_path / "cam.cih")
+    (tmp_path / "cam.mraw").write_bytes((src / "data_showcase.mraw").read_bytes()[:-1000])
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "t"\n[[takes]]\nvideo = "cam.cih"\n')
+    out = tmp_path / "cap"
+    with pytest.raises(InputError, match=r"cam\.mraw.*truncated"):
+        import_capture(rig, out)
+    assert _nothing_left(out)
+
+
+def _write_sequence(folder: Path, n: int) -> np.ndarray:
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 4096, size=(n, 24, 32), dtype=np.uint16)
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(folder / f"img_{k}.png"), frame)
+    return frames
+
+
+def _write_csv(path: Path, n: int, fs: float, bad: str = "") -> None:
+    t = np.arange(n) / fs
+    force = np.exp(-(((t - 0.01) / 0.0005) ** 2)) * 100.0
+    acc = np.sin(2 * np.pi * 80 * t)
+    lines = ["time [s],hammer [N],acc1 [g]"] + [f"{a:.8f},{b:.6f},{c:.6f}" for a, b, c in zip(t, force, acc)]
+    if bad == "nan":
+        lines[40] = lines[40].rsplit(",", 1)[0] + ",nan"
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _rig(tmp_path: Path, extra_channel: str = "") -> Path:
+    rig = tmp_path / "rig.toml"
+    rig.write_text(
+        'name = "seq"\n'
+        '[[channels]]\nname = "force"\nkind = "force"\ncolumn = "hammer"\n'
+        '[[channels]]\nname = "acc1"\nkind = "acceleration"\nposition_m = [0.1, 0.2, 0.3]\ndirection = [0, 0, 1]\n'
+        + extra_channel +
+        '[[takes]]\nname = "hit"\nview = 4\nvideo = "seq"\nsignals = "daq.csv"\nfps = 1000.0\n'
+        'pretrigger_samples = 200\ncamera_trigger_time_s = 0.0095\n'
+    )
+    return rig
+
+
+def test_sequence_and_csv_with_frame_times(tmp_path):
+    frames = _write_sequence(tmp_path / "seq", 12)
+    _write_csv(tmp_path / "daq.csv", 2000, 20_000.0)
+    cap = import_capture(_rig(tmp_path), tmp_path / "cap")
+    with cap.open_take("hit") as r:
+        np.testing.assert_array_equal(r.read_frames(), frames)
+        assert r.bit_depth == 16 and r.view == 4
+        np.testing.assert_allclose(r.frame_times_s, 0.0095 + np.arange(12) / 1000.0)
+        assert r.sample_rate_hz == pytest.approx(20_000.0)
+        assert r.channel("force").max() == pytest.approx(100.0, rel=1e-3)
+        assert np.abs(r.channel("acc1")).max() == pytest.approx(9.80665, rel=1e-3)
+        assert r.channel_info("acc1").position_m == [0.1, 0.2, 0.3]
+        assert r.trigger.trigger_time_s == pytest.approx(0.01)
+
+
+def test_csv_with_nan_leaves_nothing(tmp_path):
+    _write_sequence(tmp_path / "seq", 3)
+    _write_csv(tmp_path / "daq.csv", 200, 20_000.0, bad="nan")
+    out = tmp_path / "cap"
+    with pytest.raises(InputError, match=r"daq\.csv.*(NaN|nan)"):
+        import_capture(_rig(tmp_path), out)
+    assert _nothing_left(out)
+
+
+def test_missing_column_is_named(tmp_path):
+    _write_sequence(tmp_path / "seq", 3)
+    _write_csv(tmp_path / "daq.csv", 200, 20_000.0)
+    out = tmp_path / "cap"
+    extra = '[[channels]]\nname = "acc2"\nkind = "acceleration"\n'
+    with pytest.raises(InputError, match=r"daq\.csv.*acc2"):
+        import_capture(_rig(tmp_path, extra), out)
+    assert _nothing_left(out)
+
+
+def test_unit_that_does_not_fit_the_kind(tmp_path):
+    _write_sequence(tmp_path / "seq", 3)
+    _write_csv(tmp_path / "daq.csv", 200, 20_000.0)
+    rig = _rig(tmp_path)
+    rig.write_text(rig.read_text().replace('column = "hammer"', 'column = "hammer"\nunit = "g"', 1))
+    with pytest.raises(InputError, match=r"hammer.*m/s\^2.*force"):
+        import_capture(rig, tmp_path / "cap")
+
+
+def test_rig_field_errors_name_the_path(tmp_path):
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "x"\n[[takes]]\nvideo = "a.npy"\nfps = "fast"\n')
+    with pytest.raises(InputError, match=r"rig\.toml\.takes\[0\]\.fps: expected a number"):
+        import_capture(rig, tmp_path / "cap")
+    rig.write_text('name = "x"\n[[channels]]\nname = "f"\nkind = "strain"\n[[takes]]\nsignals = "a.csv"\n')
+    with pytest.raises(InputError, match=r"channels\[0\]\.kind"):
+        import_capture(rig, tmp_path / "cap")
+
+
+def test_existing_capture_is_not_overwritten(tmp_path):
+    (tmp_path / "cap").mkdir()
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "x"\n[[takes]]\nvideo = "a.npy"\n')
+    with pytest.raises(InputError, match="exists already"):
+        import_capture(rig, tmp_path / "cap")
