@@ -105,6 +105,7 @@ class TagPlacement:
     id: int
     corners_m: list[list[float]]
     on_structure: bool = False
+    size_m: float | None = None  # side of the black square; TagLayout.size_m when None
 
 
 @dataclass
