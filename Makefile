@@ -32,6 +32,7 @@ demo: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python bench/store.py
+	$(BIN)/python bench/render.py
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info

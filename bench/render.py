@@ -1,9 +1,9 @@
 """Benchmark of the hil_sim software renderer: frames/s of `render` against its 1-thread run and the numpy reference.
 
 Prints one JSON line on stdout; progress goes to stderr. The scene is built by `synthetic_scene` (a bent, subdivided
-textured column on a textured floor board) unless --scene names another; frames/s are after JIT warm-up, each frame
-a slightly different deformation (as in a vibration take), `supersample` 3. compile_s is the first call of a fresh
-process with an empty numba cache (a subprocess); first_call_s the first call here (cache hit or miss).
+textured column on a textured floor board) unless --scene names another; frames/s are after JIT warm-up (median
+frame time), each frame a slightly different deformation (as in a vibration take), `supersample` 3. compile_s is
+the first call of a fresh process with an empty numba cache (a subprocess); first_call_s the first call here.
 """
 from __future__ import annotations
 
@@ -110,21 +110,19 @@ SCENES = {"synthetic": synthetic_scene}
 
 
 def _fps(scene: Scene, size: int, *, reference: bool = False) -> tuple[float, int, dict[str, float]]:
-    """Frames/s at size x size over at least MIN_TIME_S (one frame for the reference), and the scene's coverage.
-
-    Each frame deforms the mesh, shades it (lambert_shade) and renders it, as a take would."""
+    """Frames/s at size x size, from the median frame time over at least MIN_TIME_S (one frame for the reference),
+    and the scene's coverage. Each frame deforms the mesh, shades it (lambert_shade) and renders it, as a take would.
+    The median, not the mean, so that other processes on a shared machine skew it less."""
     cam = scene.camera(size)
     fn = render_reference if reference else render
-    frames = 0
-    t0 = time.perf_counter()
-    while True:
-        res = fn(scene.frame(frames), cam, scene.atlas, supersample=SUPERSAMPLE)
-        frames += 1
-        elapsed = time.perf_counter() - t0
-        if reference or (elapsed >= MIN_TIME_S and frames >= 5):
-            break
+    times = []
+    t_end = time.perf_counter() + MIN_TIME_S
+    while not times or not reference and (len(times) < 5 or time.perf_counter() < t_end):
+        t0 = time.perf_counter()
+        res = fn(scene.frame(len(times)), cam, scene.atlas, supersample=SUPERSAMPLE)
+        times.append(time.perf_counter() - t0)
     cover = {"coverage": float(res.coverage.mean()), "structure_coverage": float((res.object_id == 1).mean())}
-    return frames / elapsed, frames, cover
+    return 1.0 / float(np.median(times)), len(times), cover
 
 
 def _cold_compile_s() -> float:

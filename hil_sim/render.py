@@ -158,7 +158,7 @@ class RenderResult:
 
 
 def lambert_shade(vertices_m, faces, light_dir, ambient: float = 0.3) -> np.ndarray:
-    """Per-face brightness ambient + (1 - ambient) max(0, n . l) from the (deformed) geometry.
+    """Per-face brightness ambient + (1 - ambient) max(0, -n . l) from the (deformed) geometry, n and l unit vectors.
 
     light_dir is the direction the light travels, from the light into the scene (need not be unit length):
     (0, 0, -1) is a light straight overhead. n is the outward normal of counter-clockwise faces, so faces turned
