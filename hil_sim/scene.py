@@ -18,6 +18,8 @@ from .render import TexturedMesh, lambert_shade
 from .structure import ModalStructure
 
 STRUCTURE, FLOOR, FLOOR_TAG, STRUCTURE_TAG = 1, 2, 3, 4
+# Colours for RGB scenes: a painted (orange) structure on a grey floor, black-and-white tags.
+_TINT = {STRUCTURE: (0.95, 0.55, 0.20), FLOOR: (0.80, 0.80, 0.78), FLOOR_TAG: (1.0, 1.0, 1.0), STRUCTURE_TAG: (1.0, 1.0, 1.0)}
 _TAG_CELLS = 10  # a tag36h11 image is 8 cells of black-bordered code plus a 1-cell white quiet zone each side
 
 
@@ -31,6 +33,7 @@ class _Builder:
     object_id: list[np.ndarray] = field(default_factory=list)
     textures: list[np.ndarray] = field(default_factory=list)
     n_vertices: int = 0
+    rgb: bool = False
 
     def quad(self, origin, u_axis, v_axis, size_u_m, size_v_m, cell_m, texture, obj) -> None:
         """A planar rectangle origin + a*u + b*v, a in [0, size_u], b in [0, size_v]; texture row = v."""
@@ -52,6 +55,8 @@ class _Builder:
         self.uv.append(uv.reshape(-1, 2).astype(np.float32))
         self.faces.append(tris.astype(np.int32))
         self.object_id.append(np.full(len(tris), obj, np.int16))
+        if self.rgb:
+            texture = texture[..., None] * np.asarray(_TINT[obj], np.float32)
         self.textures.append(texture.astype(np.float32))
         self.n_vertices += len(pts.reshape(-1, 3))
 
@@ -126,11 +131,11 @@ class RigScene:
 
 def build_scene(structure: ModalStructure | None = None, *, cell_m: float = 0.01, texel_m: float = 1e-3,
                 floor_half_m: float = 0.75, floor_tag_size_m: float = 0.12, structure_tag_size_m: float = 0.06,
-                seed: int = 0) -> RigScene:
+                rgb: bool = False, seed: int = 0) -> RigScene:
     """The default rig: structure with a material-fixed speckle, floor with 8 tag boards, 2 tags on the column."""
     structure = structure or ModalStructure()
     rng = np.random.default_rng(seed)
-    b = _Builder()
+    b = _Builder(rgb=rgb)
     ex, ey, ez = np.eye(3)
     for name, (lo, hi) in structure.geometry.boxes().items():
         size = hi - lo

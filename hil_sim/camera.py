@@ -1,0 +1,215 @@
+"""A simulated high-speed camera filming the rig: its own clock, triggers, pretrigger ring buffer,
+frame counter, exposure strobe (TTL), dropped frames, sensor noise and exposure-time blur.
+
+Times are DAQ times unless named otherwise. The camera's clock may be offset from and drift
+against the DAQ's, as real ones do; frames lie on the camera's clock ticks.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from odsplat.errors import InputError, OdsplatError
+
+from .render import PinholeCamera, RenderResult, expose, render
+from .scene import RigScene
+
+TRIGGER_MODES = ("internal", "external")
+PRETRIGGER_MODES = ("start", "center", "end")
+
+
+@dataclass(frozen=True)
+class SimCameraConfig:
+    fps: float = 2000.0
+    exposure_s: float | None = None     # default: half the frame period
+    bit_depth: int = 12                 # 8 or 12
+    rgb: bool = False
+    full_well_e: float = 20_000.0
+    read_noise_e: float = 5.0
+    shot_noise: bool = True
+    blur_samples: int = 1               # renders averaged over the exposure (1: no exposure blur)
+    supersample: int = 3
+    background: float = 0.5
+    ttl_high_v: float = 5.0
+
+    @property
+    def exposure(self) -> float:
+        return self.exposure_s if self.exposure_s is not None else 0.5 / self.fps
+
+    def validate(self) -> None:
+        if self.fps <= 0:
+            raise InputError("SimCameraConfig.fps", f"must be positive, got {self.fps}")
+        if not 0 < self.exposure <= 1.0 / self.fps:
+            raise InputError("SimCameraConfig.exposure_s", f"must lie in (0, 1/fps = {1 / self.fps:.3g} s], got {self.exposure}")
+        if self.bit_depth not in (8, 12):
+            raise InputError("SimCameraConfig.bit_depth", f"expected 8 or 12, got {self.bit_depth}")
+        if self.blur_samples < 1:
+            raise InputError("SimCameraConfig.blur_samples", f"must be at least 1, got {self.blur_samples}")
+
+
+@dataclass(frozen=True)
+class Recording:
+    """What one armed-and-triggered acquisition holds: frame counters (0 = trigger frame) and their times."""
+
+    counters: np.ndarray            # camera frame numbers delivered, dropped ones left out
+    exposure_start_s: np.ndarray    # DAQ time of each delivered frame's exposure start
+    trigger_time_s: float           # DAQ time of the trigger (the edge, or the arm for internal)
+    trigger_frame_time_s: float     # DAQ time of frame 0's exposure start
+    pretrigger_requested: int
+    pretrigger_available: int       # fewer than requested when armed too shortly before the trigger
+    dropped: np.ndarray             # counters that were exposed but never delivered
+    end_time_s: float               # DAQ time when the last frame's exposure ends: the strobe stops
+
+
+class SimCamera:
+    """The camera device model. `motion(t_s)` gives the structure's modal coordinates (n_modes, T) at DAQ times."""
+
+    model = "odsplat hil_sim camera"
+
+    def __init__(self, scene: RigScene, camera: PinholeCamera, motion: Callable[[np.ndarray], np.ndarray],
+                 config: SimCameraConfig | None = None, *, clock_offset_s: float = 0.0, clock_drift_ppm: float = 0.0,
+                 drop_counters: Sequence[int] = (), seed: int | None = 0):
+        self.scene = scene
+        self.camera = camera
+        self.motion = motion
+        self.config = config or SimCameraConfig()
+        self.config.validate()
+        self.clock_offset_s = float(clock_offset_s)
+        self.clock_drift_ppm = float(clock_drift_ppm)
+        self.drop_counters = frozenset(int(c) for c in drop_counters)
+        self._rng = np.random.default_rng(seed)
+        self._armed_at_s: float | None = None
+        self._plan: tuple[int, int, str] | None = None
+        self.recording: Recording | None = None
+
+    # -- clock --------------------------------------------------------------------------------
+
+    @property
+    def period_s(self) -> float:
+        """The true frame period in DAQ time: the nominal one, stretched by the clock drift."""
+        return 1.0 / (self.config.fps * (1.0 + 1e-6 * self.clock_drift_ppm))
+
+    def tick_time_s(self, tick: np.ndarray | int) -> np.ndarray:
+        """DAQ time of the exposure start of the camera's clock tick `tick`."""
+        return self.clock_offset_s + np.asarray(tick, float) * self.period_s
+
+    def _first_tick_at_or_after(self, t_s: float) -> int:
+        return int(np.ceil((t_s - self.clock_offset_s) / self.period_s - 1e-9))
+
+    # -- trigger and acquire -------------------------------------------------------------------
+
+    def arm(self, *, n_frames: int, pretrigger: str | int = "start", trigger: str = "external", at_s: float = 0.0) -> None:
+        """Start filling the ring buffer at DAQ time `at_s`; the take will hold `n_frames` frames."""
+        if trigger not in TRIGGER_MODES:
+            raise InputError("SimCamera.trigger", f"expected one of {TRIGGER_MODES}, got {trigger!r}")
+        if n_frames < 1:
+            raise InputError("SimCamera.n_frames", f"must be at least 1, got {n_frames}")
+        if isinstance(pretrigger, str):
+            if pretrigger not in PRETRIGGER_MODES:
+                raise InputError("SimCamera.pretrigger", f"expected one of {PRETRIGGER_MODES} or a frame count, got {pretrigger!r}")
+            pre = {"start": 0, "center": n_frames // 2, "end": n_frames - 1}[pretrigger]
+        else:
+            pre = int(pretrigger)
+            if not 0 <= pre < n_frames:
+                raise InputError("SimCamera.pretrigger", f"must lie in 0..{n_frames - 1} frames, got {pre}")
+        self._armed_at_s = float(at_s)
+        self._plan = (n_frames, pre, trigger)
+        self.recording = None
+        if trigger == "internal":
+            self._record(float(at_s))
+
+    def trigger_at(self, t_s: float) -> Recording:
+        """An external trigger edge at DAQ time t_s: frame 0 is the first exposure starting at or after it."""
+        if self._plan is None or self._armed_at_s is None:
+            raise OdsplatError("SimCamera: trigger before arm")
+        if self._plan[2] != "external":
+            raise OdsplatError("SimCamera: armed for an internal trigger; it started recording when armed")
+        if t_s < self._armed_at_s:
+            raise OdsplatError(f"SimCamera: trigger at {t_s} s precedes the arm at {self._armed_at_s} s")
+        return self._record(float(t_s))
+
+    def _record(self, t_trigger_s: float) -> Recording:
+        n_frames, pre, _ = self._plan
+        trigger_tick = self._first_tick_at_or_after(t_trigger_s)
+        # The ring buffer holds only what was exposed since the arm.
+        first_buffered = self._first_tick_at_or_after(self._armed_at_s)
+        available = min(pre, trigger_tick - first_buffered)
+        ticks = np.arange(trigger_tick - available, trigger_tick - pre + n_frames)
+        counters = ticks - trigger_tick
+        keep = ~np.isin(counters, list(self.drop_counters))
+        self.recording = Recording(
+            counters=counters[keep],
+            exposure_start_s=self.tick_time_s(ticks[keep]),
+            trigger_time_s=t_trigger_s,
+            trigger_frame_time_s=float(self.tick_time_s(trigger_tick)),
+            pretrigger_requested=pre,
+            pretrigger_available=int(available),
+            dropped=counters[~keep],
+            end_time_s=float(self.tick_time_s(ticks[-1])) + self.config.exposure,
+        )
+        return self.recording
+
+    # -- data ---------------------------------------------------------------------------------
+
+    def _require_recording(self) -> Recording:
+        if self.recording is None:
+            raise OdsplatError("SimCamera: nothing recorded yet (arm, then trigger)")
+        return self.recording
+
+    def radiance(self, t_start_s: float, *, alpha: float = 1.0) -> np.ndarray:
+        """Noise-free radiance integrated over one exposure starting at DAQ time t_start_s."""
+        cfg = self.config
+        times = t_start_s + (np.arange(cfg.blur_samples) + 0.5) / cfg.blur_samples * cfg.exposure
+        q = np.asarray(self.motion(times), float).reshape(self.scene.structure.n_modes, len(times))
+        acc = None
+        for k in range(len(times)):
+            image = render(self.scene.mesh(q[:, k], alpha), self.camera, self.scene.atlas,
+                           supersample=cfg.supersample, background=cfg.background).image
+            acc = image if acc is None else acc + image
+        return acc / len(times)
+
+    def truth(self, t_start_s: float, *, alpha: float = 1.0) -> RenderResult:
+        """Ground truth at the middle of an exposure: image (motion times alpha), depth, object id, coverage."""
+        q = np.asarray(self.motion(np.array([t_start_s + 0.5 * self.config.exposure])), float).reshape(-1)
+        return render(self.scene.mesh(q, alpha), self.camera, self.scene.atlas,
+                      supersample=self.config.supersample, background=self.config.background)
+
+    def expose(self, radiance: np.ndarray) -> np.ndarray:
+        cfg = self.config
+        return expose(radiance, bit_depth=cfg.bit_depth, full_well_e=cfg.full_well_e, read_noise_e=cfg.read_noise_e,
+                      shot_noise=cfg.shot_noise, rng=self._rng, rgb=cfg.rgb)
+
+    def frames(self) -> Iterator[tuple[int, float, np.ndarray]]:
+        """The recorded frames in order: (counter, exposure start in DAQ time, image)."""
+        rec = self._require_recording()
+        for counter, t in zip(rec.counters, rec.exposure_start_s):
+            yield int(counter), float(t), self.expose(self.radiance(float(t)))
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        hw = (self.camera.height_px, self.camera.width_px)
+        return (*hw, 3) if self.config.rgb else hw
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(np.uint8 if self.config.bit_depth == 8 else np.uint16)
+
+    def ttl(self, t_s: np.ndarray) -> np.ndarray:
+        """The exposure strobe in volts at DAQ times t_s: high while any frame since the arm is exposed.
+
+        Dropped frames were still exposed, so they strobe too: that is how sync finds them.
+        """
+        t = np.asarray(t_s, float)
+        if self._armed_at_s is None:
+            return np.zeros_like(t)
+        rec = self.recording
+        first = self._first_tick_at_or_after(self._armed_at_s)
+        phase = (t - self.clock_offset_s) / self.period_s
+        tick = np.floor(phase)
+        exposed = (phase - tick) * self.period_s < self.config.exposure
+        live = tick >= first
+        if rec is not None:
+            live &= t < rec.end_time_s
+        return np.where(exposed & live, self.config.ttl_high_v, 0.0)
