@@ -132,7 +132,7 @@ def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) 
     # Open and check every input before writing anything, so errors surface early.
     videos: list[VideoSource | None] = []
     signals: list[SignalSet | None] = []
-    for i, take in enumerate(rig.takes):
+    for take in rig.takes:
         videos.append(open_video(_resolve(base, take.video), fps=take.fps) if take.video else None)
         signals.append(_read_take_signals(rig, base, take) if take.signals else None)
     camera = _camera_info(rig, rig_path, videos)

@@ -274,7 +274,7 @@ class TakeWriter:
         record = TakeRecord(
             name=self.name,
             file=f"takes/{self.final_path.name}",
-            view=_maybe_int(self._view),
+            view=_view_or_none(self._view),
             status="recovered" if recovered else "complete",
             qc=self._qc.status,
             n_frames=self._n_frames,
@@ -329,6 +329,12 @@ def _maybe_int(value: Any) -> int | None:
     return None if value is None or value == "" else int(value)
 
 
+def _view_or_none(value: Any) -> int | None:
+    """A take file stores "no viewpoint" as -1 (HDF5 attributes cannot be None)."""
+    view = _maybe_int(value)
+    return None if view is None or view < 0 else view
+
+
 class TakeReader:
     """Reads a finalised take file; frames are streamed in chunks, never loaded whole."""
 
@@ -365,8 +371,7 @@ class TakeReader:
 
     @property
     def view(self) -> int | None:
-        view = _maybe_int(self._file.attrs.get("view"))
-        return None if view is None or view < 0 else view
+        return _view_or_none(self._file.attrs.get("view"))
 
     @property
     def has_frames(self) -> bool:
@@ -618,7 +623,6 @@ class Capture:
         )
 
     def _register(self, record: TakeRecord) -> None:
-        record.view = None if record.view is not None and record.view < 0 else record.view
         self.manifest.takes = [t for t in self.manifest.takes if t.name != record.name] + [record]
         self.save_manifest()
 

@@ -14,11 +14,6 @@ TIP = (0.45, 0.0, 0.60)
 
 
 @pytest.fixture(scope="module")
-def scene():
-    return build_scene()
-
-
-@pytest.fixture(scope="module")
 def view():
     return PinholeCamera.look_at((1.0, -1.1, 0.9), (0.15, 0.0, 0.35), fov_deg=45, width_px=96, height_px=80)
 

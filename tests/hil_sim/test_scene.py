@@ -6,12 +6,7 @@ import numpy as np
 import pytest
 
 from odsplat.hil_sim.render import PinholeCamera, render
-from odsplat.hil_sim.scene import FLOOR, STRUCTURE, build_scene
-
-
-@pytest.fixture(scope="module")
-def scene():
-    return build_scene()
+from odsplat.hil_sim.scene import FLOOR, STRUCTURE
 
 
 @pytest.fixture(scope="module")
