@@ -120,6 +120,11 @@ class SimCamera:
         if trigger == "internal":
             self._record(float(at_s))
 
+    @property
+    def waiting_for_trigger(self) -> bool:
+        """Armed for an external trigger that has not come yet."""
+        return self._plan is not None and self._plan[2] == "external" and self.recording is None
+
     def trigger_at(self, t_s: float) -> Recording:
         """An external trigger edge at DAQ time t_s: frame 0 is the first exposure starting at or after it."""
         if self._plan is None or self._armed_at_s is None:

@@ -1,0 +1,500 @@
+"""The simulated impact-test rig: one structure, one hammer, one camera and every sensor on one time base.
+
+Rig time is physical time in seconds, zero at the DAQ's START (its sample 0). Everything else is
+placed on it:
+
+- the DAQ's sample s is at rig time s / f_true, where f_true is the DAQ's true (possibly drifting) rate;
+- a CAN node's sample s is at can_t0_s[node] + s / f_node_true;
+- the camera's frames lie on its own clock ticks (`SimCamera`, which may be offset and drift).
+
+The rig is the `SampleSource` of the simulated DAQ (hammer force through the load cell's sensitivity,
+accelerometers through theirs, the camera's exposure strobe) and the `AccelSource` of the CAN nodes.
+Its camera's external trigger is wired to the hammer: the first time the force rises through
+`trigger_level_n` while the camera waits for a trigger, it fires, as a trigger box on the load cell does.
+
+A take is scripted before the DAQ starts: mount and arm the camera, schedule the hits, then acquire.
+`truth()` then returns everything the take really was, and `TakeTruth.save` writes it beside the take.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from odsplat.errors import InputError, OdsplatError
+from odsplat.manifest import CameraInfo, ChannelInfo, Intrinsics
+
+from .camera import SimCamera, SimCameraConfig
+from .daq import register_source
+from .render import PinholeCamera
+from .scene import RigScene, build_scene
+from .structure import Hammer, Impact
+
+log = logging.getLogger(__name__)
+
+G_M_S2 = 9.80665
+TRUTH_SUFFIX = ".truth.npz"
+
+
+def _check_unit(v, what: str) -> None:
+    d = np.asarray(v, float)
+    if d.shape != (3,) or not np.isclose(np.linalg.norm(d), 1.0, atol=1e-6):
+        raise InputError(what, f"expected a unit 3-vector; got {v}")
+
+
+@dataclass(frozen=True)
+class Accelerometer:
+    """A uniaxial IEPE accelerometer wired to a DAQ input: measures the acceleration along `direction`."""
+
+    name: str
+    point_m: tuple[float, float, float]
+    direction: tuple[float, float, float]
+    sensitivity_v_per_m_s2: float = 0.100 / G_M_S2  # 100 mV/g
+    noise_m_s2: float = 0.0  # rms of white sensor noise
+
+    def __post_init__(self) -> None:
+        _check_unit(self.direction, f"Accelerometer {self.name!r}.direction")
+
+
+@dataclass(frozen=True)
+class CANNodeMount:
+    """A triaxial CAN accelerometer node: rows of `axes` are its x, y, z axes in world coordinates."""
+
+    node_id: int
+    point_m: tuple[float, float, float]
+    axes: tuple[tuple[float, float, float], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    noise_m_s2: float = 0.0
+    t0_s: float = 0.0  # rig time of the node's sample 0 (nodes start on their own START command)
+
+    def __post_init__(self) -> None:
+        a = np.asarray(self.axes, float)
+        if a.shape != (3, 3) or not np.allclose(a @ a.T, np.eye(3), atol=1e-6):
+            raise InputError(f"CAN node {self.node_id}.axes", f"expected 3 orthonormal rows; got {self.axes}")
+
+
+DEFAULT_HAMMER_POINT = (0.46, 0.03, 0.60)  # the arm tip's top edge: an oblique hit there excites every mode
+DEFAULT_HAMMER_DIRECTION = (-0.25, -0.45, -0.86)
+
+DEFAULT_ACCELEROMETERS = (
+    Accelerometer("acc_tip_z", (0.43, 0.0, 0.60), (0.0, 0.0, 1.0)),
+    Accelerometer("acc_tip_y", (0.40, 0.03, 0.57), (0.0, 1.0, 0.0)),
+    Accelerometer("acc_col_x", (0.045, 0.0, 0.40), (1.0, 0.0, 0.0)),
+    Accelerometer("acc_col_y", (0.0, -0.045, 0.45), (0.0, -1.0, 0.0)),
+)
+DEFAULT_CAN_NODES = (
+    CANNodeMount(1, (0.25, 0.0, 0.60)),
+    CANNodeMount(2, (0.0, 0.045, 0.50), axes=((0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, 1.0))),
+)
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """How the rig is instrumented. DAQ inputs are, in order: force, the accelerometers, the camera strobe."""
+
+    force_channel: str = "force"
+    force_sensitivity_v_per_n: float = 2.25e-3  # a typical impact hammer's load cell
+    force_noise_n: float = 0.0
+    accelerometers: tuple[Accelerometer, ...] = DEFAULT_ACCELEROMETERS
+    ttl_channel: str | None = "cam_ttl"
+    can_nodes: tuple[CANNodeMount, ...] = DEFAULT_CAN_NODES
+    trigger_level_n: float = 10.0  # the camera's external trigger fires when the force rises through this
+    daq_drift_ppm: float = 0.0  # the DAQ's true rate is nominal * (1 + ppm 1e-6); used to state DAQ time in the truth
+    n_surface_points: int = 256  # structure points whose displacement the truth records
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        names = [self.force_channel, *(a.name for a in self.accelerometers)]
+        if self.ttl_channel:
+            names.append(self.ttl_channel)
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise InputError("RigConfig", f"DAQ channel names must be distinct; repeated: {dupes}")
+        ids = [n.node_id for n in self.can_nodes]
+        if len(set(ids)) != len(ids):
+            raise InputError("RigConfig.can_nodes", f"node ids must be distinct; got {ids}")
+        if self.trigger_level_n <= 0:
+            raise InputError("RigConfig.trigger_level_n", f"must be positive, got {self.trigger_level_n}")
+
+
+class SimRig:
+    """The rig. Use it as the DAQ's source (`register`, then `simdaq://NAME`) and the CAN nodes' source."""
+
+    def __init__(self, scene: RigScene | None = None, config: RigConfig | None = None, hammer: Hammer | None = None):
+        self.scene = scene or build_scene()
+        self.structure = self.scene.structure
+        self.config = config or RigConfig()
+        self.hammer = hammer or Hammer(DEFAULT_HAMMER_POINT, DEFAULT_HAMMER_DIRECTION, seed=self.config.seed)
+        self.impacts: list[Impact] = []
+        self.camera: SimCamera | None = None
+        self._nodes = {n.node_id: n for n in self.config.can_nodes}
+        acc = self.config.accelerometers
+        self._acc_points = np.array([a.point_m for a in acc], float).reshape(-1, 3)
+        self._acc_dirs = np.array([a.direction for a in acc], float).reshape(-1, 3)
+        self._acc_dirs /= np.linalg.norm(self._acc_dirs, axis=1, keepdims=True) if len(acc) else 1.0
+        self._acc_phi = self.structure.mode_shapes(self._acc_points) if len(acc) else np.zeros((0, self.structure.n_modes, 3))
+        self._node_phi = {i: self.structure.mode_shapes(np.asarray(n.point_m, float)[None])[0] for i, n in self._nodes.items()}
+        rng = np.random.default_rng(self.config.seed)
+        movers = self.scene.structure_vertices()
+        pick = np.sort(rng.choice(len(movers), size=min(self.config.n_surface_points, len(movers)), replace=False))
+        self.surface_points_m = self.scene.rest_m[movers[pick]]
+        self._surface_phi = self.scene.shapes[movers[pick]]
+        self.daq_true_rate_hz: float | None = None  # the rate the DAQ really sampled at, seen on its requests
+        self._take = 0
+
+    # ------------------------------------------------------------------------------ the take's script
+
+    def new_take(self) -> None:
+        """The structure at rest again, no hits scheduled, the camera disarmed (kept where it is)."""
+        self.impacts = []
+        self.daq_true_rate_hz = None
+        self._take += 1
+        if self.camera is not None:
+            self.camera = SimCamera(self.scene, self.camera.camera, self.motion, self.camera.config,
+                                    clock_offset_s=self.camera.clock_offset_s, clock_drift_ppm=self.camera.clock_drift_ppm,
+                                    drop_counters=tuple(self.camera.drop_counters), seed=self._take)
+
+    def mount_camera(self, camera: PinholeCamera, config: SimCameraConfig | None = None, **camera_kw) -> SimCamera:
+        """Put the camera at a viewpoint (a new take's camera); keyword arguments go to `SimCamera`."""
+        camera_kw.setdefault("seed", self._take)
+        self.camera = SimCamera(self.scene, camera, self.motion, config, **camera_kw)
+        return self.camera
+
+    def hit(self, time_s: float, *, double: bool | None = None) -> list[Impact]:
+        """The hammer strikes at rig time `time_s` (with its scatter, and maybe a bounce)."""
+        return self.add_impacts(self.hammer.hit(time_s, double=double))
+
+    def add_impacts(self, impacts: Sequence[Impact]) -> list[Impact]:
+        """Schedule exact impacts; a camera waiting for its external trigger fires on the first level crossing."""
+        self.impacts.extend(impacts)
+        self.impacts.sort(key=lambda imp: imp.time_s)
+        cam = self.camera
+        if cam is not None and cam.waiting_for_trigger:
+            edge = self.trigger_edge_s()
+            if edge is not None:
+                cam.trigger_at(edge)
+                log.info("camera triggered by the hammer at rig time %.6f s", edge)
+        return list(impacts)
+
+    def trigger_edge_s(self) -> float | None:
+        """Rig time at which the force first rises through the trigger level (exact), or None if it never does."""
+        level = self.config.trigger_level_n
+        edges = []
+        for imp in self.impacts:
+            if imp.peak_n > level:
+                edges.append(imp.time_s + imp.duration_s / np.pi * np.arcsin(level / imp.peak_n))
+        # Pulses that overlap could sum through the level where neither does alone; check on a fine grid.
+        if len(self.impacts) > 1:
+            t0 = self.impacts[0].time_s
+            t1 = max(i.time_s + i.duration_s for i in self.impacts)
+            t = np.linspace(t0, t1, 20_001)
+            over = np.flatnonzero(self.force_n(t) > level)
+            if over.size:
+                edges.append(float(t[over[0]]))
+        return min(edges) if edges else None
+
+    # ------------------------------------------------------------------------------ physics
+
+    def motion(self, t_s: np.ndarray) -> np.ndarray:
+        """Modal coordinates (n_modes, T) at rig times t_s."""
+        return self.structure.modal_response(self.impacts, np.asarray(t_s, float)).q
+
+    def force_n(self, t_s: np.ndarray) -> np.ndarray:
+        """The hammer force (N) at rig times t_s: the sum of the scheduled pulses."""
+        t = np.asarray(t_s, float)
+        out = np.zeros_like(t)
+        for imp in self.impacts:
+            out = out + imp.force(t)
+        return out
+
+    # ------------------------------------------------------------------------------ DAQ source
+
+    @property
+    def channel_names(self) -> tuple[str, ...]:
+        c = self.config
+        names = (c.force_channel, *(a.name for a in c.accelerometers))
+        return names + ((c.ttl_channel,) if c.ttl_channel else ())
+
+    def volts(self, start_sample: int, n: int, sample_rate_hz: float) -> np.ndarray:
+        """The DAQ inputs, in volts, for samples start_sample.. taken at the DAQ's true rate."""
+        self.daq_true_rate_hz = float(sample_rate_hz)
+        c = self.config
+        t = (start_sample + np.arange(n)) / sample_rate_hz
+        rng = np.random.default_rng((c.seed, self._take, start_sample))
+        force = self.force_n(t)
+        if c.force_noise_n:
+            force = force + c.force_noise_n * rng.standard_normal(n)
+        rows = [force * c.force_sensitivity_v_per_n]
+        if c.accelerometers:
+            qdd = self.structure.modal_response(self.impacts, t).qdd
+            acc = np.einsum("skc,sc,kt->st", self._acc_phi, self._acc_dirs, qdd)
+            for k, a in enumerate(c.accelerometers):
+                noisy = acc[k] + (a.noise_m_s2 * rng.standard_normal(n) if a.noise_m_s2 else 0.0)
+                rows.append(noisy * a.sensitivity_v_per_m_s2)
+        if c.ttl_channel:
+            rows.append(self.camera.ttl(t) if self.camera is not None else np.zeros(n))
+        return np.vstack(rows)
+
+    def register(self, name: str = "rig") -> str:
+        """Make `simdaq://NAME` acquire from this rig; returns a URL prefix (add `?fs=...` and faults)."""
+        register_source(name, self)
+        return f"simdaq://{name}"
+
+    def daq_url(self, name: str = "rig", *, fs_max_hz: float = 51_200.0, **options) -> str:
+        """Register and build the URL, with the DAQ drift of the config and any further URL options."""
+        query = {"fs": f"{fs_max_hz:g}", **{k: str(v) for k, v in options.items()}}
+        if self.config.daq_drift_ppm:
+            query["drift_ppm"] = repr(self.config.daq_drift_ppm)
+        return self.register(name) + "?" + "&".join(f"{k}={v}" for k, v in query.items())
+
+    # ------------------------------------------------------------------------------ CAN source
+
+    def acceleration(self, node_id: int, start_sample: int, n: int, sample_rate_hz: float) -> np.ndarray:
+        """(n, 3) m/s^2 in the node's axes."""
+        try:
+            mount = self._nodes[node_id]
+        except KeyError:
+            raise InputError(f"CAN node {node_id}", f"not mounted on the rig; mounted: {sorted(self._nodes)}") from None
+        t = mount.t0_s + (start_sample + np.arange(n)) / sample_rate_hz
+        qdd = self.structure.modal_response(self.impacts, t).qdd
+        world = np.einsum("kc,kt->tc", self._node_phi[node_id], qdd)
+        local = world @ np.asarray(mount.axes, float).T
+        if mount.noise_m_s2:
+            rng = np.random.default_rng((self.config.seed, self._take, node_id, start_sample))
+            local = local + mount.noise_m_s2 * rng.standard_normal(local.shape)
+        return local
+
+    # ------------------------------------------------------------------------------ metadata
+
+    def channel_infos(self) -> list[ChannelInfo]:
+        """What a manifest says of the DAQ inputs and the CAN nodes' axes."""
+        c = self.config
+        out = [ChannelInfo(c.force_channel, "force", "N", c.force_sensitivity_v_per_n, list(self.hammer.point_m),
+                           list(self.hammer.direction), device="simdaq")]
+        for a in c.accelerometers:
+            out.append(ChannelInfo(a.name, "acceleration", "m/s^2", a.sensitivity_v_per_m_s2, list(a.point_m),
+                                   list(a.direction), device="simdaq"))
+        if c.ttl_channel:
+            out.append(ChannelInfo(c.ttl_channel, "ttl", "V", 1.0, device="simdaq"))
+        for mount in c.can_nodes:
+            for axis, row in zip("xyz", mount.axes):
+                out.append(ChannelInfo(f"node{mount.node_id}_{axis}", "acceleration", "m/s^2", None, list(mount.point_m),
+                                       list(row), node=mount.node_id, device="can"))
+        return out
+
+    # ------------------------------------------------------------------------------ ground truth
+
+    def truth(self, n_daq_samples: int, *, daq_rate_hz: float | None = None) -> TakeTruth:
+        """Everything the take really was, for DAQ samples 0..n_daq_samples-1 and the camera's recording.
+
+        `daq_rate_hz` is the DAQ's true rate; by default the one it sampled at."""
+        rate = daq_rate_hz or self.daq_true_rate_hz
+        if rate is None:
+            raise OdsplatError("SimRig.truth: the DAQ never sampled this take; give daq_rate_hz")
+        if not self.impacts:
+            raise OdsplatError("SimRig.truth: no hit in this take")
+        c, st = self.config, self.structure
+        nominal = rate / (1.0 + 1e-6 * c.daq_drift_ppm)
+        t_daq = np.arange(n_daq_samples) / rate
+        mr = st.modal_response(self.impacts, t_daq)
+        imp_t = np.array([i.time_s for i in self.impacts])
+        names = [a.name for a in c.accelerometers]
+        node_points = np.array([n.point_m for n in c.can_nodes], float).reshape(-1, 3)
+        sensor_points = np.concatenate([self._acc_points, node_points])
+        sensor_phi = st.mode_shapes(sensor_points) if len(sensor_points) else np.zeros((0, st.n_modes, 3))
+        kw = dict(
+            impact_time_s=imp_t,
+            impact_daq_sample=imp_t * rate,
+            impact_daq_time_s=imp_t * rate / nominal,
+            impact_peak_n=np.array([i.peak_n for i in self.impacts]),
+            impact_duration_s=np.array([i.duration_s for i in self.impacts]),
+            impact_point_m=np.array([i.point_m for i in self.impacts], float),
+            impact_direction=np.array([i.direction for i in self.impacts], float),
+            daq_rate_hz=nominal,
+            daq_true_rate_hz=rate,
+            force_n=self.force_n(t_daq).astype(np.float32),
+            freqs_hz=st.freqs_hz,
+            dampings=st.dampings,
+            mode_names=np.array([m.name for m in st.modes]),
+            modal_q_daq=mr.q.astype(np.float32),
+            modal_qdd_daq=mr.qdd.astype(np.float32),
+            sensor_names=np.array(names + [f"node{n.node_id}" for n in c.can_nodes]),
+            sensor_points_m=sensor_points,
+            sensor_directions=np.concatenate([self._acc_dirs, np.full((len(node_points), 3), np.nan)]),
+            sensor_mode_shapes=sensor_phi,
+            surface_points_m=self.surface_points_m,
+            surface_mode_shapes=self._surface_phi,
+            can_t0_s=np.array([n.t0_s for n in c.can_nodes], float),
+        )
+        cam = self.camera
+        if cam is not None and cam.recording is not None:
+            rec = cam.recording
+            fps = cam.config.fps
+            mid = rec.exposure_start_s + 0.5 * cam.config.exposure
+            q_frames = st.modal_response(self.impacts, mid).q
+            frame_of = (imp_t - rec.trigger_frame_time_s) / cam.period_s  # in camera ticks from frame 0
+            pin = cam.camera
+            kw.update(
+                impact_camera_frame=frame_of,
+                impact_camera_time_s=frame_of / fps,
+                camera_K=pin.K, camera_R=pin.R, camera_t=pin.t,
+                camera_size_px=np.array([pin.width_px, pin.height_px]),
+                camera_fps=fps, camera_exposure_s=cam.config.exposure,
+                camera_clock_offset_s=cam.clock_offset_s, camera_clock_drift_ppm=cam.clock_drift_ppm,
+                trigger_time_s=rec.trigger_time_s, trigger_frame_time_s=rec.trigger_frame_time_s,
+                frame_counter=rec.counters, frame_time_s=rec.exposure_start_s, dropped_counters=rec.dropped,
+                modal_q_frames=q_frames,
+            )
+        return TakeTruth(**kw)
+
+
+class _RigFactory:
+    """`simdaq://rig?hit_s=0.1`: a default rig with one hit, for trying the DAQ by hand."""
+
+    def __call__(self, hit_s: str = "0.1", seed: str = "0") -> SimRig:
+        rig = SimRig(config=RigConfig(seed=int(seed)))
+        rig.hit(float(hit_s))
+        return rig
+
+
+register_source("rig", _RigFactory())
+
+
+# ---------------------------------------------------------------------------------- the truth file
+
+@dataclass
+class TakeTruth:
+    """Ground truth of one simulated take (rig time unless named otherwise; see docs/hil_sim.md).
+
+    The impact's fractional DAQ sample and fractional camera frame (ticks from the trigger frame's
+    exposure start) are what sync must recover. Camera fields are None when no camera recorded.
+    """
+
+    impact_time_s: np.ndarray
+    impact_daq_sample: np.ndarray
+    impact_daq_time_s: np.ndarray
+    impact_peak_n: np.ndarray
+    impact_duration_s: np.ndarray
+    impact_point_m: np.ndarray
+    impact_direction: np.ndarray
+    daq_rate_hz: float
+    daq_true_rate_hz: float
+    force_n: np.ndarray                     # (n_samples,) float32, at DAQ samples 0..n-1
+    freqs_hz: np.ndarray
+    dampings: np.ndarray
+    mode_names: np.ndarray
+    modal_q_daq: np.ndarray                 # (n_modes, n_samples) float32 modal displacement at DAQ samples
+    modal_qdd_daq: np.ndarray               # (n_modes, n_samples) float32 modal acceleration
+    sensor_names: np.ndarray
+    sensor_points_m: np.ndarray             # (S, 3): the DAQ accelerometers, then the CAN nodes
+    sensor_directions: np.ndarray           # (S, 3); NaN for triaxial nodes
+    sensor_mode_shapes: np.ndarray          # (S, n_modes, 3) mass-normalised
+    surface_points_m: np.ndarray            # (P, 3) rest positions
+    surface_mode_shapes: np.ndarray         # (P, n_modes, 3)
+    can_t0_s: np.ndarray
+    impact_camera_frame: np.ndarray | None = None
+    impact_camera_time_s: np.ndarray | None = None
+    camera_K: np.ndarray | None = None
+    camera_R: np.ndarray | None = None      # world to camera (OpenCV: x right, y down, z forward)
+    camera_t: np.ndarray | None = None
+    camera_size_px: np.ndarray | None = None
+    camera_fps: float | None = None
+    camera_exposure_s: float | None = None
+    camera_clock_offset_s: float | None = None
+    camera_clock_drift_ppm: float | None = None
+    trigger_time_s: float | None = None
+    trigger_frame_time_s: float | None = None
+    frame_counter: np.ndarray | None = None
+    frame_time_s: np.ndarray | None = None  # exposure starts
+    dropped_counters: np.ndarray | None = None
+    modal_q_frames: np.ndarray | None = None          # (n_modes, n_frames) at mid-exposure
+    format_version: int = 1
+
+    @property
+    def has_camera(self) -> bool:
+        return self.frame_counter is not None
+
+    @property
+    def n_daq_samples(self) -> int:
+        return int(self.force_n.shape[0])
+
+    # Displacements are stored as modal coordinates and shapes (exact, and a tenth of the size);
+    # these give them in metres, world axes.
+
+    def sensor_displacement_m(self) -> np.ndarray:
+        """(n_samples, S, 3) at the DAQ samples."""
+        return np.einsum("skc,kt->tsc", self.sensor_mode_shapes, self.modal_q_daq.astype(np.float64))
+
+    def sensor_acceleration_m_s2(self) -> np.ndarray:
+        """(n_samples, S, 3) at the DAQ samples."""
+        return np.einsum("skc,kt->tsc", self.sensor_mode_shapes, self.modal_qdd_daq.astype(np.float64))
+
+    def surface_displacement_m(self) -> np.ndarray:
+        """(n_frames, P, 3) at the recorded frames' mid-exposure times."""
+        if not self.has_camera:
+            raise OdsplatError("this take's truth has no camera")
+        return np.einsum("pkc,kt->tpc", self.surface_mode_shapes, self.modal_q_frames)
+
+    def camera(self) -> PinholeCamera:
+        if not self.has_camera:
+            raise OdsplatError("this take's truth has no camera")
+        w, h = (int(v) for v in self.camera_size_px)
+        return PinholeCamera(self.camera_K, self.camera_R, self.camera_t, w, h)
+
+    def camera_info(self) -> CameraInfo:
+        pin = self.camera()
+        K = pin.K
+        return CameraInfo(model=SimCamera.model, width_px=pin.width_px, height_px=pin.height_px, fps=self.camera_fps,
+                          exposure_s=self.camera_exposure_s,
+                          intrinsics=Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])))
+
+    def save(self, path: str | Path) -> Path:
+        """Write atomically (temporary file, fsync, rename): a reader never sees half a truth file."""
+        path = Path(path)
+        arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self) if getattr(self, f.name) is not None}
+        fd, tmp = tempfile.mkstemp(prefix="." + path.name, suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> TakeTruth:
+        path = Path(path)
+        try:
+            data = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise InputError(str(path), f"not a readable ground-truth file (.npz): {e}") from None
+        with data:
+            version = int(data["format_version"]) if "format_version" in data else None
+            if version != 1:
+                raise InputError(str(path), f"ground-truth format_version 1 expected, found {version}")
+            kw = {}
+            for f in fields(cls):
+                if f.name in data:
+                    value = data[f.name]
+                    kw[f.name] = value.item() if value.ndim == 0 and value.dtype.kind in "fiu" else value
+                elif f.default is not None or f.name == "format_version":
+                    raise InputError(str(path), f"ground-truth field {f.name!r} is missing")
+        return cls(**kw)
+
+
+def truth_path(take_path: str | Path) -> Path:
+    """Where a take's ground truth lives: takes/NAME.h5 -> takes/NAME.truth.npz."""
+    p = Path(take_path)
+    return p.with_name(p.name.removesuffix(".h5").removesuffix(".partial") + TRUTH_SUFFIX)
+
+
+
+__all__ = ["Accelerometer", "CANNodeMount", "RigConfig", "SimRig", "TakeTruth", "truth_path", "TRUTH_SUFFIX",
+           "DEFAULT_ACCELEROMETERS", "DEFAULT_CAN_NODES"]
