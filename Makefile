@@ -33,6 +33,7 @@ demo: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python bench/store.py
 	$(BIN)/python bench/render.py
+	$(BIN)/python bench/render.py --scene rig --no-cold-compile
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info

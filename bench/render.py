@@ -1,7 +1,7 @@
 """Benchmark of the hil_sim software renderer: frames/s of `render` against its 1-thread run and the numpy reference.
 
 Prints one JSON line on stdout; progress goes to stderr. The scene is built by `synthetic_scene` (a bent, subdivided
-textured column on a textured floor board) unless --scene names another; frames/s are after JIT warm-up (median
+textured column on a textured floor board) or, with --scene rig, the simulated rig's default scene (hil_sim.scene); frames/s are after JIT warm-up (median
 frame time), each frame a slightly different deformation (as in a vibration take), `supersample` 3. compile_s is
 the first call of a fresh process with an empty numba cache (a subprocess); first_call_s the first call here.
 """
@@ -106,7 +106,18 @@ def synthetic_scene(n_triangles: int = 10_000, *, seed: int = 0) -> Scene:
     return Scene(mesh, atlas, (1.3, -1.9, 1.1), (0.0, 0.0, 0.42), 38.0, bend)
 
 
-SCENES = {"synthetic": synthetic_scene}
+def rig_scene(n_triangles: int | None = None) -> Scene:
+    """The hil_sim rig's default scene (its own triangle count), bent in its first mode, seen as a take sees it."""
+    from odsplat.hil_sim.scene import build_scene
+
+    rig = build_scene()
+    mesh = rig.mesh()
+    bend = rig.shapes[:, 0, :]
+    bend = bend / np.abs(bend).max()
+    return Scene(mesh, rig.atlas, (1.1, -1.3, 1.0), (0.15, 0.0, 0.33), 42.0, bend)
+
+
+SCENES = {"synthetic": synthetic_scene, "rig": rig_scene}
 
 
 def _fps(scene: Scene, size: int, *, reference: bool = False) -> tuple[float, int, dict[str, float]]:
@@ -143,7 +154,7 @@ def _cold_compile_s() -> float:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", choices=sorted(SCENES), default="synthetic", help="scene to render (default synthetic)")
-    parser.add_argument("--triangles", type=int, default=10_000, help="approximate triangle count (default 10000)")
+    parser.add_argument("--triangles", type=int, default=10_000, help="approximate triangle count of the synthetic scene")
     parser.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="square image sizes in px")
     parser.add_argument("--no-reference", action="store_true", help="skip the slow numpy reference baseline")
     parser.add_argument("--no-cold-compile", action="store_true", help="skip timing a compile with an empty numba cache")

@@ -17,6 +17,7 @@ A take is scripted before the DAQ starts: mount and arm the camera, schedule the
 """
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import tempfile
@@ -38,6 +39,7 @@ from .structure import Hammer, Impact
 log = logging.getLogger(__name__)
 
 G_M_S2 = 9.80665
+_RIG_SERIAL = itertools.count(1)
 TRUTH_SUFFIX = ".truth.npz"
 
 
@@ -145,6 +147,7 @@ class SimRig:
         self._surface_phi = self.scene.shapes[movers[pick]]
         self.daq_true_rate_hz: float | None = None  # the rate the DAQ really sampled at, seen on its requests
         self._take = 0
+        self.name = f"rig{next(_RIG_SERIAL)}"
 
     # ------------------------------------------------------------------------------ the take's script
 
@@ -239,12 +242,15 @@ class SimRig:
             rows.append(self.camera.ttl(t) if self.camera is not None else np.zeros(n))
         return np.vstack(rows)
 
-    def register(self, name: str = "rig") -> str:
-        """Make `simdaq://NAME` acquire from this rig; returns a URL prefix (add `?fs=...` and faults)."""
+    def register(self, name: str | None = None) -> str:
+        """Make `simdaq://NAME` acquire from this rig; returns a URL prefix (add `?fs=...` and faults).
+
+        The default name is unique to this rig (`rig1`, `rig2`, ...); `simdaq://rig` stays the default rig."""
+        name = name or self.name
         register_source(name, self)
         return f"simdaq://{name}"
 
-    def daq_url(self, name: str = "rig", *, fs_max_hz: float = 51_200.0, **options) -> str:
+    def daq_url(self, name: str | None = None, *, fs_max_hz: float = 51_200.0, **options) -> str:
         """Register and build the URL, with the DAQ drift of the config and any further URL options."""
         query = {"fs": f"{fs_max_hz:g}", **{k: str(v) for k, v in options.items()}}
         if self.config.daq_drift_ppm:

@@ -298,3 +298,12 @@ def test_bench_prints_one_json_line():
     result = json.loads(lines[0])
     assert result["bench"] == "render" and result["sizes"] == [64] and 1500 < result["triangles"] < 2500
     assert result["64"]["fps"] > 0 and result["64"]["fps_1thread"] > 0 and 0.2 < result["64"]["coverage"] < 0.8
+
+
+def test_bench_renders_the_rig_scene():
+    out = subprocess.run([sys.executable, str(REPO / "bench" / "render.py"), "--scene", "rig", "--sizes", "64",
+                          "--no-reference", "--no-cold-compile"], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["scene"] == "rig" and result["triangles"] > 5000
+    assert result["64"]["fps"] > 0 and result["64"]["structure_coverage"] > 0.03

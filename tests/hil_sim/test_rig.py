@@ -245,3 +245,13 @@ def test_bad_rig_config_names_the_field(scene):
     rig = SimRig(scene)
     with pytest.raises(InputError, match="CAN node 9: not mounted"):
         rig.acceleration(9, 0, 10, 1000.0)
+
+
+def test_default_rig_url_and_unique_names(scene):
+    register_url_handler()
+    a, b = SimRig(scene), SimRig(scene)
+    assert a.daq_url() != b.daq_url() and a.daq_url(fs_max_hz=25600).endswith("?fs=25600")
+    with open_port("simdaq://rig?fs=25600&hit_s=0.05") as port:
+        take = DAQHost(port).take(channels(6), 25600, 4096)
+    force = take.volts(4096)[0] / RigConfig().force_sensitivity_v_per_n
+    assert abs(np.argmax(force) / 25600 - 0.0505) < 1.5 / 25600 and force.max() > 100
