@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -29,6 +27,7 @@ import numpy as np
 
 from odsplat.errors import InputError, OdsplatError
 from odsplat.manifest import CameraInfo, ChannelInfo, Intrinsics
+from odsplat.store import atomic_open
 
 from .camera import SimCamera, SimCameraConfig
 from .daq import register_source
@@ -462,16 +461,8 @@ class TakeTruth:
         """Write atomically (temporary file, fsync, rename): a reader never sees half a truth file."""
         path = Path(path)
         arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self) if getattr(self, f.name) is not None}
-        fd, tmp = tempfile.mkstemp(prefix="." + path.name, suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                np.savez_compressed(fh, **arrays)
-                fh.flush()
-                os.fsync(fh.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_open(path, "wb") as fh:
+            np.savez_compressed(fh, **arrays)
         return path
 
     @classmethod
