@@ -1,17 +1,24 @@
 """A simulated high-speed camera filming the rig: its own clock, triggers, pretrigger ring buffer,
 frame counter, exposure strobe (TTL), dropped frames, sensor noise and exposure-time blur.
 
-Times are DAQ times unless named otherwise. The camera's clock may be offset from and drift
-against the DAQ's, as real ones do; frames lie on the camera's clock ticks.
+Times are rig times (physical, 0 at the DAQ's START) unless named otherwise. The camera's clock may be
+offset from and drift against the DAQ's, as real ones do; frames lie on the camera's clock ticks.
+
+`SimCamera` implements the acquisition stage's `CameraDriver` (configure, arm, wait, stop, frames,
+describe), so the capture session drives it exactly as it drives a real camera. Its frames carry the
+camera's own time (counter / nominal fps); the true exposure times are in `recording` and the truth file.
 """
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from odsplat.acquisition.camera import CameraTimeout, Frame, RecordingStatus, TriggerSettings
 from odsplat.errors import InputError, OdsplatError
+from odsplat.manifest import CameraInfo, Intrinsics
 
 from .render import PinholeCamera, RenderResult, expose, render
 from .scene import RigScene
@@ -64,13 +71,21 @@ class Recording:
 
 
 class SimCamera:
-    """The camera device model. `motion(t_s)` gives the structure's modal coordinates (n_modes, T) at DAQ times."""
+    """The camera device model. `motion(t_s)` gives the structure's modal coordinates (n_modes, T) at rig times;
+    `clock()` gives the rig time now (used by the driver-style `arm()`)."""
 
     model = "odsplat hil_sim camera"
 
     def __init__(self, scene: RigScene, camera: PinholeCamera, motion: Callable[[np.ndarray], np.ndarray],
                  config: SimCameraConfig | None = None, *, clock_offset_s: float = 0.0, clock_drift_ppm: float = 0.0,
-                 drop_counters: Sequence[int] = (), seed: int | None = 0):
+                 drop_counters: Sequence[int] = (), seed: int | None = 0, clock: Callable[[], float] | None = None,
+                 lock: threading.RLock | None = None, name: str = "simcam"):
+        self.name = name
+        self.clock = clock or (lambda: 0.0)
+        # Shared with the rig: arming at "now" must not interleave with the DAQ producing samples.
+        self._lock = lock or threading.RLock()
+        self.settings: TriggerSettings | None = None
+        self._done = threading.Event()
         self.scene = scene
         self.camera = camera
         self.motion = motion
@@ -100,8 +115,30 @@ class SimCamera:
 
     # -- trigger and acquire -------------------------------------------------------------------
 
-    def arm(self, *, n_frames: int, pretrigger: str | int = "start", trigger: str = "external", at_s: float = 0.0) -> None:
-        """Start filling the ring buffer at DAQ time `at_s`; the take will hold `n_frames` frames."""
+    def configure(self, settings: TriggerSettings) -> None:
+        """Driver interface, trigger logic: frames, pretrigger, trigger mode, and fps/exposure if given."""
+        changes = {k: v for k, v in (("fps", settings.fps), ("exposure_s", settings.exposure_s)) if v is not None}
+        if changes:
+            config = replace(self.config, **changes)
+            config.validate()
+            self.config = config
+        self.settings = settings
+
+    def arm(self, *, n_frames: int | None = None, pretrigger: str | int | None = None, trigger: str | None = None,
+            at_s: float | None = None) -> None:
+        """Start filling the ring buffer at rig time `at_s` (default: now, from the clock); the take will hold
+        `n_frames` frames. Arguments left out come from `configure()` (driver interface, acquire logic)."""
+        s = self.settings
+        if n_frames is None:
+            if s is None:
+                raise OdsplatError(f"{self.name}: arm() without arguments needs configure() first")
+            n_frames, pretrigger, trigger = s.n_frames, s.pretrigger if pretrigger is None else pretrigger, trigger or s.mode
+        pretrigger = "start" if pretrigger is None else pretrigger
+        trigger = trigger or "external"
+        with self._lock:
+            self._arm(n_frames, pretrigger, trigger, self.clock() if at_s is None else at_s)
+
+    def _arm(self, n_frames: int, pretrigger: str | int, trigger: str, at_s: float) -> None:
         if trigger not in TRIGGER_MODES:
             raise InputError("SimCamera.trigger", f"expected one of {TRIGGER_MODES}, got {trigger!r}")
         if n_frames < 1:
@@ -117,6 +154,7 @@ class SimCamera:
         self._armed_at_s = float(at_s)
         self._plan = (n_frames, pre, trigger)
         self.recording = None
+        self._done.clear()
         if trigger == "internal":
             self._record(float(at_s))
 
@@ -128,7 +166,7 @@ class SimCamera:
     def trigger_at(self, t_s: float) -> Recording:
         """An external trigger edge at DAQ time t_s: frame 0 is the first exposure starting at or after it."""
         if self._plan is None or self._armed_at_s is None:
-            raise OdsplatError("SimCamera: trigger before arm")
+            raise OdsplatError(f"{self.name}: trigger before arm")
         if self._plan[2] != "external":
             raise OdsplatError("SimCamera: armed for an internal trigger; it started recording when armed")
         if t_s < self._armed_at_s:
@@ -154,7 +192,40 @@ class SimCamera:
             dropped=counters[~keep],
             end_time_s=float(self.tick_time_s(ticks[-1])) + self.config.exposure,
         )
+        self._done.set()
         return self.recording
+
+    def wait(self, timeout_s: float) -> RecordingStatus:
+        """Driver interface, acquire logic: block until the recording is complete."""
+        if self._plan is None:
+            raise OdsplatError(f"{self.name}: wait() before arm()")
+        if not self._done.wait(timeout_s):
+            raise CameraTimeout(self.name, f"no trigger within {timeout_s:g} s")
+        rec = self.recording
+        return RecordingStatus(n_frames=len(rec.counters), first_counter=int(rec.counters[0]) if len(rec.counters) else 0,
+                               pretrigger_available=rec.pretrigger_available,
+                               dropped=tuple(int(c) for c in rec.dropped))
+
+    def stop(self) -> None:
+        """Disarm; the recording (if any) is forgotten."""
+        self._plan = None
+        self._armed_at_s = None
+        self.recording = None
+        self._done.clear()
+
+    def close(self) -> None:
+        self.stop()
+
+    def reseed(self, seed: int | None) -> None:
+        """A fresh noise sequence (each take's sensor noise is independent)."""
+        self._rng = np.random.default_rng(seed)
+
+    def describe(self) -> CameraInfo:
+        K = self.camera.K
+        cfg = self.config
+        return CameraInfo(model=self.model, width_px=self.camera.width_px, height_px=self.camera.height_px, fps=cfg.fps,
+                          bit_depth=cfg.bit_depth, n_colors=3 if cfg.rgb else 1, exposure_s=cfg.exposure,
+                          intrinsics=Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])))
 
     # -- data ---------------------------------------------------------------------------------
 
@@ -186,11 +257,12 @@ class SimCamera:
         return expose(radiance, bit_depth=cfg.bit_depth, full_well_e=cfg.full_well_e, read_noise_e=cfg.read_noise_e,
                       shot_noise=cfg.shot_noise, rng=self._rng, rgb=cfg.rgb)
 
-    def frames(self) -> Iterator[tuple[int, float, np.ndarray]]:
-        """The recorded frames in order: (counter, exposure start in DAQ time, image)."""
+    def frames(self) -> Iterator[Frame]:
+        """Driver interface, data logic: the recorded frames in order, stamped with the camera's own clock
+        (counter / nominal fps). The true exposure starts (rig time) are `recording.exposure_start_s`."""
         rec = self._require_recording()
         for counter, t in zip(rec.counters, rec.exposure_start_s):
-            yield int(counter), float(t), self.expose(self.radiance(float(t)))
+            yield Frame(int(counter), int(counter) / self.config.fps, self.expose(self.radiance(float(t))))
 
     @property
     def frame_shape(self) -> tuple[int, ...]:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -145,41 +146,67 @@ class SimRig:
         self.surface_points_m = self.scene.rest_m[movers[pick]]
         self._surface_phi = self.scene.shapes[movers[pick]]
         self.daq_true_rate_hz: float | None = None  # the rate the DAQ really sampled at, seen on its requests
+        self._horizon = 0  # one past the newest DAQ sample produced
+        self._lock = threading.RLock()  # the DAQ thread reads the script while the session writes it
         self._take = 0
         self.name = f"rig{next(_RIG_SERIAL)}"
 
     # ------------------------------------------------------------------------------ the take's script
 
     def new_take(self) -> None:
-        """The structure at rest again, no hits scheduled, the camera disarmed (kept where it is)."""
-        self.impacts = []
-        self.daq_true_rate_hz = None
-        self._take += 1
-        if self.camera is not None:
-            self.camera = SimCamera(self.scene, self.camera.camera, self.motion, self.camera.config,
-                                    clock_offset_s=self.camera.clock_offset_s, clock_drift_ppm=self.camera.clock_drift_ppm,
-                                    drop_counters=tuple(self.camera.drop_counters), seed=self._take)
+        """The structure at rest again, no hits scheduled, the camera disarmed (kept where it is).
+
+        Call it before the DAQ's START: rig time restarts at 0 with the device's sample counter."""
+        with self._lock:
+            self.impacts = []
+            self.daq_true_rate_hz = None
+            self._horizon = 0
+            self._take += 1
+            if self.camera is not None:
+                self.camera.stop()
+                self.camera.reseed(self._take)
 
     def mount_camera(self, camera: PinholeCamera, config: SimCameraConfig | None = None, **camera_kw) -> SimCamera:
-        """Put the camera at a viewpoint (a new take's camera); keyword arguments go to `SimCamera`."""
+        """Put the camera in the rig at a pose; keyword arguments go to `SimCamera`. Its clock is the rig's."""
         camera_kw.setdefault("seed", self._take)
+        camera_kw.setdefault("clock", self.now_s)
+        camera_kw.setdefault("lock", self._lock)
         self.camera = SimCamera(self.scene, camera, self.motion, config, **camera_kw)
         return self.camera
 
-    def hit(self, time_s: float, *, double: bool | None = None) -> list[Impact]:
-        """The hammer strikes at rig time `time_s` (with its scatter, and maybe a bounce)."""
-        return self.add_impacts(self.hammer.hit(time_s, double=double))
+    def place_camera(self, camera: PinholeCamera) -> None:
+        """Move the mounted camera to another pose (the engineer carrying it to the next view)."""
+        if self.camera is None:
+            raise OdsplatError("SimRig.place_camera: no camera mounted")
+        self.camera.camera = camera
+
+    def now_s(self) -> float:
+        """Rig time of the newest sample the DAQ has produced: everything after it may still be changed.
+
+        A hit scheduled at or after now_s() is consistent with every sample already sent."""
+        with self._lock:
+            return self._horizon / self.daq_true_rate_hz if self.daq_true_rate_hz else 0.0
+
+    def hit(self, time_s: float | None = None, *, delay_s: float = 0.0, double: bool | None = None) -> list[Impact]:
+        """The hammer strikes at rig time `time_s`, or `delay_s` after now (with its scatter, and maybe a bounce)."""
+        with self._lock:
+            t = self.now_s() + delay_s if time_s is None else time_s
+            return self.add_impacts(self.hammer.hit(t, double=double))
 
     def add_impacts(self, impacts: Sequence[Impact]) -> list[Impact]:
         """Schedule exact impacts; a camera waiting for its external trigger fires on the first level crossing."""
-        self.impacts.extend(impacts)
-        self.impacts.sort(key=lambda imp: imp.time_s)
-        cam = self.camera
-        if cam is not None and cam.waiting_for_trigger:
-            edge = self.trigger_edge_s()
-            if edge is not None:
-                cam.trigger_at(edge)
-                log.info("camera triggered by the hammer at rig time %.6f s", edge)
+        with self._lock:
+            if impacts and min(i.time_s for i in impacts) < self.now_s():
+                log.warning("impact at %.6f s scheduled before the DAQ's newest sample (%.6f s): samples already sent "
+                            "do not show it", min(i.time_s for i in impacts), self.now_s())
+            self.impacts.extend(impacts)
+            self.impacts.sort(key=lambda imp: imp.time_s)
+            cam = self.camera
+            if cam is not None and cam.waiting_for_trigger:
+                edge = self.trigger_edge_s()
+                if edge is not None:
+                    cam.trigger_at(edge)
+                    log.info("camera triggered by the hammer at rig time %.6f s", edge)
         return list(impacts)
 
     def trigger_edge_s(self) -> float | None:
@@ -223,7 +250,12 @@ class SimRig:
 
     def volts(self, start_sample: int, n: int, sample_rate_hz: float) -> np.ndarray:
         """The DAQ inputs, in volts, for samples start_sample.. taken at the DAQ's true rate."""
-        self.daq_true_rate_hz = float(sample_rate_hz)
+        with self._lock:
+            self.daq_true_rate_hz = float(sample_rate_hz)
+            self._horizon = max(self._horizon, start_sample + n)
+            return self._volts(start_sample, n, sample_rate_hz)
+
+    def _volts(self, start_sample: int, n: int, sample_rate_hz: float) -> np.ndarray:
         c = self.config
         t = (start_sample + np.arange(n)) / sample_rate_hz
         rng = np.random.default_rng((c.seed, self._take, start_sample))
@@ -265,7 +297,8 @@ class SimRig:
         except KeyError:
             raise InputError(f"CAN node {node_id}", f"not mounted on the rig; mounted: {sorted(self._nodes)}") from None
         t = mount.t0_s + (start_sample + np.arange(n)) / sample_rate_hz
-        qdd = self.structure.modal_response(self.impacts, t).qdd
+        with self._lock:
+            qdd = self.structure.modal_response(self.impacts, t).qdd
         world = np.einsum("kc,kt->tc", self._node_phi[node_id], qdd)
         local = world @ np.asarray(mount.axes, float).T
         if mount.noise_m_s2:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from odsplat.acquisition.camera import CameraDriver, CameraTimeout, TriggerSettings
 from odsplat.errors import InputError, OdsplatError
 from odsplat.hil_sim.camera import SimCamera, SimCameraConfig
 from odsplat.hil_sim.render import PinholeCamera
@@ -83,13 +84,15 @@ def test_images_move_with_the_structure(scene, view):
     cam.arm(n_frames=3, pretrigger=1, at_s=0.0)
     cam.trigger_at(0.0105)
     frames = list(cam.frames())
-    assert [f[0] for f in frames] == [-1, 0, 1]
-    before, after = frames[0][2], frames[2][2]
+    assert [f.counter for f in frames] == [-1, 0, 1]
+    assert [f.time_s for f in frames] == [-1e-3, 0.0, 1e-3]  # the camera's own clock
+    before, after = frames[0].image, frames[2].image
     assert before.dtype == np.uint16 and before.shape == (80, 96) and before.max() <= 4095
-    on = cam.truth(frames[0][1]).object_id == STRUCTURE
+    starts = cam.recording.exposure_start_s
+    on = cam.truth(starts[0]).object_id == STRUCTURE
     assert np.abs(after.astype(int) - before.astype(int))[on].mean() > 1.0
     # alpha multiplies the motion: the natively magnified truth differs from the true image.
-    t = frames[2][1]
+    t = starts[2]
     true, magnified = cam.truth(t).image, cam.truth(t, alpha=20.0).image
     assert np.abs(magnified - true)[on].mean() > 1e-2
 
@@ -109,14 +112,14 @@ def test_image_formats_and_noise(view):
     cam = SimCamera(rgb_scene, view, lambda t: np.zeros((rgb_scene.structure.n_modes, len(t))),
                     SimCameraConfig(fps=500.0, bit_depth=8, rgb=True, read_noise_e=0.0, shot_noise=False))
     cam.arm(n_frames=1, trigger="internal")
-    (_, _, image), = cam.frames()
+    image = next(cam.frames()).image
     assert image.dtype == np.uint8 and image.shape == (80, 96, 3)
     on = cam.truth(0.0).object_id == STRUCTURE
     r, g, b = (image[..., c][on].mean() for c in range(3))
     assert r > g > b  # the orange paint
     noisy = SimCamera(rgb_scene, view, cam.motion, SimCameraConfig(fps=500.0, read_noise_e=20.0), seed=1)
     noisy.arm(n_frames=2, trigger="internal")
-    a, b2 = (f[2].astype(float) for f in noisy.frames())
+    a, b2 = (f.image.astype(float) for f in noisy.frames())
     # Same scene, independent noise: the difference is pure noise of the configured size.
     sigma_dn = np.std(a - b2) / np.sqrt(2)
     assert 0.5 < sigma_dn < 40
@@ -124,3 +127,26 @@ def test_image_formats_and_noise(view):
         SimCameraConfig(bit_depth=10).validate()
     with pytest.raises(InputError, match="exposure_s"):
         SimCameraConfig(fps=1000.0, exposure_s=2e-3).validate()
+
+
+def test_driver_interface(scene, view):
+    """The same calls the capture session makes on every camera: configure, arm, wait, frames, stop."""
+    now = [0.05]
+    cam = _camera(scene, view, clock=lambda: now[0])
+    assert isinstance(cam, CameraDriver)
+    cam.configure(TriggerSettings(n_frames=6, mode="external", pretrigger="center", fps=2000.0))
+    cam.arm()
+    with pytest.raises(CameraTimeout, match="no trigger"):
+        cam.wait(0.01)
+    cam.trigger_at(0.0812)
+    status = cam.wait(1.0)
+    assert (status.n_frames, status.first_counter, status.pretrigger_available) == (6, -3, 3)
+    assert cam.recording.exposure_start_s[3] == pytest.approx(0.0815)  # the first 2 kHz tick after the edge
+    frames = list(cam.frames())
+    assert [f.counter for f in frames] == [-3, -2, -1, 0, 1, 2] and frames[0].time_s == pytest.approx(-1.5e-3)
+    info = cam.describe()
+    assert (info.fps, info.width_px, info.height_px, info.bit_depth) == (2000.0, 96, 80, 12)
+    assert info.intrinsics.fx_px == pytest.approx(view.K[0, 0])
+    cam.stop()
+    with pytest.raises(OdsplatError, match="before arm"):
+        cam.wait(0.01)

@@ -211,8 +211,8 @@ def test_truth_file_lives_beside_its_take(tmp_path, scene, view):
     cap = Capture.create(tmp_path / "cap", Manifest(name="sim"))
     cam = rig.camera
     with cap.new_take("v00_t00", view=0, frame_shape=cam.frame_shape, dtype=cam.dtype, bit_depth=12, fps=2000.0) as w:
-        for counter, t, image in list(cam.frames())[:5]:
-            w.append_frames(image[None], np.array([t]), np.array([counter]))
+        for frame in list(cam.frames())[:5]:
+            w.append_frames(frame.image[None], np.array([frame.time_s]), np.array([frame.counter]))
         record = w.finalize()
     take_file = cap.root / record.file
     path = truth.save(truth_path(take_file))
