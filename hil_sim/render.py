@@ -13,6 +13,7 @@ import numpy as np
 from numba import njit, prange
 
 from odsplat.errors import InputError
+from odsplat.geometry import look_at
 
 log = logging.getLogger(__name__)
 
@@ -90,16 +91,9 @@ class PinholeCamera:
             if not 0 < fov_deg < 180:
                 raise InputError("PinholeCamera.look_at", f"fov_deg must be in (0, 180), got {fov_deg}")
             fx_px = 0.5 * width_px / math.tan(math.radians(fov_deg) / 2)
-        eye = np.asarray(eye_m, dtype=np.float64)
-        forward = np.asarray(target_m, dtype=np.float64) - eye
-        right = np.cross(forward, np.asarray(up, dtype=np.float64))
-        if np.linalg.norm(forward) == 0 or np.linalg.norm(right) < 1e-12 * np.linalg.norm(forward):
-            raise InputError("PinholeCamera.look_at", "eye and target coincide, or the view direction is parallel to up")
-        z = forward / np.linalg.norm(forward)
-        x = right / np.linalg.norm(right)
-        R = np.stack([x, np.cross(z, x), z])  # rows: camera x (right), y (down = z cross x), z (forward)
+        R, t = look_at(eye_m, target_m, up)
         K = np.array([[fx_px, 0, (width_px - 1) / 2], [0, fx_px, (height_px - 1) / 2], [0, 0, 1]], dtype=np.float64)
-        return cls(K=K, R=R, t=-R @ eye, width_px=width_px, height_px=height_px)
+        return cls(K=K, R=R, t=t, width_px=width_px, height_px=height_px)
 
     def project(self, points_m) -> Projection:
         """Project (N, 3) world points to (N, 2) image coordinates and (N,) camera-z depths."""

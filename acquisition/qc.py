@@ -1,0 +1,137 @@
+"""Hit QC, per take, as impact-testing software does it: double hits, overloads, lost data, force band, tags.
+
+Each check gives a reason code (stored in the take's QC flags) and a sentence for the engineer. A take
+with any reason is rejected; rejected takes are kept and marked, never deleted.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.signal import find_peaks
+
+from odsplat.errors import InputError
+from odsplat.store import QCInfo
+
+from .daq import DAQChannel
+from .trigger import TriggeredRecord
+
+REASONS = {
+    "double_hit": "more than one impact",
+    "force_overload": "the force channel clipped",
+    "accel_overload": "an accelerometer clipped",
+    "dropped_samples": "DAQ samples were lost",
+    "dropped_frames": "camera frames were lost",
+    "force_low": "the peak force is below the planned band",
+    "force_high": "the peak force is above the planned band",
+    "tags_not_visible": "too few AprilTags are visible",
+}
+
+
+@dataclass(frozen=True)
+class QCLimits:
+    force_band_n: tuple[float, float] = (20.0, 2000.0)  # planned peak force
+    double_hit_fraction: float = 0.05  # a second pulse counts when it rises this much (of the peak) above its dip
+    overload_fraction: float = 0.999  # a sample this close to full scale counts as clipped
+    min_tags: int = 2  # floor tags that must be visible for the pose
+
+    def __post_init__(self) -> None:
+        lo, hi = self.force_band_n
+        if not 0 <= lo < hi:
+            raise InputError("QCLimits.force_band_n", f"expected 0 <= low < high, got {self.force_band_n}")
+        if not 0 < self.double_hit_fraction < 1:
+            raise InputError("QCLimits.double_hit_fraction", f"expected (0, 1), got {self.double_hit_fraction}")
+
+
+def find_impacts(force_n: np.ndarray, *, fraction: float = 0.05, min_peak_n: float = 0.0) -> np.ndarray:
+    """Sample indices of the impacts in a force record: peaks that stand out by `fraction` of the largest.
+
+    Two half-sine pulses that do not overlap leave a dip to zero between them, so even a rebound right
+    after the first pulse (1 ms apart for 1 ms pulses) stands out by its full height.
+    """
+    f = np.nan_to_num(np.asarray(force_n, float), nan=0.0)
+    peak = f.max(initial=0.0)
+    if peak <= min_peak_n:
+        return np.array([], int)
+    idx, _ = find_peaks(np.concatenate([[0.0], f, [0.0]]), height=max(min_peak_n, fraction * peak),
+                        prominence=fraction * peak)
+    return idx - 1
+
+
+@dataclass(frozen=True)
+class HitQC:
+    """The verdict on one take, with the figures behind it."""
+
+    reasons: tuple[str, ...]
+    details: tuple[str, ...]
+    peak_force_n: float
+    impact_times_s: tuple[float, ...]  # relative to the trigger sample
+    accel_peak: Mapping[str, float] = field(default_factory=dict)  # m/s^2
+    lost_samples: int = 0
+    dropped_frames: tuple[int, ...] = ()
+    tags_seen: tuple[int, ...] | None = None
+
+    @property
+    def accepted(self) -> bool:
+        return not self.reasons
+
+    def to_qcinfo(self) -> QCInfo:
+        return QCInfo("accepted" if self.accepted else "rejected", self.reasons, "; ".join(self.details))
+
+    def summary(self) -> str:
+        """One line for the engineer."""
+        acc = ", ".join(f"{k} {v:.3g}" for k, v in self.accel_peak.items())
+        verdict = "ACCEPTED" if self.accepted else "REJECTED (" + "; ".join(self.details) + ")"
+        tags = "" if self.tags_seen is None else f", tags {list(self.tags_seen)}"
+        return (f"peak force {self.peak_force_n:.1f} N, {len(self.impact_times_s)} impact(s), peak acc [m/s^2] {acc}"
+                f"{tags}: {verdict}")
+
+
+def check_hit(record: TriggeredRecord, channels: Sequence[DAQChannel], *, limits: QCLimits = QCLimits(),
+              force_channel: str = "force", clipped: set[str] | frozenset[str] = frozenset(),
+              dropped_frames: Sequence[int] = (), tags_seen: Sequence[int] | None = None) -> HitQC:
+    """Run every check on a triggered record. `clipped`: channels the DAQ flagged as clipped during the take;
+    `tags_seen`: floor tag ids found in the take's frame (None: not checked)."""
+    reasons: list[str] = []
+    details: list[str] = []
+
+    def fail(code: str, detail: str) -> None:
+        if code not in reasons:
+            reasons.append(code)
+        details.append(detail)
+
+    by_name = {c.name: c for c in channels}
+    force = record.channel(force_channel)
+    peak = float(np.nanmax(force)) if np.isfinite(force).any() else 0.0
+    impacts = find_impacts(force, fraction=limits.double_hit_fraction)
+    times = tuple((i + record.first_sample - record.trigger_sample) / record.sample_rate_hz for i in impacts)
+    if len(impacts) > 1:
+        gaps_ms = ", ".join(f"{1e3 * (b - a):.2f}" for a, b in zip(times, times[1:]))
+        fail("double_hit", f"double hit: {len(impacts)} impacts, {gaps_ms} ms apart")
+    lo, hi = limits.force_band_n
+    if peak < lo:
+        fail("force_low", f"peak force {peak:.1f} N below the planned {lo:g} N")
+    elif peak > hi:
+        fail("force_high", f"peak force {peak:.1f} N above the planned {hi:g} N")
+    accel_peak: dict[str, float] = {}
+    for name in record.channels:
+        c = by_name.get(name)
+        if c is None:
+            continue
+        x = record.channel(name)
+        over = bool(np.nanmax(np.abs(x), initial=0.0) >= limits.overload_fraction * c.full_scale) or name in clipped
+        if c.kind == "acceleration":
+            accel_peak[name] = float(np.nanmax(np.abs(x), initial=0.0))
+        if over and name == force_channel:
+            fail("force_overload", f"force overload: {name!r} reached its +-{c.full_scale:.4g} N full scale")
+        elif over and c.kind == "acceleration":
+            fail("accel_overload", f"accelerometer overload: {name!r} reached its +-{c.full_scale:.4g} m/s^2 full scale")
+    if record.lost_samples:
+        fail("dropped_samples", f"{record.lost_samples} DAQ samples lost in {len(record.gaps)} gap(s)")
+    if dropped_frames:
+        fail("dropped_frames", f"{len(dropped_frames)} camera frame(s) lost (counters {list(dropped_frames)[:8]})")
+    if tags_seen is not None and len(tags_seen) < limits.min_tags:
+        fail("tags_not_visible", f"{len(tags_seen)} floor AprilTag(s) visible, {limits.min_tags} needed")
+    return HitQC(tuple(reasons), tuple(details), peak, times, accel_peak, record.lost_samples,
+                 tuple(int(c) for c in dropped_frames), None if tags_seen is None else tuple(int(t) for t in tags_seen))
