@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/store.py
 	$(BIN)/python bench/render.py
 	$(BIN)/python bench/render.py --scene rig --no-cold-compile
+	$(BIN)/python bench/daq.py
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info

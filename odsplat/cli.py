@@ -71,5 +71,100 @@ def recover(capture: Path) -> None:
         sys.exit(1)
 
 
+@main.command()
+@click.argument("out", type=click.Path(path_type=Path))
+@click.option("--sim", is_flag=True, help="Capture from the simulated rig (hil_sim) instead of the lab's devices.")
+@click.option("--auto", is_flag=True, help="With --sim: the simulated engineer places, hits and accepts; no questions.")
+@click.option("--config", "config_path", type=click.Path(path_type=Path), default=None,
+              help="Lab configuration (TOML: DAQ port and channels, camera, tags); see acquisition/lab.py.")
+@click.option("--views", type=int, default=27, show_default=True, help="Number of planned views.")
+@click.option("--radius-m", type=float, default=1.6, show_default=True, help="Camera distance from the target.")
+@click.option("--elevation-deg", type=(float, float), default=(15.0, 60.0), show_default=True,
+              help="Elevation band of the views.")
+@click.option("--target-m", type=(float, float, float), default=(0.2, 0.0, 0.3), show_default=True,
+              help="Point the cameras aim at (world, m).")
+@click.option("--frames", "n_frames", type=int, default=100, show_default=True, help="Frames per take.")
+@click.option("--pretrigger-frames", type=int, default=10, show_default=True, help="Frames kept before the trigger.")
+@click.option("--fps", type=float, default=None, help="Camera frame rate (default: the camera's).")
+@click.option("--record-s", type=float, default=0.5, show_default=True, help="DAQ record length per take.")
+@click.option("--pretrigger-s", type=float, default=0.02, show_default=True, help="DAQ time kept before the trigger.")
+@click.option("--trigger-n", type=float, default=10.0, show_default=True, help="Hammer force that triggers (N).")
+@click.option("--force-band", type=(float, float), default=(20.0, 2000.0), show_default=True,
+              help="Planned peak force (N); hits outside are redone.")
+@click.option("--max-attempts", type=int, default=5, show_default=True, help="Takes per view before moving on.")
+@click.option("--size", default="400x300", show_default=True, help="With --sim: image size WxH in px.")
+@click.option("--sim-faults", default="", help="With --sim: faults on takes of this run, e.g. '2:double_hit,5:disconnect' "
+              "(double_hit, overload, dropped_packet, disconnect, dropped_frames).")
+@click.option("--seed", type=int, default=0, show_default=True, help="With --sim: random seed of the rig and engineer.")
+@click.option("--window/--no-window", default=None, help="Live plots in a window (default: when a display exists).")
+def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: int, radius_m: float,
+            elevation_deg: tuple[float, float], target_m: tuple[float, float, float], n_frames: int,
+            pretrigger_frames: int, fps: float | None, record_s: float, pretrigger_s: float, trigger_n: float,
+            force_band: tuple[float, float], max_attempts: int, size: str, sim_faults: str, seed: int,
+            window: bool | None) -> None:
+    """Guided multi-view capture into OUT: place the camera at each planned view, hit, QC, accept or redo.
+
+    Stop at any time (even by a crash) and run the same command again to resume."""
+    from .acquisition.live import PlotFeedback, TextFeedback, display_available
+    from .acquisition.plan import PlanSettings
+    from .acquisition.qc import QCLimits
+    from .acquisition.session import CaptureSession, LabBench, SessionSettings
+    from .acquisition.trigger import HammerTrigger
+    from .errors import InputError
+
+    if sim == (config_path is not None):
+        raise InputError("odsplat capture", "give exactly one of --sim or --config LAB.toml")
+    if auto and not sim:
+        raise InputError("odsplat capture", "--auto needs --sim: in the lab a person places the camera and hits")
+    settings = SessionSettings(
+        name=out.name, plan=PlanSettings(views, radius_m, elevation_deg, target_m), n_frames=n_frames,
+        pretrigger_frames=pretrigger_frames, fps=fps,
+        trigger=HammerTrigger(level_n=trigger_n, pretrigger_s=pretrigger_s, record_s=record_s),
+        limits=QCLimits(force_band_n=force_band), max_attempts=max_attempts)
+    if sim:
+        from .hil_sim.bench import SimBench, SimBenchSettings, parse_faults
+        from .hil_sim.rig import RigConfig, SimRig
+
+        try:
+            w, h = (int(v) for v in size.lower().split("x"))
+        except ValueError:
+            raise InputError("--size", f"expected WxH in pixels, e.g. 400x300; got {size!r}") from None
+        bench = SimBench(SimRig(config=RigConfig(seed=seed)), SimBenchSettings(width_px=w, height_px=h, seed=seed),
+                         faults=parse_faults(sim_faults))
+        if not auto:
+            bench.place_camera = _asking_place(bench.place_camera)
+            bench.decide = _asking_decide
+    else:
+        from .acquisition.lab import load_lab_config
+
+        lab = load_lab_config(config_path)
+        bench = LabBench(lab.open_camera(), lab.daq_url, lab.channels, lab.sample_rate_hz, lab.tags,
+                         ask=lambda q: click.prompt(q, default="", show_default=False), tell=click.echo)
+    if window is None:
+        window = display_available() and not auto
+    feedback = PlotFeedback(click.echo, settings and _plan(settings)) if window else TextFeedback(click.echo)
+    report = CaptureSession(out, settings, bench, feedback=feedback).run()
+    click.echo(report.summary())
+    if not report.complete:
+        sys.exit(1)
+
+
+def _plan(settings):
+    from .acquisition.plan import plan_views
+
+    return plan_views(settings.plan)
+
+
+def _asking_place(place):
+    def ask(view, instructions):
+        place(view, instructions)
+        click.prompt("The simulated camera is placed; press Enter to arm", default="", show_default=False)
+    return ask
+
+
+def _asking_decide(qc, pose) -> bool:
+    return click.confirm(f"{qc.summary()}. Accept?", default=qc.accepted)
+
+
 if __name__ == "__main__":
     main()

@@ -1,0 +1,113 @@
+"""The lab configuration for `odsplat capture --config LAB.toml`: which DAQ port and channels, which camera, which tags.
+
+```toml
+[daq]
+url = "/dev/ttyACM0"            # any pyserial URL; simdaq://rig for the simulated DAQ
+sample_rate_hz = 25600
+channels = [
+  { name = "force", input = 0, kind = "force", sensitivity_v_per_unit = 0.00225, range_v = 10.0 },
+  { name = "acc1", input = 1, kind = "acceleration", sensitivity_v_per_unit = 0.0102, range_v = 10.0 },
+  { name = "cam_ttl", input = 7, kind = "ttl" },
+]
+
+[camera]
+driver = "opencv"               # "opencv" (source = device index or video file) or "photron" (ip = "...")
+source = 0
+intrinsics = { fx_px = 1000.0, fy_px = 1000.0, cx_px = 639.5, cy_px = 399.5 }   # optional: enables the pose check
+
+[tags]                          # optional: the AprilTag layout, as in capture.json
+family = "tag36h11"
+size_m = 0.12
+tags = [ { id = 0, corners_m = [[...], [...], [...], [...]] } ]
+```
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from odsplat.errors import InputError
+from odsplat.manifest import Intrinsics, TagLayout, from_plain
+
+from .camera import CameraDriver
+from .daq import DAQChannel
+
+
+@dataclass(frozen=True)
+class _Channel:
+    name: str
+    input: int
+    kind: str = "voltage"
+    sensitivity_v_per_unit: float = 1.0
+    range_v: float = 10.0
+    position_m: list[float] | None = None
+    direction: list[float] | None = None
+
+
+@dataclass(frozen=True)
+class _DAQ:
+    url: str
+    sample_rate_hz: float = 25_600.0
+    channels: list[_Channel] = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class _Camera:
+    driver: str
+    source: Any = None
+    ip: str | None = None
+    fps: float | None = None
+    library: str | None = None
+    intrinsics: Intrinsics | None = None
+
+
+@dataclass(frozen=True)
+class LabConfig:
+    daq_url: str
+    sample_rate_hz: float
+    channels: tuple[DAQChannel, ...]
+    camera: _Camera
+    tags: TagLayout | None
+
+    def open_camera(self) -> CameraDriver:
+        c = self.camera
+        if c.driver == "opencv":
+            from .opencv_camera import OpenCVCamera
+
+            cam = OpenCVCamera(c.source if c.source is not None else 0, fps=c.fps)
+        elif c.driver == "photron":
+            from .photron import PhotronCamera
+
+            if not c.ip:
+                raise InputError("camera.ip", "the photron driver needs the camera's IP address")
+            cam = PhotronCamera(c.ip, library=c.library)
+        else:
+            raise InputError("camera.driver", f"expected 'opencv' or 'photron', got {c.driver!r}")
+        if c.intrinsics is not None:
+            _describe = cam.describe
+            cam.describe = lambda: replace(_describe(), intrinsics=c.intrinsics)  # calibration from the lab file
+        return cam
+
+
+def load_lab_config(path: str | Path) -> LabConfig:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(str(path), "lab configuration not found") from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(str(path), f"not valid TOML: {e}") from None
+    for section in ("daq", "camera"):
+        if section not in data:
+            raise InputError(str(path), f"missing section [{section}]")
+    daq = from_plain(_DAQ, data["daq"], f"{path}: daq")
+    if not daq.channels:
+        raise InputError(f"{path}: daq.channels", "at least one channel is needed (the hammer's force)")
+    channels = tuple(DAQChannel(c.name, c.input, c.kind, c.sensitivity_v_per_unit, c.range_v,
+                                None if c.position_m is None else tuple(c.position_m),
+                                None if c.direction is None else tuple(c.direction)) for c in daq.channels)
+    camera = from_plain(_Camera, data["camera"], f"{path}: camera")
+    tags = from_plain(TagLayout, data["tags"], f"{path}: tags") if "tags" in data else None
+    return LabConfig(daq.url, daq.sample_rate_hz, channels, camera, tags)

@@ -1,0 +1,141 @@
+"""The simulated engineer at the simulated rig: a `Bench` for the capture session, with faults on chosen takes.
+
+It carries the camera to each planned view (with a placement error, as a person would), hits the
+structure, accepts what QC accepts, and saves each take's ground truth beside it. Faults are injected
+by take number (0 = the first take of this run): a double hit, an overload, a dropped packet, a
+disconnect mid-record, dropped camera frames, or no hit at all.
+"""
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from odsplat.acquisition.daq import DAQChannel, SerialDAQ
+from odsplat.acquisition.plan import view_eye_m
+from odsplat.acquisition.qc import HitQC
+from odsplat.acquisition.trigger import TriggeredRecord
+from odsplat.errors import InputError
+from odsplat.geometry import spherical_coords, spherical_eye, viewing_angle_deg
+from odsplat.manifest import Viewpoint
+
+from .camera import SimCamera, SimCameraConfig
+from .daq import register_url_handler
+from .render import PinholeCamera
+from .rig import SimRig, truth_path
+
+log = logging.getLogger(__name__)
+
+FAULTS = ("double_hit", "overload", "dropped_packet", "disconnect", "dropped_frames")
+
+
+def parse_faults(spec: str) -> dict[int, str]:
+    """'3:double_hit,5:disconnect' -> {3: 'double_hit', 5: 'disconnect'} (take numbers of this run)."""
+    out: dict[int, str] = {}
+    for item in filter(None, (p.strip() for p in spec.split(","))):
+        take, _, kind = item.partition(":")
+        if not take.strip().isdigit() or kind not in FAULTS:
+            raise InputError("--sim-faults", f"expected TAKE:FAULT items with FAULT one of {', '.join(FAULTS)}; got {item!r}")
+        out[int(take)] = kind
+    return out
+
+
+@dataclass(frozen=True)
+class SimBenchSettings:
+    width_px: int = 400  # at 320x240 the 0.12 m floor tags are too small to detect from the lowest views
+    height_px: int = 300
+    fov_deg: float = 50.0
+    camera: SimCameraConfig = SimCameraConfig(fps=2000.0)
+    daq_rate_hz: float = 25_600.0
+    placement_error_deg: float = 2.0  # how far off the planned view the engineer puts the camera (rms)
+    hit_delay_s: float = 0.05         # after the DAQ's newest sample: when the hammer lands
+    overload_factor: float = 12.0
+    seed: int = 0
+
+
+class SimBench:
+    """Implements the session's `Bench` on a `SimRig`."""
+
+    def __init__(self, rig: SimRig | None = None, settings: SimBenchSettings | None = None,
+                 faults: Mapping[int, str] | None = None):
+        register_url_handler()
+        self.rig = rig or SimRig()
+        self.settings = settings or SimBenchSettings()
+        self.faults = dict(faults or {})
+        bad = {k: v for k, v in self.faults.items() if v not in FAULTS}
+        if bad:
+            raise InputError("SimBench.faults", f"unknown faults {bad}; expected {FAULTS}")
+        self.tags = self.rig.scene.tags
+        self.channels = self._channels()
+        s = self.settings
+        start = PinholeCamera.look_at((1.5, 0.0, 1.0), (0.2, 0.0, 0.3), fov_deg=s.fov_deg, width_px=s.width_px,
+                                      height_px=s.height_px)
+        self.camera: SimCamera = self.rig.mount_camera(start, s.camera, name="simcam")
+        self.takes = 0  # takes started in this run
+        self._rng = np.random.default_rng(s.seed)
+        self._daq: SerialDAQ | None = None
+        self._fault: str | None = None
+        self.true_offsets_deg: dict[int, float] = {}  # view -> how far the camera really was from the plan
+
+    def _channels(self) -> tuple[DAQChannel, ...]:
+        c = self.rig.config
+        out = [DAQChannel(c.force_channel, 0, "force", c.force_sensitivity_v_per_n, 10.0,
+                          tuple(self.rig.hammer.point_m), tuple(self.rig.hammer.direction))]
+        out += [DAQChannel(a.name, 1 + k, "acceleration", a.sensitivity_v_per_m_s2, 10.0, a.point_m, a.direction)
+                for k, a in enumerate(c.accelerometers)]
+        if c.ttl_channel:
+            out.append(DAQChannel(c.ttl_channel, len(out), "ttl", 1.0, 10.0))
+        return tuple(out)
+
+    # ------------------------------------------------------------------------------ Bench
+
+    def open_daq(self) -> SerialDAQ:
+        self._fault = self.faults.get(self.takes)
+        self.takes += 1
+        self.rig.new_take()  # rig time restarts with the DAQ's sample counter
+        self.camera.drop_counters = frozenset({3, 4} if self._fault == "dropped_frames" else ())
+        options = {"drop_every": 20} if self._fault == "dropped_packet" else {}
+        if self._fault:
+            log.warning("sim: injecting %s into take %d", self._fault, self.takes - 1)
+        self._daq = SerialDAQ.from_url(self.rig.daq_url(fs_max_hz=51_200.0, **options), self.channels,
+                                       self.settings.daq_rate_hz)
+        return self._daq
+
+    def place_camera(self, view: Viewpoint, instructions: str) -> None:
+        s = self.settings
+        az, el, dist = spherical_coords(view_eye_m(view), view.target_m)
+        # A person puts the camera a little off: a random direction on the sphere, about placement_error_deg off.
+        d_az, d_el = self._rng.normal(0.0, s.placement_error_deg / np.sqrt(2), 2)
+        eye = spherical_eye(az + d_az / max(np.cos(np.radians(el)), 0.2), el + d_el, dist * (1 + 0.01 * self._rng.normal()),
+                            view.target_m)
+        cam = PinholeCamera.look_at(eye, view.target_m, fov_deg=s.fov_deg, width_px=s.width_px, height_px=s.height_px)
+        self.rig.place_camera(cam)
+        self.true_offsets_deg[view.index] = viewing_angle_deg(view_eye_m(view), eye, view.target_m)
+
+    def hit(self) -> None:
+        s = self.settings
+        fault = self._fault
+        if fault == "overload":
+            peak, self.rig.hammer.peak_n = self.rig.hammer.peak_n, self.rig.hammer.peak_n * s.overload_factor
+            try:
+                self.rig.hit(delay_s=s.hit_delay_s)
+            finally:
+                self.rig.hammer.peak_n = peak
+            return
+        impacts = self.rig.hit(delay_s=s.hit_delay_s, double=True if fault == "double_hit" else None)
+        if fault == "disconnect" and self._daq is not None:
+            device = getattr(self._daq.port, "device", None)
+            if device is not None:  # the cable is pulled 0.1 s after the hit, mid-record
+                rate = device._true_rate
+                device.faults.disconnect_after_samples = int((impacts[0].time_s + 0.1) * rate)
+
+    def decide(self, qc: HitQC, pose) -> bool:
+        return qc.accepted
+
+    def take_written(self, take_path: Path, record: TriggeredRecord | None) -> None:
+        n = record.stop_sample if record is not None else 0
+        if n and self.rig.impacts:
+            self.rig.truth(n).save(truth_path(take_path))
