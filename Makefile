@@ -22,13 +22,18 @@ install: $(STAMP)
 test: $(STAMP)
 	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest
 
-# Until the simulated rig and the later stages land, the demo is the part that works end to
-# end: import real recordings into a capture and summarise it.
+# The demo runs what works end to end: a guided 27-view capture on the simulated rig (with two
+# injected faults that QC catches and the session redoes), then real recordings imported from
+# $(SHARED_DATA) when that folder exists. Later stages add their steps here.
 demo: $(STAMP)
-	@test -d $(SHARED_DATA) || { echo "demo: the recordings folder $(SHARED_DATA) is missing (set SHARED_DATA=...)"; exit 1; }
-	rm -rf $(DEMO_OUT)/ladisk-beam
-	$(BIN)/odsplat import examples/ladisk-beam.toml --data $(SHARED_DATA) -o $(DEMO_OUT)/ladisk-beam
-	$(BIN)/odsplat info $(DEMO_OUT)/ladisk-beam
+	rm -rf $(DEMO_OUT)/sim-rig
+	$(BIN)/odsplat capture $(DEMO_OUT)/sim-rig --sim --auto --no-window --frames 100 --sim-faults 3:double_hit,9:dropped_packet
+	$(BIN)/odsplat info $(DEMO_OUT)/sim-rig
+	@if test -d $(SHARED_DATA); then \
+	  rm -rf $(DEMO_OUT)/ladisk-beam && \
+	  $(BIN)/odsplat import examples/ladisk-beam.toml --data $(SHARED_DATA) -o $(DEMO_OUT)/ladisk-beam && \
+	  $(BIN)/odsplat info $(DEMO_OUT)/ladisk-beam; \
+	else echo "demo: $(SHARED_DATA) not found; skipping the import of real recordings (set SHARED_DATA=...)"; fi
 
 bench: $(STAMP)
 	$(BIN)/python bench/store.py
