@@ -36,21 +36,10 @@ from .daq import DAQChannel
 
 
 @dataclass(frozen=True)
-class _Channel:
-    name: str
-    input: int
-    kind: str = "voltage"
-    sensitivity_v_per_unit: float = 1.0
-    range_v: float = 10.0
-    position_m: list[float] | None = None
-    direction: list[float] | None = None
-
-
-@dataclass(frozen=True)
 class _DAQ:
     url: str
     sample_rate_hz: float = 25_600.0
-    channels: list[_Channel] = field(default_factory=list)
+    channels: list[dict] = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -105,9 +94,7 @@ def load_lab_config(path: str | Path) -> LabConfig:
     daq = from_plain(_DAQ, data["daq"], f"{path}: daq")
     if not daq.channels:
         raise InputError(f"{path}: daq.channels", "at least one channel is needed (the hammer's force)")
-    channels = tuple(DAQChannel(c.name, c.input, c.kind, c.sensitivity_v_per_unit, c.range_v,
-                                None if c.position_m is None else tuple(c.position_m),
-                                None if c.direction is None else tuple(c.direction)) for c in daq.channels)
+    channels = tuple(from_plain(DAQChannel, c, f"{path}: daq.channels[{i}]") for i, c in enumerate(daq.channels))
     camera = from_plain(_Camera, data["camera"], f"{path}: camera")
     tags = from_plain(TagLayout, data["tags"], f"{path}: tags") if "tags" in data else None
     return LabConfig(daq.url, daq.sample_rate_hz, channels, camera, tags)
