@@ -14,12 +14,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
+import cv2
 import numpy as np
 from tqdm import tqdm
 
 from odsplat.errors import InputError
 from odsplat.manifest import CameraInfo, Manifest, TagLayout, Viewpoint
-from odsplat.store import Capture, QCInfo, TriggerInfo
+from odsplat.store import Capture, QCInfo, TriggerInfo, atomic_open
 from odsplat.tags import camera_pose_from_tags, detect_tags
 
 from .camera import CameraDriver, CameraTimeout, TriggerSettings
@@ -66,6 +67,7 @@ class SessionSettings:
     max_attempts: int = 5  # per view, before the session moves on and reports the view as missing
     hit_timeout_s: float = 60.0
     camera_timeout_s: float = 10.0
+    static_photos: bool = False  # one still photo per view into static/, for the reconstruction's poses
 
     def __post_init__(self) -> None:
         if not 0 <= self.pretrigger_frames < self.n_frames:
@@ -166,6 +168,8 @@ class CaptureSession:
             if self.feedback is not None:
                 self.feedback.show_view(view, n, instructions)
             self.bench.place_camera(view, instructions)
+            if self.settings.static_photos:
+                self._static_photo(cap, view)
             for attempt in range(self.settings.max_attempts):
                 outcome, record = self._take(cap, view)
                 accepted = outcome.accepted and self.bench.decide(outcome.qc, outcome.pose)
@@ -186,6 +190,31 @@ class CaptureSession:
         done = self._done(cap)
         return SessionReport(self.root, n, sorted(done), [v.index for v in self.views if v.index not in done],
                              self.outcomes, recovered, coverage([self.views[i] for i in sorted(done)], self.settings.plan))
+
+    def _static_photo(self, cap: Capture, view: Viewpoint) -> Path:
+        """A still of the structure at rest from this view (internal trigger, one frame), as a PNG in static/."""
+        path = cap.static_dir / f"view_{view.index:02d}.png"
+        if path.exists():
+            return path
+        camera = self.bench.camera
+        camera.configure(TriggerSettings(n_frames=1, mode="internal", fps=self.settings.fps))
+        camera.arm()
+        camera.wait(self.settings.camera_timeout_s)
+        image = next(camera.frames()).image
+        camera.stop()
+        bit_depth = camera.describe().bit_depth or image.dtype.itemsize * 8
+        if image.dtype == np.uint16 and bit_depth < 16:
+            image = image << (16 - bit_depth)  # PNG viewers expect 16-bit full scale
+        if image.ndim == 3:
+            image = image[..., ::-1]  # OpenCV writes BGR
+        ok, png = cv2.imencode(".png", image)
+        if not ok:
+            raise InputError(str(path), "could not encode the static photo as PNG")
+        cap.static_dir.mkdir(exist_ok=True)
+        with atomic_open(path, "wb") as fh:
+            fh.write(png.tobytes())
+        log.info("view %d: static photo %s", view.index, path.name)
+        return path
 
     def _remark(self, cap: Capture, name: str, status: str, flags: tuple[str, ...]) -> None:
         """Only the manifest's verdict changes (raw take files are never rewritten); the flags go in its notes."""

@@ -112,6 +112,7 @@ class SimBench:
         eye = spherical_eye(az + d_az / max(np.cos(np.radians(el)), 0.2), el + d_el, dist * (1 + 0.01 * self._rng.normal()),
                             view.target_m)
         cam = PinholeCamera.look_at(eye, view.target_m, fov_deg=s.fov_deg, width_px=s.width_px, height_px=s.height_px)
+        self.rig.new_take()  # carrying the camera takes a while: the structure is at rest again
         self.rig.place_camera(cam)
         self.true_offsets_deg[view.index] = viewing_angle_deg(view_eye_m(view), eye, view.target_m)
 

@@ -91,6 +91,7 @@ def recover(capture: Path) -> None:
 @click.option("--trigger-n", type=float, default=10.0, show_default=True, help="Hammer force that triggers (N).")
 @click.option("--force-band", type=(float, float), default=(20.0, 2000.0), show_default=True,
               help="Planned peak force (N); hits outside are redone.")
+@click.option("--static-photos", is_flag=True, help="Also take one still photo per view into OUT/static/.")
 @click.option("--max-attempts", type=int, default=5, show_default=True, help="Takes per view before moving on.")
 @click.option("--size", default="400x300", show_default=True, help="With --sim: image size WxH in px.")
 @click.option("--sim-faults", default="", help="With --sim: faults on takes of this run, e.g. '2:double_hit,5:disconnect' "
@@ -100,7 +101,7 @@ def recover(capture: Path) -> None:
 def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: int, radius_m: float,
             elevation_deg: tuple[float, float], target_m: tuple[float, float, float], n_frames: int,
             pretrigger_frames: int, fps: float | None, record_s: float, pretrigger_s: float, trigger_n: float,
-            force_band: tuple[float, float], max_attempts: int, size: str, sim_faults: str, seed: int,
+            force_band: tuple[float, float], static_photos: bool, max_attempts: int, size: str, sim_faults: str, seed: int,
             window: bool | None) -> None:
     """Guided multi-view capture into OUT: place the camera at each planned view, hit, QC, accept or redo.
 
@@ -120,7 +121,7 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
         name=out.name, plan=PlanSettings(views, radius_m, elevation_deg, target_m), n_frames=n_frames,
         pretrigger_frames=pretrigger_frames, fps=fps,
         trigger=HammerTrigger(level_n=trigger_n, pretrigger_s=pretrigger_s, record_s=record_s),
-        limits=QCLimits(force_band_n=force_band), max_attempts=max_attempts)
+        limits=QCLimits(force_band_n=force_band), max_attempts=max_attempts, static_photos=static_photos)
     if sim:
         from .hil_sim.bench import SimBench, SimBenchSettings, parse_faults
         from .hil_sim.rig import RigConfig, SimRig

@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -22,6 +23,7 @@ from odsplat.acquisition.trigger import TriggeredRecord
 from odsplat.errors import InputError
 from odsplat.hil_sim.rig import TakeTruth, truth_path
 from odsplat.store import Capture
+from odsplat.tags import detect_tags
 
 REPO = Path(__file__).resolve().parents[2]
 SMALL = ["--frames", "16", "--pretrigger-frames", "4", "--record-s", "0.3", "--size", "400x300"]
@@ -118,11 +120,16 @@ def test_sigkill_mid_session_then_resume_loses_nothing(tmp_path):
             assert t.qc != "accepted"
 
 
-def test_resume_with_another_plan_is_refused(tmp_path):
+def test_resume_with_another_plan_is_refused_and_static_photos(tmp_path):
     out = tmp_path / "cap"
-    run = subprocess.run(_capture_cmd(out, "--views", "2"), capture_output=True, text=True, env=_env(), cwd=REPO,
-                         timeout=120)
+    run = subprocess.run(_capture_cmd(out, "--views", "2", "--static-photos"), capture_output=True, text=True,
+                         env=_env(), cwd=REPO, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
+    photos = sorted(p.name for p in (out / "static").iterdir())
+    assert photos == ["view_00.png", "view_01.png"]
+    still = cv2.imread(str(out / "static" / "view_00.png"), cv2.IMREAD_UNCHANGED)
+    assert still.dtype == np.uint16 and still.shape == (300, 400)
+    assert len(detect_tags(still)) >= 2  # usable for poses: the floor tags are sharp in it
     again = subprocess.run(_capture_cmd(out, "--views", "3"), capture_output=True, text=True, env=_env(), cwd=REPO,
                            timeout=120)
     assert again.returncode == 2 and "views differ from this session's plan" in again.stderr
