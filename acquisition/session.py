@@ -8,6 +8,7 @@ are done; unfinished take files are recovered and kept (marked), never deleted.
 """
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -286,12 +287,11 @@ class CaptureSession:
             if record is not None:
                 writer.append_samples({c: record.data[k] for k, c in enumerate(record.channels)})
             trigger_index = None
-            k = 0
-            for frame in ([first] if first is not None else []) + list(frames):
+            # One frame at a time, straight from the camera into the take file (flushed per frame).
+            for k, frame in enumerate(itertools.chain([first] if first is not None else [], frames)):
                 if frame.counter == 0:
                     trigger_index = k
                 writer.append_frames(frame.image[None], np.array([frame.time_s]), np.array([frame.counter]))
-                k += 1
             if error is None and record is not None:
                 writer.set_trigger(TriggerInfo(record.pretrigger_samples, record.pretrigger_samples, trigger_index,
                                                record.trigger_sample / record.sample_rate_hz))
