@@ -320,8 +320,7 @@ class CaptureSession:
         if info.intrinsics is None or not seen:
             return None, seen
         k = info.intrinsics
-        K = np.array([[k.fx_px, 0, k.cx_px], [0, k.fy_px, k.cy_px], [0, 0, 1.0]])
-        pose = camera_pose_from_tags(detections, layout, K, np.asarray(k.dist) if k.dist else None,
+        pose = camera_pose_from_tags(detections, layout, k.matrix(), np.asarray(k.dist) if k.dist else None,
                                      min_tags=self.settings.limits.min_tags)
         if pose is None:
             return None, seen

@@ -221,11 +221,10 @@ class SimCamera:
         self._rng = np.random.default_rng(seed)
 
     def describe(self) -> CameraInfo:
-        K = self.camera.K
         cfg = self.config
         return CameraInfo(model=self.model, width_px=self.camera.width_px, height_px=self.camera.height_px, fps=cfg.fps,
                           bit_depth=cfg.bit_depth, n_colors=3 if cfg.rgb else 1, exposure_s=cfg.exposure,
-                          intrinsics=Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])))
+                          intrinsics=Intrinsics.from_matrix(self.camera.K))
 
     # -- data ---------------------------------------------------------------------------------
 

@@ -485,10 +485,9 @@ class TakeTruth:
 
     def camera_info(self) -> CameraInfo:
         pin = self.camera()
-        K = pin.K
         return CameraInfo(model=SimCamera.model, width_px=pin.width_px, height_px=pin.height_px, fps=self.camera_fps,
                           exposure_s=self.camera_exposure_s,
-                          intrinsics=Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])))
+                          intrinsics=Intrinsics.from_matrix(pin.K))
 
     def save(self, path: str | Path) -> Path:
         """Write atomically (temporary file, fsync, rename): a reader never sees half a truth file."""

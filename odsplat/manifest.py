@@ -10,6 +10,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .errors import InputError, SchemaError
 from .units import SI_UNITS
 
@@ -56,6 +58,16 @@ class Intrinsics:
     cx_px: float
     cy_px: float
     dist: list[float] = field(default_factory=list)
+
+    @classmethod
+    def from_matrix(cls, K, dist=()) -> Intrinsics:
+        """From a 3x3 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
+        K = np.asarray(K, dtype=np.float64)
+        return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), [float(d) for d in dist])
+
+    def matrix(self) -> np.ndarray:
+        """The 3x3 camera matrix."""
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
 
 
 @dataclass
