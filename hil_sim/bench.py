@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from odsplat.acquisition.daq import DAQChannel, SerialDAQ
+from odsplat.acquisition.daq import SerialDAQ
 from odsplat.acquisition.plan import view_eye_m
 from odsplat.acquisition.qc import HitQC
 from odsplat.acquisition.trigger import TriggeredRecord
@@ -69,7 +69,7 @@ class SimBench:
         if bad:
             raise InputError("SimBench.faults", f"unknown faults {bad}; expected {FAULTS}")
         self.tags = self.rig.scene.tags
-        self.channels = self._channels()
+        self.channels = self.rig.daq_channels()
         s = self.settings
         start = PinholeCamera.look_at((1.5, 0.0, 1.0), (0.2, 0.0, 0.3), fov_deg=s.fov_deg, width_px=s.width_px,
                                       height_px=s.height_px)
@@ -79,16 +79,6 @@ class SimBench:
         self._daq: SerialDAQ | None = None
         self._fault: str | None = None
         self.true_offsets_deg: dict[int, float] = {}  # view -> how far the camera really was from the plan
-
-    def _channels(self) -> tuple[DAQChannel, ...]:
-        c = self.rig.config
-        out = [DAQChannel(c.force_channel, 0, "force", c.force_sensitivity_v_per_n, 10.0,
-                          tuple(self.rig.hammer.point_m), tuple(self.rig.hammer.direction))]
-        out += [DAQChannel(a.name, 1 + k, "acceleration", a.sensitivity_v_per_m_s2, 10.0, a.point_m, a.direction)
-                for k, a in enumerate(c.accelerometers)]
-        if c.ttl_channel:
-            out.append(DAQChannel(c.ttl_channel, len(out), "ttl", 1.0, 10.0))
-        return tuple(out)
 
     # ------------------------------------------------------------------------------ Bench
 

@@ -27,7 +27,8 @@ from pathlib import Path
 import numpy as np
 
 from odsplat.errors import InputError, OdsplatError
-from odsplat.manifest import CameraInfo, ChannelInfo, Intrinsics
+from odsplat.acquisition.daq import DAQChannel
+from odsplat.manifest import CameraInfo, Intrinsics
 from odsplat.store import atomic_open
 
 from .camera import SimCamera, SimCameraConfig
@@ -308,21 +309,16 @@ class SimRig:
 
     # ------------------------------------------------------------------------------ metadata
 
-    def channel_infos(self) -> list[ChannelInfo]:
-        """What a manifest says of the DAQ inputs and the CAN nodes' axes."""
+    def daq_channels(self, *, force_range_v: float = 10.0, acc_range_v: float = 10.0) -> tuple[DAQChannel, ...]:
+        """The DAQ inputs as a driver configures them: input numbers, sensitivities, ranges, sensor places."""
         c = self.config
-        out = [ChannelInfo(c.force_channel, "force", "N", c.force_sensitivity_v_per_n, list(self.hammer.point_m),
-                           list(self.hammer.direction), device="simdaq")]
-        for a in c.accelerometers:
-            out.append(ChannelInfo(a.name, "acceleration", "m/s^2", a.sensitivity_v_per_m_s2, list(a.point_m),
-                                   list(a.direction), device="simdaq"))
+        out = [DAQChannel(c.force_channel, 0, "force", c.force_sensitivity_v_per_n, force_range_v,
+                          tuple(self.hammer.point_m), tuple(self.hammer.direction))]
+        out += [DAQChannel(a.name, 1 + k, "acceleration", a.sensitivity_v_per_m_s2, acc_range_v, a.point_m, a.direction)
+                for k, a in enumerate(c.accelerometers)]
         if c.ttl_channel:
-            out.append(ChannelInfo(c.ttl_channel, "ttl", "V", 1.0, device="simdaq"))
-        for mount in c.can_nodes:
-            for axis, row in zip("xyz", mount.axes):
-                out.append(ChannelInfo(f"node{mount.node_id}_{axis}", "acceleration", "m/s^2", None, list(mount.point_m),
-                                       list(row), node=mount.node_id, device="can"))
-        return out
+            out.append(DAQChannel(c.ttl_channel, len(out), "ttl", 1.0, 10.0))
+        return tuple(out)
 
     # ------------------------------------------------------------------------------ ground truth
 

@@ -23,18 +23,9 @@ def _handler():
     register_url_handler()
 
 
-def _channels(rig: SimRig, *, force_range_v: float = 10.0, acc_range_v: float = 10.0) -> list[DAQChannel]:
-    c = rig.config
-    out = [DAQChannel(c.force_channel, 0, "force", c.force_sensitivity_v_per_n, force_range_v)]
-    out += [DAQChannel(a.name, 1 + k, "acceleration", a.sensitivity_v_per_m_s2, acc_range_v, a.point_m, a.direction)
-            for k, a in enumerate(c.accelerometers)]
-    out.append(DAQChannel(c.ttl_channel, len(out), "ttl", 1.0))
-    return out
-
-
 def _take(rig: SimRig, trigger: HammerTrigger, *, hit_delay_s=0.2, double=False, url_options=None, **chan_kw):
     url = rig.daq_url(f"acq-{uuid.uuid4().hex[:8]}", **(url_options or {}))
-    with SerialDAQ.from_url(url, _channels(rig, **chan_kw), FS) as daq:
+    with SerialDAQ.from_url(url, rig.daq_channels(**chan_kw), FS) as daq:
         daq.start()
         rig.hit(delay_s=hit_delay_s, double=double)
         record = wait_for_hit(daq, trigger, timeout_s=10)
@@ -59,7 +50,7 @@ def test_trigger_keeps_the_pretrigger_and_stamps_by_sample_counter(scene):
     acc = truth.sensor_acceleration_m_s2()[record.first_sample:record.stop_sample, 0] @ (0, 0, 1)
     assert np.max(np.abs(record.channel("acc_tip_z") - acc)) < 0.5 * 10 / 32767 / (0.1 / 9.80665) + 1e-3
     assert clipped == set() and errors["lost_packets"] == 0 and record.lost_samples == 0
-    qc = check_hit(record, _channels(rig), tags_seen=(0, 1, 2))
+    qc = check_hit(record, rig.daq_channels(), tags_seen=(0, 1, 2))
     assert qc.accepted, qc.details
     assert qc.peak_force_n == pytest.approx(truth.impact_peak_n[0], rel=0.01)
     assert len(qc.impact_times_s) == 1 and qc.to_qcinfo().status == "accepted"
@@ -70,7 +61,7 @@ def test_double_hits_one_ms_or_more_apart_are_caught(scene, delay_ms):
     rig = SimRig(scene, hammer=Hammer((0.46, 0.03, 0.60), (-0.25, -0.45, -0.86), double_hit_delay_s=delay_ms * 1e-3,
                                       double_hit_ratio=0.3))
     record, *_ = _take(rig, HammerTrigger(pretrigger_s=0.01, record_s=0.2), double=True)
-    qc = check_hit(record, _channels(rig))
+    qc = check_hit(record, rig.daq_channels())
     assert qc.reasons == ("double_hit",)
     assert np.diff(qc.impact_times_s)[0] == pytest.approx(delay_ms * 1e-3, abs=1.5 / FS)
     assert "double hit: 2 impacts" in qc.to_qcinfo().notes
@@ -80,7 +71,7 @@ def test_force_and_accelerometer_overload(scene):
     rig = SimRig(scene)
     record, clipped, *_ = _take(rig, HammerTrigger(pretrigger_s=0.01, record_s=0.2), force_range_v=0.2, acc_range_v=2.0,
                                 url_options={"range": "0.2,2,10"})
-    qc = check_hit(record, _channels(rig, force_range_v=0.2, acc_range_v=2.0), clipped=clipped)
+    qc = check_hit(record, rig.daq_channels(force_range_v=0.2, acc_range_v=2.0), clipped=clipped)
     assert clipped == {"force", "acc_tip_z"}  # the device's own flags; the tip accelerometer peaks near 4.5 V
     assert set(qc.reasons) >= {"force_overload", "accel_overload"} and not qc.accepted
     assert "'acc_tip_z' reached its" in qc.to_qcinfo().notes
@@ -98,7 +89,7 @@ def test_dropped_packets_leave_nan_and_are_reported(scene):
         expected[max(0, g.first_sample - record.first_sample):g.stop - record.first_sample] = True
     assert np.array_equal(lost, expected) and lost.sum() == record.lost_samples
     assert not np.isnan(record.data[:, ~lost]).any()
-    qc = check_hit(record, _channels(rig))
+    qc = check_hit(record, rig.daq_channels())
     assert "dropped_samples" in qc.reasons
 
 
@@ -113,7 +104,7 @@ def test_bit_errors_count_as_crc_failures(scene):
 def test_disconnect_mid_take_names_the_port(scene):
     rig = SimRig(scene)
     url = rig.daq_url(f"acq-{uuid.uuid4().hex[:8]}", disconnect_after=20000)
-    with SerialDAQ.from_url(url, _channels(rig), FS) as daq:
+    with SerialDAQ.from_url(url, rig.daq_channels(), FS) as daq:
         daq.start()
         rig.hit(delay_s=0.1)
         with pytest.raises(DAQError, match=r"simdaq://acq-.*disconnected after sample"):
@@ -122,7 +113,7 @@ def test_disconnect_mid_take_names_the_port(scene):
 
 def test_no_hit_times_out_and_bad_configs_name_the_channel(scene):
     rig = SimRig(scene)
-    with SerialDAQ.from_url(rig.daq_url(f"acq-{uuid.uuid4().hex[:8]}", realtime=1), _channels(rig), FS) as daq:
+    with SerialDAQ.from_url(rig.daq_url(f"acq-{uuid.uuid4().hex[:8]}", realtime=1), rig.daq_channels(), FS) as daq:
         daq.start()
         with pytest.raises(NoTrigger, match="'force' did not reach 10 N"):
             wait_for_hit(daq, HammerTrigger(), timeout_s=0.3)
@@ -157,7 +148,7 @@ def test_first_crossing_and_find_impacts_on_plain_arrays():
 
 def test_ring_buffer_refuses_samples_that_left_it(scene):
     rig = SimRig(scene, RigConfig())
-    with SerialDAQ.from_url(rig.daq_url(f"acq-{uuid.uuid4().hex[:8]}"), _channels(rig), FS, buffer_s=0.05) as daq:
+    with SerialDAQ.from_url(rig.daq_url(f"acq-{uuid.uuid4().hex[:8]}"), rig.daq_channels(), FS, buffer_s=0.05) as daq:
         daq.start()
         daq.wait_for(FS, timeout_s=10)
         with pytest.raises(DAQError, match="has left the"):
