@@ -19,7 +19,7 @@ from odsplat.acquisition.plan import view_eye_m
 from odsplat.acquisition.qc import HitQC
 from odsplat.acquisition.trigger import TriggeredRecord
 from odsplat.errors import InputError
-from odsplat.geometry import spherical_coords, spherical_eye, viewing_angle_deg
+from odsplat.geometry import spherical_eye, viewing_angle_deg
 from odsplat.manifest import Viewpoint
 
 from .camera import SimCamera, SimCameraConfig
@@ -96,7 +96,7 @@ class SimBench:
 
     def place_camera(self, view: Viewpoint, instructions: str) -> None:
         s = self.settings
-        az, el, dist = spherical_coords(view_eye_m(view), view.target_m)
+        az, el, dist = view.azimuth_deg, view.elevation_deg, view.distance_m
         # A person puts the camera a little off: a random direction on the sphere, about placement_error_deg off.
         d_az, d_el = self._rng.normal(0.0, s.placement_error_deg / np.sqrt(2), 2)
         eye = spherical_eye(az + d_az / max(np.cos(np.radians(el)), 0.2), el + d_el, dist * (1 + 0.01 * self._rng.normal()),

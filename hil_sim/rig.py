@@ -35,19 +35,13 @@ from .camera import SimCamera, SimCameraConfig
 from .daq import register_source
 from .render import PinholeCamera
 from .scene import RigScene, build_scene
-from .structure import Hammer, Impact
+from .structure import Hammer, Impact, check_unit_vector
 
 log = logging.getLogger(__name__)
 
 G_M_S2 = 9.80665
 _RIG_SERIAL = itertools.count(1)
 TRUTH_SUFFIX = ".truth.npz"
-
-
-def _check_unit(v, what: str) -> None:
-    d = np.asarray(v, float)
-    if d.shape != (3,) or not np.isclose(np.linalg.norm(d), 1.0, atol=1e-6):
-        raise InputError(what, f"expected a unit 3-vector; got {v}")
 
 
 @dataclass(frozen=True)
@@ -61,7 +55,7 @@ class Accelerometer:
     noise_m_s2: float = 0.0  # rms of white sensor noise
 
     def __post_init__(self) -> None:
-        _check_unit(self.direction, f"Accelerometer {self.name!r}.direction")
+        check_unit_vector(self.direction, f"Accelerometer {self.name!r}.direction")
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,13 @@ def _cantilever(s: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return phi / tip, dphi / tip
 
 
+def check_unit_vector(v, what: str) -> None:
+    """Raise InputError naming `what` unless v is a 3-vector of length 1."""
+    d = np.asarray(v, float)
+    if d.shape != (3,) or not np.isclose(np.linalg.norm(d), 1.0, atol=1e-6):
+        raise InputError(what, f"expected a unit 3-vector; got {v}")
+
+
 @dataclass(frozen=True)
 class Geometry:
     """Box dimensions of base, column and arm (metres)."""
@@ -114,9 +121,7 @@ class Impact:
     def __post_init__(self) -> None:
         if not 0.5e-3 <= self.duration_s <= 3e-3:
             raise InputError("Impact.duration_s", f"expected 0.5 to 3 ms; got {self.duration_s * 1e3:.3g} ms")
-        d = np.asarray(self.direction, float)
-        if d.shape != (3,) or not np.isclose(np.linalg.norm(d), 1.0, atol=1e-6):
-            raise InputError("Impact.direction", f"expected a unit 3-vector; got {self.direction}")
+        check_unit_vector(self.direction, "Impact.direction")
 
     def force(self, t_s: np.ndarray) -> np.ndarray:
         s = np.asarray(t_s, float) - self.time_s
