@@ -23,13 +23,12 @@ tags = [ { id = 0, corners_m = [[...], [...], [...], [...]] } ]
 """
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from odsplat.errors import InputError
-from odsplat.manifest import Intrinsics, TagLayout, from_plain
+from odsplat.manifest import Intrinsics, TagLayout, from_plain, load_toml
 
 from .camera import CameraDriver
 from .daq import DAQChannel
@@ -82,12 +81,7 @@ class LabConfig:
 
 def load_lab_config(path: str | Path) -> LabConfig:
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(str(path), "lab configuration not found") from None
-    except tomllib.TOMLDecodeError as e:
-        raise InputError(str(path), f"not valid TOML: {e}") from None
+    data = load_toml(path, missing="lab configuration not found")
     for section in ("daq", "camera"):
         if section not in data:
             raise InputError(str(path), f"missing section [{section}]")

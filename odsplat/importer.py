@@ -10,7 +10,6 @@ import glob
 import logging
 import os
 import shutil
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,7 +20,8 @@ from tqdm import tqdm
 from .errors import InputError
 from .io.signals import SignalSet, read_signals
 from .io.video import VideoSource, open_video
-from .manifest import CHANNEL_KINDS, CameraInfo, ChannelInfo, Intrinsics, Manifest, TagLayout, Viewpoint, from_plain
+from .manifest import (CHANNEL_KINDS, CameraInfo, ChannelInfo, Intrinsics, Manifest, TagLayout, Viewpoint, from_plain,
+                       load_toml)
 from .store import Capture, QCInfo, TriggerInfo, fsync_path
 
 log = logging.getLogger(__name__)
@@ -88,13 +88,7 @@ class Rig:
     @classmethod
     def load(cls, path: str | Path) -> Rig:
         path = Path(path)
-        try:
-            data = tomllib.loads(path.read_text())
-        except FileNotFoundError:
-            raise InputError(path, "no such rig file") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise InputError(path, f"not valid TOML: {exc}") from None
-        rig = from_plain(cls, data, str(path))
+        rig = from_plain(cls, load_toml(path, missing="no such rig file"), str(path))
         if not rig.takes:
             raise InputError(f"{path}: takes", "the rig lists no takes; add at least one [[takes]] table")
         for i, take in enumerate(rig.takes):

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import tomllib
 import types
 import typing
 from dataclasses import dataclass, field
@@ -208,6 +209,17 @@ class Manifest:
         except json.JSONDecodeError as exc:
             raise InputError(path, f"not valid JSON: {exc}") from None
         return cls.from_dict(data, where=str(path))
+
+
+def load_toml(path: str | Path, *, missing: str) -> dict[str, Any]:
+    """Read a TOML configuration file; errors name the file (`missing` says what was expected there)."""
+    path = Path(path)
+    try:
+        return tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(path, missing) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(path, f"not valid TOML: {exc}") from None
 
 
 def from_plain(cls: type, data: Any, where: str) -> Any:
