@@ -18,6 +18,8 @@ import numpy as np
 from odsplat import canproto as cp
 from odsplat.errors import InputError, OdsplatError
 
+from .ring import SampleRing
+
 log = logging.getLogger(__name__)
 
 
@@ -40,8 +42,7 @@ class CANAccelerometers:
         self.range_m_s2 = cp.RANGES_M_S2[cp.range_code(range_m_s2)]
         self.capacity = max(256, int(buffer_s * self.sample_rate_hz))
         self.reader = cp.AccelNodeReader(bus, node_timeout_s=node_timeout_s)
-        self._data = {n: np.full((self.capacity, 3), np.nan, np.float32) for n in self.node_ids}
-        self._stop_at = {n: 0 for n in self.node_ids}  # one past the newest sample received or known lost
+        self._rings = self._new_rings()
         self._gaps_seen = 0
         self._cond = threading.Condition()
         self._running = threading.Event()
@@ -58,9 +59,7 @@ class CANAccelerometers:
     def start(self) -> None:
         """START every node (each confirms or the call names the silent one), then stream in the background."""
         with self._cond:
-            for n in self.node_ids:
-                self._data[n][:] = np.nan
-                self._stop_at[n] = 0
+            self._rings = self._new_rings()
             self._gaps_seen = len(self.reader.gaps)
         self.reader.start(self.node_ids, self.sample_rate_hz, self.range_m_s2)
         self._running.set()
@@ -91,16 +90,16 @@ class CANAccelerometers:
                 self.error = CANError(f"{self.name}: reader failed: {e}")
                 self._cond.notify_all()
 
+    def _new_rings(self) -> dict[int, SampleRing]:
+        return {n: SampleRing(3, self.capacity, name=f"{self.name}: node {n}", error=CANError) for n in self.node_ids}
+
     def _write(self, node: int, first: int, samples: np.ndarray) -> None:
-        if node not in self._data:
-            return
-        pos = np.arange(first, first + len(samples)) % self.capacity
-        self._data[node][pos] = samples
-        self._stop_at[node] = max(self._stop_at[node], first + len(samples))
+        if node in self._rings:
+            self._rings[node].write(first, samples.T, len(samples))
 
     def _note_gap(self, gap: cp.Gap) -> None:
-        if gap.node_id in self._stop_at:  # a lost sample is NaN, never what the ring held before
-            self._write(gap.node_id, gap.first_sample, np.full((gap.n_lost, 3), np.nan, np.float32))
+        if gap.node_id in self._rings:  # a lost sample is NaN, never what the ring held before
+            self._rings[gap.node_id].write(gap.first_sample, None, gap.n_lost)
 
     # ------------------------------------------------------------------------------ data
 
@@ -114,7 +113,7 @@ class CANAccelerometers:
 
     def next_sample(self, node_id: int) -> int:
         with self._cond:
-            return self._stop_at[node_id]
+            return self._rings[node_id].stop
 
     def clipping(self, node_id: int) -> bool:
         status = self.reader.status.get(node_id)
@@ -124,7 +123,7 @@ class CANAccelerometers:
         """Block until the node's samples before `sample` are in; a silent node raises CANError naming it."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
-            while self._stop_at[node_id] < sample:
+            while self._rings[node_id].stop < sample:
                 if self.error is not None:
                     raise self.error
                 silent = [t for t in self.reader.timeouts if t.node_id == node_id]
@@ -133,17 +132,13 @@ class CANAccelerometers:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise CANError(f"{self.name}: node {node_id} sample {sample} not received within {timeout_s:g} s "
-                                   f"(have {self._stop_at[node_id]})")
+                                   f"(have {self._rings[node_id].stop})")
                 self._cond.wait(min(left, 0.1))
 
     def read(self, node_id: int, first: int, stop: int) -> np.ndarray:
         """(stop - first, 3) m/s^2 along the node's axes; NaN where samples were lost."""
         with self._cond:
-            have = self._stop_at[node_id]
-            if stop > have or first < have - self.capacity:
-                raise CANError(f"{self.name}: node {node_id} samples {first}..{stop} not in the buffer "
-                               f"(holds {max(0, have - self.capacity)}..{have})")
-            return self._data[node_id][np.arange(first, stop) % self.capacity].astype(np.float64)
+            return self._rings[node_id].read(first, stop).T
 
     def times_s(self, first: int, stop: int) -> np.ndarray:
         """Node-clock times of samples first..stop-1 (sample / nominal rate)."""

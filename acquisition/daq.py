@@ -19,6 +19,8 @@ from odsplat import daqproto as dp
 from odsplat.errors import InputError, OdsplatError
 from odsplat.manifest import CHANNEL_KINDS, ChannelInfo
 
+from .ring import SampleRing
+
 log = logging.getLogger(__name__)
 
 
@@ -61,32 +63,6 @@ class DAQError(OdsplatError):
     """The DAQ stream failed: disconnect, timeout or a refused command."""
 
 
-class _Ring:
-    """The last `capacity` samples of every channel, addressed by absolute sample index; NaN where lost."""
-
-    def __init__(self, n_channels: int, capacity: int):
-        self.capacity = capacity
-        self.data = np.full((n_channels, capacity), np.nan, np.float32)
-        self.stop = 0  # one past the newest sample written
-
-    def write(self, first: int, values: np.ndarray | None, n: int) -> None:
-        """Samples first..first+n-1 (values None: a gap, NaN). Samples come in order, never twice."""
-        if n <= 0:
-            return
-        keep = min(n, self.capacity)  # only the newest `capacity` of a huge write survive
-        first, skip = first + n - keep, n - keep
-        pos = np.arange(first, first + keep) % self.capacity
-        self.data[:, pos] = np.nan if values is None else values[:, skip:]
-        self.stop = first + keep
-
-    def read(self, first: int, stop: int) -> np.ndarray:
-        if stop > self.stop:
-            raise DAQError(f"samples up to {stop} requested, only {self.stop} received")
-        if first < self.stop - self.capacity:
-            raise DAQError(f"sample {first} has left the {self.capacity}-sample ring buffer (oldest {self.stop - self.capacity})")
-        return self.data[:, np.arange(first, stop) % self.capacity].astype(np.float64)
-
-
 class SerialDAQ:
     """One DAQ on an open serial port. `configure()`, `start()`, then read by absolute sample index.
 
@@ -116,7 +92,7 @@ class SerialDAQ:
         self.clipped: set[str] = set()
         self.final_status: dp.Status | None = None
         self.error: DAQError | None = None
-        self._ring: _Ring | None = None
+        self._ring: SampleRing | None = None
         self._scale: np.ndarray | None = None
         self._seq = 0
         self._start_seq: int | None = None
@@ -188,7 +164,8 @@ class SerialDAQ:
         """START: the device's sample counter restarts at 0; the buffer and the gap list are cleared."""
         if self._scale is None:
             self.configure()
-        self._ring = _Ring(len(self.channels), max(1024, int(self.buffer_s * self.sample_rate_hz)))
+        self._ring = SampleRing(len(self.channels), max(1024, int(self.buffer_s * self.sample_rate_hz)), name=self.name,
+                                error=DAQError)
         self.gaps, self.flags, self.clipped, self.final_status = [], dp.StatusFlag(0), set(), None
         self._stopped.clear()
         self._request(dp.Start())
