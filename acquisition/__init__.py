@@ -5,13 +5,13 @@ internals are imported from their modules."""
 from .camera import CameraDriver, CameraTimeout, Frame, RecordingStatus, TriggerSettings
 from .daq import DAQChannel, DAQError, SerialDAQ
 from .plan import PlanSettings, PoseCheck, check_pose, coverage, describe_view, plan_views, top_view_map, view_pose
-from .qc import HitQC, QCLimits, check_hit, find_impacts
+from .qc import HitQC, QCLimits, check_hit
 from .trigger import HammerTrigger, NoTrigger, TriggeredRecord, wait_for_hit
 
 __all__ = [
     "CameraDriver", "CameraTimeout", "Frame", "RecordingStatus", "TriggerSettings",
     "DAQChannel", "DAQError", "SerialDAQ",
     "PlanSettings", "PoseCheck", "check_pose", "coverage", "describe_view", "plan_views", "top_view_map", "view_pose",
-    "HitQC", "QCLimits", "check_hit", "find_impacts",
+    "HitQC", "QCLimits", "check_hit",
     "HammerTrigger", "NoTrigger", "TriggeredRecord", "wait_for_hit",
 ]

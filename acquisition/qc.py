@@ -9,9 +9,9 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.signal import find_peaks
 
 from odsplat.errors import InputError
+from odsplat.impulse import find_impacts
 from odsplat.store import QCInfo
 
 from .daq import DAQChannel
@@ -42,21 +42,6 @@ class QCLimits:
             raise InputError("QCLimits.force_band_n", f"expected 0 <= low < high, got {self.force_band_n}")
         if not 0 < self.double_hit_fraction < 1:
             raise InputError("QCLimits.double_hit_fraction", f"expected (0, 1), got {self.double_hit_fraction}")
-
-
-def find_impacts(force_n: np.ndarray, *, fraction: float = 0.05, min_peak_n: float = 0.0) -> np.ndarray:
-    """Sample indices of the impacts in a force record: peaks that stand out by `fraction` of the largest.
-
-    Two half-sine pulses that do not overlap leave a dip to zero between them, so even a rebound right
-    after the first pulse (1 ms apart for 1 ms pulses) stands out by its full height.
-    """
-    f = np.nan_to_num(np.asarray(force_n, float), nan=0.0)
-    peak = f.max(initial=0.0)
-    if peak <= min_peak_n:
-        return np.array([], int)
-    idx, _ = find_peaks(np.concatenate([[0.0], f, [0.0]]), height=max(min_peak_n, fraction * peak),
-                        prominence=fraction * peak)
-    return idx - 1
 
 
 @dataclass(frozen=True)

@@ -53,6 +53,8 @@ class SimBenchSettings:
     placement_error_deg: float = 2.0  # how far off the planned view the engineer puts the camera (rms)
     hit_delay_s: float = 0.05         # after the DAQ's newest sample: when the hammer lands
     overload_factor: float = 12.0
+    random_clock_phase: bool = True   # camera and DAQ clocks are independent: each take's frames fall anywhere
+    force_scatter: float | None = None  # relative rms of the hit force, take to take (None: the rig hammer's own)
     seed: int = 0
 
 
@@ -76,6 +78,9 @@ class SimBench:
         self.camera: SimCamera = self.rig.mount_camera(start, s.camera, name="simcam")
         self.takes = 0  # takes started in this run
         self._rng = np.random.default_rng(s.seed)
+        self._phase_rng = np.random.default_rng((s.seed, 1))
+        if s.force_scatter is not None:
+            self.rig.hammer.force_scatter = s.force_scatter
         self._daq: SerialDAQ | None = None
         self._fault: str | None = None
         self.true_offsets_deg: dict[int, float] = {}  # view -> how far the camera really was from the plan
@@ -86,6 +91,8 @@ class SimBench:
         self._fault = self.faults.get(self.takes)
         self.takes += 1
         self.rig.new_take()  # rig time restarts with the DAQ's sample counter
+        if self.settings.random_clock_phase:
+            self.camera.clock_offset_s = float(self._phase_rng.uniform(0.0, self.camera.period_s))
         self.camera.drop_counters = frozenset({3, 4} if self._fault == "dropped_frames" else ())
         options = {"drop_every": 20} if self._fault == "dropped_packet" else {}
         if self._fault:

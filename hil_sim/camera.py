@@ -40,6 +40,8 @@ class SimCameraConfig:
     supersample: int = 3
     background: float = 0.5
     ttl_high_v: float = 5.0
+    trigger_delay_s: float = 0.0        # from the trigger edge to the camera latching it
+    trigger_jitter_s: float = 0.0       # rms scatter of that delay, take to take
 
     @property
     def exposure(self) -> float:
@@ -52,6 +54,9 @@ class SimCameraConfig:
             raise InputError("SimCameraConfig.exposure_s", f"must lie in (0, 1/fps = {1 / self.fps:.3g} s], got {self.exposure}")
         if self.bit_depth not in (8, 12):
             raise InputError("SimCameraConfig.bit_depth", f"expected 8 or 12, got {self.bit_depth}")
+        if self.trigger_delay_s < 0 or self.trigger_jitter_s < 0:
+            raise InputError("SimCameraConfig.trigger_delay_s", f"delay and jitter must be >= 0, got "
+                             f"{self.trigger_delay_s} and {self.trigger_jitter_s}")
         if self.blur_samples < 1:
             raise InputError("SimCameraConfig.blur_samples", f"must be at least 1, got {self.blur_samples}")
 
@@ -164,7 +169,8 @@ class SimCamera:
         return self._plan is not None and self._plan[2] == "external" and self.recording is None
 
     def trigger_at(self, t_s: float) -> Recording:
-        """An external trigger edge at DAQ time t_s: frame 0 is the first exposure starting at or after it."""
+        """An external trigger edge at DAQ time t_s: frame 0 is the first exposure starting at or after the camera
+        latches it (`trigger_delay_s` later, give or take `trigger_jitter_s`)."""
         if self._plan is None or self._armed_at_s is None:
             raise OdsplatError(f"{self.name}: trigger before arm")
         if self._plan[2] != "external":
@@ -175,7 +181,10 @@ class SimCamera:
 
     def _record(self, t_trigger_s: float) -> Recording:
         n_frames, pre, _ = self._plan
-        trigger_tick = self._first_tick_at_or_after(t_trigger_s)
+        cfg = self.config
+        jitter = cfg.trigger_jitter_s * self._rng.standard_normal() if cfg.trigger_jitter_s else 0.0
+        latched = t_trigger_s + max(0.0, cfg.trigger_delay_s + jitter)
+        trigger_tick = self._first_tick_at_or_after(latched)
         # The ring buffer holds only what was exposed since the arm.
         first_buffered = self._first_tick_at_or_after(self._armed_at_s)
         available = min(pre, trigger_tick - first_buffered)

@@ -150,6 +150,39 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
         sys.exit(1)
 
 
+@main.command()
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--method", type=click.Choice(["auto", "ttl", "image"]), default="auto", show_default=True,
+              help="Frame timing: the exposure strobe (ttl), the trigger frame refined by the images, or ttl where recorded.")
+@click.option("--all-takes", is_flag=True, help="Sync rejected takes too (default: those QC accepted).")
+@click.option("--normalize-impulse", is_flag=True, help="Scale each take's motion to the median hammer impulse.")
+@click.option("--frames/--no-frames", default=True, show_default=True, help="Write the aligned frames to derived/sync/.")
+@click.option("--image-check/--no-image-check", default=True, show_default=True,
+              help="Date strobe-timed takes from the images too, as a check.")
+@click.option("--trigger-delay-s", type=float, default=0.0, show_default=True,
+              help="The camera's latency from the trigger edge to latching it.")
+@click.option("--max-memory-mb", type=float, default=256.0, show_default=True, help="Working memory per take.")
+@click.option("--plot/--no-plot", default=True, show_default=True, help="Write derived/sync.png.")
+def sync(capture_dir: Path, method: str, all_takes: bool, normalize_impulse: bool, frames: bool, image_check: bool,
+         trigger_delay_s: float, max_memory_mb: float, plot: bool) -> None:
+    """Put the takes of CAPTURE_DIR on one impact-locked timeline: derived/sync.json and the aligned frames."""
+    from .store import Capture
+    from .sync import SyncSettings, sync_capture
+
+    cap = Capture.open(capture_dir)
+    settings = SyncSettings(method=method, takes="all" if all_takes else "accepted", normalize_impulse=normalize_impulse,
+                            write_frames=frames, check_with_image=image_check, camera_trigger_delay_s=trigger_delay_s,
+                            max_memory_mb=max_memory_mb)
+    result = sync_capture(cap, settings)
+    click.echo(result.summary())
+    if plot:
+        from .sync.plot import plot_sync
+
+        click.echo(f"plot: {plot_sync(cap, result)}")
+    if not result.ok:
+        sys.exit(1)
+
+
 def _plan(settings):
     from .acquisition.plan import plan_views
 

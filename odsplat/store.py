@@ -42,7 +42,7 @@ CRASHED_SUFFIX = ".h5.crashed"
 _FRAME_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
 
 
-def _compression() -> Mapping[str, Any]:
+def frame_compression() -> Mapping[str, Any]:
     return hdf5plugin.Blosc(cname="zstd", clevel=3, shuffle=hdf5plugin.Blosc.BITSHUFFLE)
 
 
@@ -180,7 +180,7 @@ class TakeWriter:
                 maxshape=(None, *self.frame_shape),
                 chunks=(1, *self.frame_shape),
                 dtype=self.dtype,
-                **_compression(),
+                **frame_compression(),
             )
             self._frames.attrs["bit_depth"] = self.bit_depth
             self._times = f.create_dataset("frame_times_s", shape=(0,), maxshape=(None,), chunks=(4096,), dtype="f8")

@@ -1,1 +1,8 @@
-"""Sync: puts the sequential takes of a capture on one impact-locked timeline."""
+"""Sync: puts the sequential takes of a capture on one impact-locked timeline.
+
+Public surface: `sync_capture(capture, SyncSettings)` -> `SyncResult` (also `derived/sync.json`), and
+`AlignedTake` to read a take's frames on the common grid (`derived/sync/NAME.h5`)."""
+from .aligned import AlignedTake
+from .align import SyncResult, SyncSettings, TakeSync, load_sync, sync_capture, sync_path
+
+__all__ = ["AlignedTake", "SyncResult", "SyncSettings", "TakeSync", "load_sync", "sync_capture", "sync_path"]

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from odsplat.acquisition.daq import DAQChannel, DAQError, SerialDAQ
-from odsplat.acquisition.qc import QCLimits, check_hit, find_impacts
+from odsplat.acquisition.qc import QCLimits, check_hit
+from odsplat.impulse import find_impacts
 from odsplat.acquisition.trigger import HammerTrigger, NoTrigger, TriggeredRecord, first_crossing, wait_for_hit
 from odsplat.errors import InputError
 from odsplat.hil_sim.daq import register_url_handler

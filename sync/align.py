@@ -1,0 +1,496 @@
+"""Sync a capture: every take's impact onset and frame times in DAQ time, one common impact-locked grid,
+and each take's frames resampled onto it.
+
+Per take: the hammer pulse gives the impact onset to a fraction of a DAQ sample; the exposure strobe
+(when recorded) or the trigger frame refined by the images gives counter 0's exposure start. The
+take's `offset_s` is then the time from the impact onset to the middle of counter 0's exposure. Takes
+with no hit, two hits, no visible tags or unusable timing are excluded with the reason, not guessed.
+Results go to `derived/sync.json` (format in docs/sync.md), the aligned frames to `derived/sync/`.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from odsplat.errors import InputError, OdsplatError
+from odsplat.impulse import find_impacts, fit_pulse
+from odsplat.manifest import CameraInfo, TagLayout, utc_now
+from odsplat.store import Capture, TakeReader, atomic_write_text
+from odsplat.tags import detect_tags
+
+from .aligned import AlignedWriter
+from .image import DisplacementBasis, fit_frame_times, motion_gram, noise_sd
+from .resample import fill_dropped, fractional_shift, interpolate_gaps
+from .strobe import fit_strobe
+
+log = logging.getLogger(__name__)
+
+SYNC_JSON = "sync.json"
+SYNC_DIR = "sync"
+FORMAT = "odsplat-sync"
+METHODS = ("auto", "ttl", "image")
+TAKE_SELECTIONS = ("accepted", "all")
+
+
+@dataclass(frozen=True)
+class SyncSettings:
+    method: str = "auto"                  # auto: the strobe when a take has a ttl channel, else the images
+    takes: str = "accepted"               # which takes: those QC accepted, or all
+    normalize_impulse: bool = False       # scale each take's motion to the median impulse (the structure is linear)
+    write_frames: bool = True             # the aligned frames, derived/sync/NAME.h5
+    check_with_image: bool = True         # strobe-timed takes: date them from the images too, as a check
+    camera_trigger_delay_s: float = 0.0   # from the DAQ's trigger to the camera latching it
+    search_frames: float = 1.5            # image method: how far around the trigger frame to look
+    double_hit_fraction: float = 0.05     # a second pulse counts when it stands this much of the peak above its dip
+    min_peak_n: float = 5.0               # smaller force peaks are noise, not a hit
+    max_memory_mb: float = 256.0          # working memory per take (pixels kept, rows per band)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise InputError("sync method", f"expected one of {METHODS}, got {self.method!r}")
+        if self.takes not in TAKE_SELECTIONS:
+            raise InputError("sync takes", f"expected one of {TAKE_SELECTIONS}, got {self.takes!r}")
+        if self.search_frames <= 0 or self.max_memory_mb <= 0:
+            raise InputError("SyncSettings", "search_frames and max_memory_mb must be positive")
+
+
+@dataclass
+class TakeSync:
+    """One take on the common timeline. Times are DAQ times (s) unless named `offset`."""
+
+    name: str
+    view: int | None
+    status: str = "ok"                       # "ok" or "excluded"
+    error: str | None = None                 # why it was excluded
+    method: str | None = None                # "ttl" or "image"
+    offset_s: float | None = None            # middle of counter 0's exposure, after the impact onset
+    hit_daq_time_s: float | None = None
+    frame0_daq_time_s: float | None = None   # counter 0's exposure start
+    period_s: float | None = None
+    exposure_s: float | None = None
+    residual_frames: float | None = None     # ttl: rms of the edge fit; image: one sigma of the shift
+    flags: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    peak_force_n: float | None = None
+    impulse_n_s: float | None = None
+    pulse_duration_s: float | None = None
+    pulse_residual: float | None = None      # half-sine misfit, relative to the peak
+    pulse_method: str | None = None
+    fps_error_ppm: float | None = None       # ttl: the camera's true rate against its nominal, on the DAQ clock
+    dropped_counters: list[int] = field(default_factory=list)
+    image_motion_z: float | None = None      # how clearly the images see motion: its energy over noise's, in sd
+    image_check_frames: float | None = None  # ttl takes: image timing minus strobe timing
+    xcorr_lag_s: float | None = None         # the accelerometers' response against the reference take's, after locking
+    xcorr_coeff: float | None = None
+    tags_seen: list[int] = field(default_factory=list)
+    counters: list[int] = field(default_factory=list, repr=False)  # stored frames' counters (not in the JSON)
+    impulse_scale: float | None = None       # applied to the motion when normalising
+    grid_shift_frames: float | None = None   # the take's input frame index at grid frame 0
+    drift_frames: float | None = None        # largest timing error of a single shift over the grid (rate error)
+    aligned_file: str | None = None
+
+    def exclude(self, error: str) -> TakeSync:
+        self.status, self.error = "excluded", error
+        return self
+
+
+@dataclass
+class SyncResult:
+    capture: str
+    fps: float | None
+    n_frames: int
+    t0_s: float | None                       # grid frame 0's mid-exposure time after the impact onset
+    frame_shape: list[int]
+    reference_impulse_n_s: float | None
+    normalized: bool
+    takes: list[TakeSync]
+    settings: dict[str, Any]
+    created_utc: str = field(default_factory=utc_now)
+
+    @property
+    def ok(self) -> list[TakeSync]:
+        return [t for t in self.takes if t.status == "ok"]
+
+    @property
+    def times_s(self) -> np.ndarray:
+        return (self.t0_s or 0.0) + np.arange(self.n_frames) / (self.fps or 1.0)
+
+    def to_json(self) -> str:
+        d = asdict(self)
+        for t in d["takes"]:
+            t.pop("counters")
+        return json.dumps({"format": FORMAT, "version": 1, **d}, indent=1, allow_nan=False, default=float)
+
+    @classmethod
+    def load(cls, path: str | Path) -> SyncResult:
+        path = Path(path)
+        try:
+            d = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError(path, "no sync result (run `odsplat sync` first)") from None
+        except json.JSONDecodeError as e:
+            raise InputError(path, f"not valid JSON: {e}") from None
+        if d.pop("format", None) != FORMAT or d.pop("version", None) != 1:
+            raise InputError(path, f"not an {FORMAT} version 1 file")
+        names = {f.name for f in fields(TakeSync)}
+        d["takes"] = [TakeSync(**{k: v for k, v in t.items() if k in names}) for t in d["takes"]]
+        return cls(**d)
+
+    def summary(self) -> str:
+        lines = [f"{len(self.ok)}/{len(self.takes)} takes synced; grid {self.n_frames} frames at {self.fps or 0:g} fps "
+                 f"from {1e3 * (self.t0_s or 0):+.3f} ms"]
+        for t in self.takes:
+            if t.status == "ok":
+                extra = f"  image check {t.image_check_frames:+.3f} fr" if t.image_check_frames is not None else ""
+                lines.append(f"  {t.name:<10} {t.method:<5} offset {1e3 * t.offset_s:+.4f} ms "
+                             f"({t.offset_s * self.fps:+.3f} fr), residual {t.residual_frames:.3f} fr{extra}"
+                             f"{'  [' + ', '.join(t.flags) + ']' if t.flags else ''}")
+            else:
+                lines.append(f"  {t.name:<10} EXCLUDED: {t.error}")
+        return "\n".join(lines)
+
+
+def sync_path(capture: Capture) -> Path:
+    return capture.derived_dir / SYNC_JSON
+
+
+# ---------------------------------------------------------------------------------------------- per take
+
+def _force_channel(reader: TakeReader) -> str:
+    names = [n for n in reader.channel_names if reader.channel_info(n).kind == "force"]
+    if len(names) != 1:
+        raise InputError(reader.path, f"expected exactly one DAQ channel of kind 'force', found {names}")
+    return names[0]
+
+
+def _channels_of(reader: TakeReader, kind: str) -> list[str]:
+    return [n for n in reader.channel_names if reader.channel_info(n).kind == kind]
+
+
+class _TakeAnalysis:
+    """Everything sync learns about one take, computed from its file alone."""
+
+    def __init__(self, reader: TakeReader, layout: TagLayout | None, camera: CameraInfo, settings: SyncSettings):
+        self.r = reader
+        self.s = settings
+        self.layout = layout
+        self.cam_exposure_s = camera.exposure_s
+        self.fps = camera.fps
+        self.out = TakeSync(reader.name, reader.view)
+        self.onset_sample: float | None = None
+
+    def run(self) -> TakeSync:
+        try:
+            self._run()
+        except InputError as e:  # the take's own file is named by the take; anything narrower is kept
+            self.out.exclude(e.problem if e.source == str(self.r.path) else f"{e.source}: {e.problem}")
+        if self.out.status != "ok":
+            log.warning("take %s excluded from sync: %s", self.out.name, self.out.error)
+        return self.out
+
+    def _run(self) -> None:
+        r, s, out = self.r, self.s, self.out
+        if not r.has_frames or r.n_frames < 4:
+            raise InputError(r.path, f"the take holds {r.n_frames} frames; sync needs at least 4")
+        if not r.fps:
+            raise InputError(r.path, "the take has no frame rate (fps attribute)")
+        if self.fps is not None and abs(r.fps - self.fps) > 1e-6 * self.fps:
+            raise InputError(r.path, f"filmed at {r.fps:g} fps; the capture's camera runs at {self.fps:g} fps")
+        fs = r.sample_rate_hz
+        force_name = _force_channel(r)
+        force = r.channel(force_name).astype(float)
+        hits = find_impacts(force, fraction=s.double_hit_fraction, min_peak_n=s.min_peak_n)
+        peak = float(np.nanmax(force)) if np.isfinite(force).any() else 0.0
+        if hits.size == 0:
+            raise InputError(force_name, f"no hit found: the force peaks at {peak:.3g} N, below {s.min_peak_n:g} N")
+        if hits.size > 1:
+            gaps = ", ".join(f"{1e3 * (b - a) / fs:.2f}" for a, b in zip(hits, hits[1:]))
+            raise InputError(force_name, f"{hits.size} hits found ({gaps} ms apart): a double hit cannot be locked to one impact")
+        pulse = fit_pulse(force, fs, peak_index=int(hits[0]), source=force_name)
+        self.onset_sample = pulse.onset_sample
+        out.hit_daq_time_s = r.daq_t0_s + pulse.onset_s
+        out.peak_force_n, out.impulse_n_s, out.pulse_duration_s = pulse.peak_n, pulse.impulse_n_s, pulse.duration_s
+        out.pulse_residual, out.pulse_method = pulse.residual, pulse.method
+        if pulse.residual > 0.1:
+            out.flags.append("pulse_not_half_sine")
+
+        counters = r.frame_counter.astype(int)
+        out.counters = counters.tolist()
+        full, _ = fill_dropped(counters)
+        out.dropped_counters = sorted(set(full.tolist()) - set(out.counters))
+        if out.dropped_counters:
+            out.flags.append("dropped_frames_filled")
+        period = 1.0 / r.fps
+        trigger_time = r.trigger.trigger_time_s
+        ttl = _channels_of(r, "ttl")
+        method = s.method if s.method != "auto" else ("ttl" if ttl else "image")
+        if method == "ttl" and not ttl:
+            raise InputError(r.path, "method 'ttl' asked for, but the take records no channel of kind 'ttl'")
+        out.method = method
+        if trigger_time is None:
+            out.flags.append("no_trigger_time")
+            trigger_time = out.hit_daq_time_s  # the camera's trigger came from this force: its rise is as good
+
+        if method == "ttl":
+            st = fit_strobe(r.channel(ttl[0]), fs, r.daq_t0_s, counters, nominal_fps=r.fps, trigger_time_s=trigger_time,
+                            trigger_delay_s=s.camera_trigger_delay_s, source=f"{r.path}: {ttl[0]}")
+            out.frame0_daq_time_s, out.period_s = st.frame0_start_s, st.period_s
+            out.exposure_s = st.exposure_s if np.isfinite(st.exposure_s) else self._exposure(period)
+            out.residual_frames = st.residual_frames
+            out.fps_error_ppm = (1.0 / (st.period_s * r.fps) - 1.0) * 1e6
+            out.flags += list(st.flags)
+            out.notes += list(st.notes)
+        prior = trigger_time + s.camera_trigger_delay_s + 0.5 * period - 0.5 / fs  # counter 0 starts within a frame after
+        start_guess = out.frame0_daq_time_s if method == "ttl" else prior
+        rest_image, rest_std, rest = self._rest(counters, start_guess, period, method == "ttl")
+        self._check_tags(rest_image)
+        if method == "image" or s.check_with_image:
+            timing = self._image_timing(counters, rest, rest_image, rest_std, period,
+                                        start_guess, method == "ttl")
+            if method == "image":
+                if timing is None:
+                    raise InputError(r.path, "image timing needs accelerometer channels (kind 'acceleration') in the take")
+                if (not np.isfinite(timing.sigma_frames) or timing.sigma_frames > 0.3 or timing.motion_z < 10
+                        or "image_fit_at_window_edge" in timing.flags):
+                    raise InputError(r.path, f"the images do not date the frames (sigma {timing.sigma_frames:.3g} frame, "
+                                             f"motion {timing.motion_z:.1f} sd above noise; {'; '.join(timing.notes)})")
+                out.frame0_daq_time_s, out.period_s = timing.frame0_start_s, period
+                out.exposure_s = self._exposure(period)
+                out.residual_frames = timing.sigma_frames
+            elif timing is not None:
+                out.image_check_frames = (timing.frame0_start_s - out.frame0_daq_time_s) / period
+                if abs(out.image_check_frames) > 0.25:
+                    out.flags.append("image_disagrees")
+                    out.notes.append(f"the images date the frames {out.image_check_frames:+.2f} frame from the strobe")
+            if timing is not None:
+                out.image_motion_z = timing.motion_z
+                out.flags += [f for f in timing.flags if f not in out.flags]
+                out.notes += list(timing.notes)
+        out.offset_s = out.frame0_daq_time_s + 0.5 * out.exposure_s - out.hit_daq_time_s
+
+    def _exposure(self, period: float) -> float:
+        if self.cam_exposure_s:
+            return float(self.cam_exposure_s)
+        self.out.flags.append("exposure_unknown")
+        return period
+
+    def _rest(self, counters: np.ndarray, start_guess: float, period: float, known: bool):
+        """Frames surely before the hit (their exposure ends before it, however the timing comes out), and their
+        per-pixel mean and scatter."""
+        margin = 0.0 if known else self.s.search_frames
+        ends = start_guess + (counters + margin) * period + (self.cam_exposure_s or period)
+        rest = ends < self.out.hit_daq_time_s
+        if rest.sum() < 3:
+            raise InputError(self.r.path, f"{int(rest.sum())} frame(s) before the hit; sync needs 3 to see the structure at "
+                                          "rest (record with more pretrigger frames)")
+        idx = np.flatnonzero(rest)
+        acc = acc2 = None
+        for k in idx:  # pretrigger frames come first and are few
+            f = self.r.frames[int(k)].astype(np.float64)
+            acc = f if acc is None else acc + f
+            acc2 = f * f if acc2 is None else acc2 + f * f
+        mean = acc / idx.size
+        var = np.maximum(acc2 / idx.size - mean ** 2, 0.0) * idx.size / (idx.size - 1)
+        return mean, noise_sd(mean, var, idx.size), rest
+
+    def _check_tags(self, rest_image: np.ndarray) -> None:
+        if self.layout is None:
+            self.out.flags.append("no_tag_layout")
+            return
+        img = rest_image if rest_image.ndim == 2 else rest_image.mean(axis=2)
+        scale = 255.0 / max(float(np.percentile(img, 99.9)), 1e-9)
+        dets = detect_tags(np.clip(img * scale, 0, 255).astype(np.uint8))
+        known = {t.id for t in self.layout.tags}
+        self.out.tags_seen = sorted(d.id for d in dets if d.id in known)
+        if not self.out.tags_seen:
+            raise InputError(self.r.path, "no AprilTag of the capture's layout is visible: the take cannot be located")
+
+    def _image_timing(self, counters, rest, rest_image, rest_std, period, start_guess, known):
+        r = self.r
+        accels = _channels_of(r, "acceleration")
+        if not accels:
+            return None
+        exposure = self.cam_exposure_s or period
+        basis = DisplacementBasis(np.stack([r.channel(a) for a in accels]), r.sample_rate_hz, r.daq_t0_s,
+                                  self.out.hit_daq_time_s, exposure)
+        motion = motion_gram(r.iter_frames(32), r.n_frames, rest_image, rest_std,
+                             max_memory_bytes=self.s.max_memory_mb * 1e6)
+        return fit_frame_times(motion, counters, period, basis, start_guess,
+                               search_frames=self.s.search_frames, rest=rest, hit_time_s=self.out.hit_daq_time_s)
+
+
+# ---------------------------------------------------------------------------------------------- across takes
+
+def _response(reader: TakeReader, onset_sample: float, impulse: float, n: int) -> np.ndarray | None:
+    """The accelerometers' response from 1 ms before the onset, locked to it to a fraction of a sample, per unit impulse."""
+    accels = _channels_of(reader, "acceleration")
+    if not accels:
+        return None
+    fs = reader.sample_rate_hz
+    pre = int(round(1e-3 * fs))
+    i0 = int(math.floor(onset_sample)) - pre
+    if i0 < 0 or i0 + n + 1 > reader.n_samples:
+        return None
+    x = np.stack([np.nan_to_num(reader.channel(a)[i0:i0 + n + 1].astype(float)) for a in accels], axis=1)
+    return fractional_shift(x, onset_sample - math.floor(onset_sample), axis=0)[:n] / impulse
+
+
+def _lag(ref: np.ndarray, x: np.ndarray, max_lag: int = 8) -> tuple[float, float]:
+    """Lag (samples) of x against ref, both (n, channels), by the peak of their cross-correlation summed over the
+    channels, and its correlation coefficient."""
+    n = len(ref)
+    lags = np.arange(-max_lag, max_lag + 1)
+    c = np.array([float((ref[max(0, -k):n - max(0, k)] * x[max(0, k):n - max(0, -k)]).sum()) for k in lags])
+    i = int(np.argmax(c))
+    frac = 0.0
+    if 0 < i < len(c) - 1:
+        a, b, d = c[i - 1], c[i], c[i + 1]
+        frac = 0.5 * (a - d) / (a - 2 * b + d) if a - 2 * b + d < 0 else 0.0
+    coeff = c[i] / np.sqrt(float((ref ** 2).sum()) * float((x ** 2).sum()) + 1e-300)
+    return float(lags[i] + frac), float(coeff)
+
+
+def _grid(takes: list[TakeSync], fps: float) -> tuple[float, int]:
+    period = 1.0 / fps
+    lo = max(t.offset_s + min(t.counters) * t.period_s for t in takes)
+    hi = min(t.offset_s + max(t.counters) * t.period_s for t in takes)
+    t0 = math.ceil(lo / period - 1e-9) * period
+    n = int(math.floor((hi - t0) / period + 1e-9)) + 1
+    if n < 2:
+        raise OdsplatError("the synced takes share fewer than 2 frames of time: nothing to align")
+    return t0, n
+
+
+def _write_aligned(capture: Capture, t: TakeSync, reader: TakeReader, rest_counters: np.ndarray, t0: float, fps: float,
+                   n_grid: int, settings: SyncSettings, out_dir: Path) -> None:
+    counters = np.asarray(t.counters)
+    full, pos = fill_dropped(counters)
+    grid = t0 + np.arange(n_grid) / fps
+    u = (grid - t.offset_s) / t.period_s - full[0]  # each grid frame's place among the take's (filled) frames
+    mean_shift = float(np.mean(u - np.arange(n_grid)))
+    t.grid_shift_frames = mean_shift
+    t.drift_frames = float(np.max(np.abs(u - np.arange(n_grid) - mean_shift)))
+    if t.drift_frames > 0.02:
+        t.flags.append("rate_drift")
+        t.notes.append(f"one shift per take leaves {t.drift_frames:.3f} frame of timing error at the grid's ends")
+    whole = math.floor(mean_shift)
+    frac = mean_shift - whole
+    present = np.zeros(full.size, bool)
+    present[pos] = True
+    shape = reader.frame_shape
+    row_bytes = full.size * int(np.prod(shape[1:])) * 8 * 4
+    band = max(1, min(shape[0], int(settings.max_memory_mb * 1e6 // row_bytes)))
+    path = out_dir / f"{t.name}.h5"
+    w = AlignedWriter(path, n_frames=n_grid, frame_shape=shape, band_rows=band, bit_depth=reader.bit_depth,
+                      times_s=grid, attrs=dict(take=t.name, view=t.view, offset_s=t.offset_s, method=t.method,
+                                               impulse_scale=t.impulse_scale or 1.0, grid_shift_frames=mean_shift))
+    try:
+        for r0 in range(0, shape[0], band):
+            rows = slice(r0, min(r0 + band, shape[0]))
+            x = np.empty((full.size, rows.stop - r0, *shape[1:]), np.float64)
+            x[pos] = reader.frames[:, rows]
+            x = interpolate_gaps(x, present)
+            if t.impulse_scale not in (None, 1.0):
+                rest = x[np.isin(full, rest_counters)].mean(axis=0)
+                x = rest + (x - rest) * t.impulse_scale
+            y = fractional_shift(x, frac, axis=0)
+            w.write_band(rows, y[whole:whole + n_grid])
+        w.close()
+    except BaseException:
+        w.abort()
+        raise
+    t.aligned_file = str(path.relative_to(capture.root))
+
+
+def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, progress: bool = True) -> SyncResult:
+    """Sync every selected take of the capture; writes derived/sync.json and, if asked, the aligned frames."""
+    s = settings or SyncSettings()
+    m = capture.manifest
+    records = [t for t in m.takes if s.takes == "all" or t.qc == "accepted"]
+    if not records:
+        raise OdsplatError(f"{capture.root}: no {'' if s.takes == 'all' else 'accepted '}takes to sync")
+    results: list[TakeSync] = []
+    onsets: dict[str, float] = {}
+    for rec in tqdm(records, desc="sync: timing", unit="take", disable=not progress):
+        with capture.open_take(rec.name) as r:
+            a = _TakeAnalysis(r, m.tags, m.camera, s)
+            results.append(a.run())
+            if a.onset_sample is not None:
+                onsets[rec.name] = a.onset_sample
+    ok = [t for t in results if t.status == "ok"]
+    fps = m.camera.fps
+    if ok and fps is None:
+        nominal = {round(1.0 / t.period_s) for t in ok if t.method == "image"}
+        if len(nominal) > 1:
+            raise OdsplatError(f"{capture.root}: the takes were filmed at different frame rates {sorted(nominal)} fps")
+        fps = 1.0 / float(np.median([t.period_s for t in ok]))
+    ref_impulse = float(np.median([t.impulse_n_s for t in ok])) if ok else None
+    _cross_check(capture, ok, onsets, ref_impulse)
+    for t in ok:
+        t.impulse_scale = ref_impulse / t.impulse_n_s if s.normalize_impulse else 1.0
+    t0, n_grid, shape = None, 0, []
+    if ok:
+        t0, n_grid = _grid(ok, fps)
+        with capture.open_take(ok[0].name) as r:
+            shape = list(r.frame_shape)
+        if s.write_frames:
+            out_dir = capture.derived_dir / SYNC_DIR
+            for t in tqdm(ok, desc="sync: aligning frames", unit="take", disable=not progress):
+                with capture.open_take(t.name) as r:
+                    if list(r.frame_shape) != shape:
+                        t.exclude(f"frame shape {list(r.frame_shape)} differs from the capture's {shape}")
+                        continue
+                    hit_counter = (t.hit_daq_time_s - t.frame0_daq_time_s) / t.period_s
+                    rest = np.asarray(t.counters)[np.asarray(t.counters) + 1 < hit_counter]
+                    _write_aligned(capture, t, r, rest, t0, fps, n_grid, s, out_dir)
+    result = SyncResult(capture=m.name, fps=fps, n_frames=n_grid, t0_s=t0, frame_shape=shape,
+                        reference_impulse_n_s=ref_impulse, normalized=s.normalize_impulse, takes=results,
+                        settings=asdict(s))
+    atomic_write_text(sync_path(capture), result.to_json())
+    log.info("sync: %d/%d takes on the common grid (%d frames); %s", len(result.ok), len(results), n_grid,
+             sync_path(capture))
+    return result
+
+
+def _cross_check(capture: Capture, ok: list[TakeSync], onsets: dict[str, float], ref_impulse: float | None) -> None:
+    """Lock every take's accelerometer response to its onset and cross-correlate it with the first take's.
+
+    A linear structure hit at the same place gives the same response per unit impulse: a lag means an onset
+    is off, a low coefficient that the hit (place, direction) differed."""
+    if len(ok) < 2:
+        return
+    ref = None
+    for t in ok:
+        with capture.open_take(t.name) as r:
+            n = int(0.05 * r.sample_rate_hz)
+            resp = _response(r, onsets[t.name], t.impulse_n_s, n)
+            fs = r.sample_rate_hz
+        if resp is None:
+            continue
+        if ref is None:
+            ref = resp
+        if resp.shape != ref.shape:
+            continue
+        lag, coeff = _lag(ref, resp)
+        t.xcorr_lag_s, t.xcorr_coeff = lag / fs, coeff
+        if abs(lag) > 0.25:
+            t.flags.append("onset_inconsistent")
+            t.notes.append(f"its response lags the reference take's by {lag:+.2f} DAQ samples after locking")
+        if coeff < 0.9:
+            t.flags.append("response_differs")
+            t.notes.append(f"its response per unit impulse correlates {coeff:.2f} with the reference take's "
+                           "(hit elsewhere or in another direction?)")
+
+
+def load_sync(capture: Capture) -> SyncResult:
+    return SyncResult.load(sync_path(capture))
+
+
+__all__ = ["SyncResult", "SyncSettings", "TakeSync", "load_sync", "sync_capture", "sync_path"]
