@@ -17,6 +17,7 @@ import numpy as np
 from odsplat.acquisition.daq import SerialDAQ
 from odsplat.acquisition.plan import view_eye_m
 from odsplat.acquisition.qc import HitQC
+from odsplat.acquisition.session import SessionReport
 from odsplat.acquisition.trigger import TriggeredRecord
 from odsplat.errors import InputError
 from odsplat.geometry import spherical_eye, viewing_angle_deg
@@ -137,3 +138,20 @@ class SimBench:
         n = record.stop_sample if record is not None else 0
         if n and self.rig.impacts:
             self.rig.truth(n).save(truth_path(take_path))
+
+
+def simulate_capture(out: str | Path, *, n_views: int = 27, n_frames: int = 100, pretrigger_frames: int = 10,
+                     record_s: float = 0.3, pretrigger_s: float = 0.02, settings: SimBenchSettings | None = None,
+                     rig: SimRig | None = None, faults: Mapping[int, str] | None = None,
+                     max_attempts: int = 5) -> SessionReport:
+    """Record a whole capture on the simulated rig in this process: the guided session with the simulated
+    engineer (`odsplat capture --sim --auto` without the command line). For tests, benches and the demo."""
+    from odsplat.acquisition.plan import PlanSettings
+    from odsplat.acquisition.session import CaptureSession, SessionSettings
+    from odsplat.acquisition.trigger import HammerTrigger
+
+    bench = SimBench(rig, settings, faults=faults)
+    session = SessionSettings(name=Path(out).name, plan=PlanSettings(n_views=n_views), n_frames=n_frames,
+                              pretrigger_frames=pretrigger_frames, max_attempts=max_attempts,
+                              trigger=HammerTrigger(pretrigger_s=pretrigger_s, record_s=record_s))
+    return CaptureSession(out, session, bench).run()

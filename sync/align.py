@@ -144,8 +144,10 @@ class SyncResult:
         return cls(**d)
 
     def summary(self) -> str:
-        lines = [f"{len(self.ok)}/{len(self.takes)} takes synced; grid {self.n_frames} frames at {self.fps or 0:g} fps "
-                 f"from {1e3 * (self.t0_s or 0):+.3f} ms"]
+        head = f"{len(self.ok)}/{len(self.takes)} takes synced"
+        if self.ok:
+            head += f"; grid {self.n_frames} frames at {self.fps:g} fps from {1e3 * self.t0_s:+.3f} ms after the impact"
+        lines = [head]
         for t in self.takes:
             if t.status == "ok":
                 extra = f"  image check {t.image_check_frames:+.3f} fr" if t.image_check_frames is not None else ""

@@ -1,0 +1,56 @@
+"""Hammer pulses: the half-sine onset fit against known pulses and against five real hits."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from odsplat.errors import InputError
+from odsplat.impulse import find_impacts, fit_pulse, half_sine
+from odsplat.sync.align import _lag
+from odsplat.sync.resample import fractional_shift
+
+
+def test_onset_of_noisy_half_sines_to_a_hundredth_of_a_sample():
+    rng = np.random.default_rng(1)
+    fs = 25_600.0
+    errors, threshold_errors = [], []
+    for _ in range(100):
+        onset = 200 + rng.uniform(0, 1)
+        peak, tau = rng.uniform(30, 600), fs * rng.uniform(0.6e-3, 2e-3)
+        f = half_sine(np.arange(600.0), onset, peak, tau) + 0.3 * rng.standard_normal(600)
+        p = fit_pulse(f, fs)
+        assert p.method == "half_sine" and p.residual < 0.01
+        assert p.peak_n == pytest.approx(peak, rel=0.01) and p.duration_s == pytest.approx(tau / fs, rel=0.01)
+        assert p.impulse_n_s == pytest.approx(2 * peak * tau / fs / np.pi, rel=0.01)
+        errors.append(p.onset_sample - onset)
+        threshold_errors.append(np.argmax(f > 10.0) - onset)  # the trigger's answer: first sample over 10 N
+    rms = float(np.sqrt(np.mean(np.square(errors))))
+    assert rms < 0.02, rms
+    assert rms < 0.05 * float(np.sqrt(np.mean(np.square(threshold_errors))))
+
+
+def test_fit_pulse_rejects_what_is_not_a_pulse():
+    with pytest.raises(InputError, match="no positive force pulse"):
+        fit_pulse(np.zeros(100), 1000.0)
+    with pytest.raises(InputError, match="1-D force record"):
+        fit_pulse(np.zeros((3, 3)), 1000.0)
+
+
+def test_real_hits_lock_to_their_fitted_onsets(shared_data):
+    """Five real hits on one point: once each response is locked to its fitted onset (to a fraction of a sample)
+    and divided by its impulse, the responses line up to a fifth of a sample."""
+    responses = []
+    for k in range(1, 6):
+        t, force, acc = np.load(shared_data / "pyfrf-hits" / f"measurements_{k}.npy")
+        fs = 1.0 / (t[1] - t[0])
+        assert len(find_impacts(force)) == 1
+        p = fit_pulse(force, fs)
+        assert p.method == "half_sine" and p.residual < 0.12  # real tips are not quite half sines
+        assert 0.2e-3 < p.duration_s < 0.35e-3 and 60 < p.peak_n < 95
+        i0 = int(math.floor(p.onset_sample)) - 10
+        responses.append(fractional_shift(acc[i0:i0 + 1300, None], p.onset_sample % 1.0)[:1280] / p.impulse_n_s)
+    for r in responses[1:]:
+        lag, coeff = _lag(responses[0], r)
+        assert abs(lag) < 0.3 and coeff > 0.97, (lag, coeff)
