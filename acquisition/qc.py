@@ -26,6 +26,7 @@ REASONS = {
     "force_low": "the peak force is below the planned band",
     "force_high": "the peak force is above the planned band",
     "tags_not_visible": "too few AprilTags are visible",
+    "camera_timeout": "the camera never delivered its recording (set by the session)",
 }
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import itertools
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Protocol
 
@@ -251,13 +251,15 @@ class CaptureSession:
             record = self._salvage(daq)
         finally:
             daq.close()
+        camera_error: str | None = None
         try:
             status = camera.wait(s.camera_timeout_s)
-        except CameraTimeout as e:
+        except CameraTimeout as e:  # the DAQ's record may still be good: it is kept and checked as usual
             status = None
-            error = error or str(e)
+            camera_error = str(e)
+            log.error("view %d: %s", view.index, camera_error)
             camera.stop()
-        outcome = self._write(cap, name, view, record, status, clipped, error, daq.channels)
+        outcome = self._write(cap, name, view, record, status, clipped, error, daq.channels, camera_error)
         return outcome, record
 
     def _salvage(self, daq: SerialDAQ) -> TriggeredRecord | None:
@@ -270,7 +272,7 @@ class CaptureSession:
                                daq.read(first, stop), daq.gaps_in(first, stop))
 
     def _write(self, cap: Capture, name: str, view: Viewpoint, record: TriggeredRecord | None, status, clipped: set[str],
-               error: str | None, channels: Sequence[DAQChannel]) -> TakeOutcome:
+               error: str | None, channels: Sequence[DAQChannel], camera_error: str | None = None) -> TakeOutcome:
         camera = self.bench.camera
         info = camera.describe()
         frames = camera.frames() if status is not None else iter(())
@@ -298,11 +300,15 @@ class CaptureSession:
                 qc = check_hit(record, channels, limits=self.settings.limits,
                                force_channel=self.settings.trigger.channel, clipped=clipped,
                                dropped_frames=status.dropped if status else (), tags_seen=tags_seen)
+                if camera_error:
+                    qc = replace(qc, reasons=qc.reasons + ("camera_timeout",),
+                                 details=qc.details + (f"no frames: {camera_error}",))
                 writer.set_qc(qc.to_qcinfo())
             else:
                 qc = None
+                flags = ("daq_error",) + (("camera_timeout",) if camera_error else ())
                 writer.set_trigger(TriggerInfo(camera_trigger_frame=trigger_index))
-                writer.set_qc(QCInfo("rejected", ("daq_error",), error or "no DAQ data"))
+                writer.set_qc(QCInfo("rejected", flags, "; ".join(filter(None, (error or "no DAQ data", camera_error)))))
             self.bench.take_written(writer.final_path, record)
             writer.finalize()
         accepted = qc is not None and qc.accepted

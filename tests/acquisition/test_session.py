@@ -184,3 +184,27 @@ intrinsics = { fx_px = 500.0, fy_px = 500.0, cx_px = 159.5, cy_px = 119.5 }
     with pytest.raises(InputError, match="missing section \\[camera\\]"):
         bad.write_text("[daq]\nurl='x'\n")
         load_lab_config(bad)
+
+
+def test_camera_that_never_triggers_is_flagged_and_the_daq_record_still_checked(tmp_path):
+    """The trigger box is set above the hit: the DAQ triggers, the camera times out. The take keeps the DAQ
+    record, runs the usual QC on it and is rejected for the camera alone."""
+    from odsplat.acquisition.plan import PlanSettings
+    from odsplat.acquisition.session import CaptureSession, SessionSettings
+    from odsplat.acquisition.trigger import HammerTrigger
+    from odsplat.hil_sim.bench import SimBench
+    from odsplat.hil_sim.rig import RigConfig, SimRig
+
+    bench = SimBench(SimRig(config=RigConfig(trigger_level_n=1e6)))
+    settings = SessionSettings(name="cap", plan=PlanSettings(n_views=1), n_frames=16, pretrigger_frames=4,
+                               trigger=HammerTrigger(pretrigger_s=0.02, record_s=0.2), max_attempts=1,
+                               camera_timeout_s=0.3)
+    report = CaptureSession(tmp_path / "cap", settings, bench).run()
+    (outcome,) = report.outcomes
+    assert not outcome.accepted and outcome.qc is not None
+    assert outcome.qc.reasons == ("camera_timeout",)  # and nothing else: the DAQ record passed every check
+    assert outcome.qc.peak_force_n > 100
+    cap = Capture.open(tmp_path / "cap")
+    with cap.open_take(outcome.name) as r:
+        assert r.qc.flags == ("camera_timeout",) and r.n_frames == 0
+        assert r.trigger.trigger_sample is not None and r.n_samples > 0
