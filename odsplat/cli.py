@@ -183,6 +183,44 @@ def sync(capture_dir: Path, method: str, all_takes: bool, normalize_impulse: boo
         sys.exit(1)
 
 
+@main.command()
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--method", type=click.Choice(["phase", "linear", "learned"]), default="phase", show_default=True)
+@click.option("--alpha", type=float, default=20.0, show_default=True, help="Output motion = alpha x input motion.")
+@click.option("--band", "band_hz", type=float, nargs=2, default=None, metavar="LOW HIGH",
+              help="Temporal band in Hz (default: static, against the first frame).")
+@click.option("--filter", "filter_kind", type=click.Choice(["ideal", "fir", "butter", "diff_iir", "none"]), default=None,
+              help="Temporal filter for the band (default: butter).")
+@click.option("--mode", type=click.Choice(["static", "dynamic"]), default="static", show_default=True,
+              help="Learned method without a band: against the first frame, or the previous one.")
+@click.option("--source", type=click.Choice(["auto", "aligned", "raw"]), default="auto", show_default=True,
+              help="sync's aligned frames, or the raw takes (auto: aligned when synced).")
+@click.option("--workers", type=int, default=None, help="Parallel processes (default: one per core).")
+@click.option("--take", "takes", multiple=True, help="Only these takes (repeatable).")
+@click.option("--option", "options", multiple=True, metavar="KEY=VALUE",
+              help="A keyword of the method (e.g. n_orientations=8, cutoff_wavelength_px=4); repeatable.")
+def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: str | None, mode: str, source: str,
+            workers: int | None, takes: tuple[str, ...], options: tuple[str, ...]) -> None:
+    """Magnify the motion in every view of CAPTURE_DIR into derived/magnified/METHOD/."""
+    from .errors import InputError
+    from .processing.run import MagnifySettings, magnify_capture
+    from .store import Capture
+
+    parsed = []
+    for item in options:
+        key, eq, value = item.partition("=")
+        if not eq or not key.isidentifier():
+            raise InputError("--option", f"expected KEY=VALUE, got {item!r}")
+        try:
+            parsed.append((key, json.loads(value.lower() if value.lower() in ("true", "false") else value)))
+        except json.JSONDecodeError:
+            parsed.append((key, value))
+    settings = MagnifySettings(method=method, alpha=alpha, band_hz=tuple(band_hz) if band_hz else None,
+                               filter=filter_kind, mode=mode, source=source, workers=workers, takes=takes,
+                               options=tuple(parsed))
+    click.echo(magnify_capture(Capture.open(capture_dir), settings).summary())
+
+
 def _plan(settings):
     from .acquisition.plan import plan_views
 

@@ -54,13 +54,15 @@ class FIRFilter(TemporalFilter):
         if self._hist is None:
             self._hist = torch.zeros((n_taps - 1, *x.shape[1:]), dtype=x.dtype, device=x.device)
         buf = torch.cat([self._hist, x], dim=0)
-        h = self._h.to(dtype=x.dtype, device=x.device)
-        # y[n] = sum_k h[k] x[n - k]; buf[j] is x[j - (taps - 1)]
-        flat = buf.reshape(buf.shape[0], -1)
-        windows = flat.unfold(0, n_taps, 1)  # (T, pixels, taps), window j covers buf[j : j + taps]
-        y = windows @ h.flip(0)
+        t = x.shape[0]
+        # y[n] = sum_k h[k] x[n - k], with buf[j] = x[j - (taps - 1)]: one shifted slice per tap, so the working
+        # memory is one output's worth whatever the length of the filter.
+        y = torch.zeros_like(x)
+        for k, hk in enumerate(self._h.tolist()):
+            if hk:
+                y.add_(buf[n_taps - 1 - k:n_taps - 1 - k + t], alpha=hk)
         self._hist = buf[-(n_taps - 1):].clone() if n_taps > 1 else buf[:0]
-        return y.reshape(x.shape)
+        return y
 
     def reset(self) -> None:
         self._hist = None

@@ -1,0 +1,321 @@
+"""Magnify every view of a capture: stream each take's frames through a magnifier into
+`derived/magnified/METHOD/NAME.h5`, views in parallel processes when cores allow.
+
+The input is the takes' frames on sync's common grid (`derived/sync/NAME.h5`) when sync has run, so every
+view's magnified motion shares one timeline; otherwise the raw takes (flagged in the output).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+from collections.abc import Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from odsplat.errors import InputError, OdsplatError
+from odsplat.manifest import utc_now
+from odsplat.store import Capture, atomic_write_text, frame_compression, fsync_path
+
+from .base import Magnifier, check_alpha
+from .filters import KINDS, check_band, make_filter
+
+log = logging.getLogger(__name__)
+
+METHODS = ("phase", "linear", "learned")
+OUT_KIND = "odsplat-magnified-take"
+
+
+@dataclass(frozen=True)
+class MagnifySettings:
+    method: str = "phase"
+    alpha: float = 20.0
+    band_hz: tuple[float, float] | None = None   # temporal band; None: static mode (against the first frame)
+    filter: str | None = None                    # default: butter with a band, none without
+    mode: str = "static"                         # learned only: static or dynamic
+    source: str = "auto"                         # aligned (sync's grid), raw (the takes), auto: aligned if synced
+    chunk_frames: int = 16
+    workers: int | None = None                   # default: one per core, at most one per take
+    takes: tuple[str, ...] = ()                  # default: every take sync kept, else every accepted take
+    options: tuple[tuple[str, Any], ...] = ()    # the method's own keyword arguments, e.g. (("n_orientations", 8),)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise InputError("--method", f"expected one of {METHODS}, got {self.method!r}")
+        check_alpha(self.alpha)
+        if self.filter is not None and self.filter not in KINDS:
+            raise InputError("--filter", f"expected one of {KINDS}, got {self.filter!r}")
+        if self.filter not in (None, "none") and self.band_hz is None:
+            raise InputError("--band", f"the {self.filter} filter needs a band LOW HIGH in Hz")
+        if self.source not in ("auto", "aligned", "raw"):
+            raise InputError("--source", f"expected auto, aligned or raw, got {self.source!r}")
+        if self.chunk_frames < 1:
+            raise InputError("chunk_frames", f"must be at least 1, got {self.chunk_frames}")
+
+    @property
+    def filter_kind(self) -> str:
+        return self.filter or ("butter" if self.band_hz else "none")
+
+
+def make_magnifier(settings: MagnifySettings, fps: float) -> Magnifier:
+    """A fresh magnifier for one stream, with its own temporal filter."""
+    s = settings
+    temporal = None
+    if s.filter_kind != "none":
+        lo, hi = s.band_hz
+        check_band(lo, hi, fps)
+        temporal = make_filter(s.filter_kind, fps, lo, hi)
+    options = dict(s.options)
+    try:
+        if s.method == "phase":
+            from .phase import PhaseMagnifier
+
+            return PhaseMagnifier(s.alpha, temporal, **options)
+        if s.method == "linear":
+            from .eulerian import LinearMagnifier
+
+            return LinearMagnifier(s.alpha, temporal, **options)
+        from .learned.magnifier import LearnedMagnifier
+
+        return LearnedMagnifier(s.alpha, temporal, mode=s.mode, **options)
+    except TypeError as e:  # an option the method does not have
+        raise InputError("--option", f"{s.method}: {e}") from None
+
+
+@dataclass
+class MagnifiedTake:
+    name: str
+    view: int | None
+    source: str
+    n_frames: int
+    file: str
+    seconds: float
+
+
+@dataclass
+class MagnifyResult:
+    method: str
+    alpha: float
+    band_hz: list[float] | None
+    filter: str
+    takes: list[MagnifiedTake] = field(default_factory=list)
+    settings: dict[str, Any] = field(default_factory=dict)
+    created_utc: str = field(default_factory=utc_now)
+
+    def summary(self) -> str:
+        band = f", band {self.band_hz[0]:g}-{self.band_hz[1]:g} Hz ({self.filter})" if self.band_hz else ", static"
+        lines = [f"{len(self.takes)} view(s) magnified by {self.alpha:g} with {self.method}{band}"]
+        lines += [f"  {t.name:<10} {t.n_frames} frames from {t.source} in {t.seconds:.1f} s -> {t.file}" for t in self.takes]
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------- one take
+
+class _Source:
+    """Frames of one take as DN float32 chunks (T, H, W[, C]), from sync's grid or the raw take."""
+
+    def __init__(self, capture: Capture, name: str, aligned_file: str | None):
+        self.name = name
+        if aligned_file:
+            from odsplat.sync import AlignedTake
+
+            self._r = AlignedTake(capture.root / aligned_file)
+            self.kind = "aligned"
+            self.bit_depth = int(self._r.attrs["bit_depth"])
+            self.times_s = self._r.times_s
+            self.fps = float(1.0 / np.median(np.diff(self.times_s))) if len(self.times_s) > 1 else None
+            self.view = self._r.attrs.get("view")
+        else:
+            self._r = capture.open_take(name)
+            self.kind = "raw"
+            self.bit_depth = self._r.bit_depth
+            self.times_s = self._r.frame_times_s
+            self.fps = self._r.fps
+            self.view = self._r.view
+        self.n_frames = self._r.n_frames
+        self.frame_shape = tuple(self._r.frame_shape)
+
+    def chunks(self, n: int) -> Iterator[np.ndarray]:
+        for block in self._r.iter_frames(n):
+            yield np.asarray(block, np.float32)
+
+    def close(self) -> None:
+        self._r.close()
+
+
+def _to_tensor(block: np.ndarray, full_scale: float) -> torch.Tensor:
+    x = torch.from_numpy(block / full_scale)
+    return x[:, None] if x.ndim == 3 else x.permute(0, 3, 1, 2)
+
+
+def _from_tensor(x: torch.Tensor, full_scale: float, rgb: bool) -> np.ndarray:
+    a = x.detach().cpu().numpy()
+    a = a[:, 0] if not rgb else a.transpose(0, 2, 3, 1)
+    return a * full_scale
+
+
+def magnify_take(capture_root: str, name: str, aligned_file: str | None, settings: MagnifySettings,
+                 out_path: str, threads: int = 1) -> MagnifiedTake:
+    """Stream one take through a fresh magnifier into out_path (temporary file, fsync, rename)."""
+    import time
+
+    torch.set_num_threads(threads)
+    t0 = time.perf_counter()
+    capture = Capture.open(capture_root)
+    src = _Source(capture, name, aligned_file)
+    try:
+        if not src.fps:
+            raise InputError(name, "the take has no frame rate: a temporal band cannot be placed")
+        mag = make_magnifier(settings, src.fps)
+        full = float(2 ** src.bit_depth - 1)
+        rgb = len(src.frame_shape) == 3
+        out = Path(out_path)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
+        scale = float(2 ** max(0, min(2, 16 - src.bit_depth)))
+        written = 0
+        try:
+            with h5py.File(tmp, "w") as f:
+                f.attrs.update(kind=OUT_KIND, format_version=1, take=name, source=src.kind, bit_depth=src.bit_depth,
+                               value_scale=scale, method=settings.method, alpha=settings.alpha,
+                               filter=settings.filter_kind, mode=settings.mode,
+                               band_hz=json.dumps(list(settings.band_hz) if settings.band_hz else None))
+                if src.view is not None:
+                    f.attrs["view"] = int(src.view)
+                ds = f.create_dataset("frames", shape=(0, *src.frame_shape), maxshape=(None, *src.frame_shape),
+                                      dtype=np.uint16, chunks=(1, *src.frame_shape), **frame_compression())
+                f.create_dataset("times_s", data=np.asarray(src.times_s, float))
+
+                def emit(y: torch.Tensor) -> None:
+                    nonlocal written
+                    if y.shape[0] == 0:
+                        return
+                    v = np.clip(np.rint(_from_tensor(y, full, rgb) * scale), 0, 65535).astype(np.uint16)
+                    ds.resize(written + len(v), axis=0)
+                    ds[written:written + len(v)] = v
+                    written += len(v)
+
+                for block in src.chunks(settings.chunk_frames):
+                    emit(mag.push(_to_tensor(block, full)))
+                emit(mag.flush())
+                if written != src.n_frames:
+                    raise OdsplatError(f"{name}: the magnifier returned {written} frames for {src.n_frames}")
+            with open(tmp, "rb+") as fh:
+                os.fsync(fh.fileno())
+            os.replace(tmp, out)
+            fsync_path(out.parent)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
+    finally:
+        src.close()
+    return MagnifiedTake(name, None if src.view is None else int(src.view), src.kind, written,
+                         str(out.relative_to(capture.root)), time.perf_counter() - t0)
+
+
+# ---------------------------------------------------------------------------------------------- a capture
+
+def _inputs(capture: Capture, s: MagnifySettings) -> list[tuple[str, str | None]]:
+    """(take, aligned file or None) for each take to magnify."""
+    synced = None
+    sync_json = capture.derived_dir / "sync.json"
+    if s.source in ("auto", "aligned") and sync_json.exists():
+        from odsplat.sync import load_sync
+
+        synced = {t.name: t.aligned_file for t in load_sync(capture).ok if t.aligned_file}
+    if s.source == "aligned" and not synced:
+        raise InputError(sync_json, "no aligned frames: run `odsplat sync` first (or --source raw)")
+    if synced:
+        names = list(s.takes) or list(synced)
+        missing = [n for n in names if n not in synced]
+        if missing:
+            raise InputError(sync_json, f"takes {missing} are not on sync's grid (excluded or not synced)")
+        return [(n, synced[n]) for n in names]
+    names = list(s.takes) or [t.name for t in capture.manifest.takes if t.qc == "accepted"]
+    known = set(capture.take_names())
+    missing = [n for n in names if n not in known]
+    if missing:
+        raise InputError(capture.root, f"no takes named {missing}")
+    return [(n, None) for n in names]
+
+
+def out_dir(capture: Capture, method: str) -> Path:
+    return capture.derived_dir / "magnified" / method
+
+
+def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bool = True) -> MagnifyResult:
+    """Magnify every selected view; writes derived/magnified/METHOD/NAME.h5 and magnify.json beside them."""
+    s = settings
+    jobs = _inputs(capture, s)
+    if not jobs:
+        raise OdsplatError(f"{capture.root}: no takes to magnify")
+    dest = out_dir(capture, s.method)
+    workers = max(1, min(s.workers or os.cpu_count() or 1, len(jobs)))
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    result = MagnifyResult(s.method, s.alpha, list(s.band_hz) if s.band_hz else None, s.filter_kind,
+                           settings=asdict(s))
+    args = [(str(capture.root), n, a, s, str(dest / f"{n}.h5"), threads) for n, a in jobs]
+    bar = tqdm(total=len(args), desc=f"magnify ({s.method})", unit="view", disable=not progress)
+    if workers == 1:
+        for a in args:
+            result.takes.append(magnify_take(*a))
+            bar.update()
+    else:
+        with ProcessPoolExecutor(workers) as pool:
+            for done in pool.map(magnify_take, *zip(*args)):
+                result.takes.append(done)
+                bar.update()
+    bar.close()
+    atomic_write_text(dest / "magnify.json", json.dumps(asdict(result), indent=1))
+    log.info("magnified %d view(s) into %s", len(result.takes), dest)
+    return result
+
+
+class MagnifiedVideo:
+    """Reads a magnified take: frames as float32 DN of the source take, with their times."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        try:
+            self._file = h5py.File(self.path, "r")
+        except (FileNotFoundError, OSError) as exc:
+            raise InputError(self.path, f"cannot open the magnified take ({exc})") from None
+        if self._file.attrs.get("kind") != OUT_KIND:
+            self._file.close()
+            raise InputError(self.path, f"not a magnified take (kind {OUT_KIND!r} expected)")
+        self.scale = float(self._file.attrs["value_scale"])
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        return dict(self._file.attrs)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self._file["frames"].shape[0])
+
+    @property
+    def times_s(self) -> np.ndarray:
+        return self._file["times_s"][:]
+
+    def read_frames(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        return self._file["frames"][start:stop].astype(np.float32) / self.scale
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> MagnifiedVideo:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+__all__ = ["METHODS", "MagnifiedTake", "MagnifiedVideo", "MagnifyResult", "MagnifySettings", "magnify_capture",
+           "magnify_take", "make_magnifier", "out_dir"]
