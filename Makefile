@@ -24,13 +24,14 @@ test: $(STAMP)
 
 # The demo runs what works end to end: a guided 27-view capture on the simulated rig (with two
 # injected faults that QC catches and the session redoes), sync of its takes onto one impact-locked
-# timeline, then real recordings imported from $(SHARED_DATA) when that folder exists. Later stages
-# add their steps here.
+# timeline, phase-based magnification of every view, then real recordings imported from
+# $(SHARED_DATA) when that folder exists. Later stages add their steps here.
 demo: $(STAMP)
 	rm -rf $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat capture $(DEMO_OUT)/sim-rig --sim --auto --no-window --frames 100 --sim-faults 3:double_hit,9:dropped_packet
 	$(BIN)/odsplat info $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat sync $(DEMO_OUT)/sim-rig
+	$(BIN)/odsplat magnify $(DEMO_OUT)/sim-rig --method phase --alpha 30
 	@if test -d $(SHARED_DATA); then \
 	  rm -rf $(DEMO_OUT)/ladisk-beam && \
 	  $(BIN)/odsplat import examples/ladisk-beam.toml --data $(SHARED_DATA) -o $(DEMO_OUT)/ladisk-beam && \
@@ -43,6 +44,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/render.py --scene rig --no-cold-compile
 	$(BIN)/python bench/daq.py
 	$(BIN)/python bench/sync.py
+	$(BIN)/python bench/magnify.py
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info
