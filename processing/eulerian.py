@@ -15,7 +15,7 @@ import torch.nn.functional as F
 
 from odsplat.errors import InputError
 from odsplat.processing.filters import TemporalFilter
-from odsplat.processing.phase import StreamingMagnifier
+from odsplat.processing.streaming import StreamingMagnifier
 
 log = logging.getLogger(__name__)
 
