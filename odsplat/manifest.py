@@ -201,25 +201,28 @@ class Manifest:
 
     @classmethod
     def load(cls, path: str | Path) -> Manifest:
-        path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise InputError(path, "no capture manifest here; is this a capture directory?") from None
-        except json.JSONDecodeError as exc:
-            raise InputError(path, f"not valid JSON: {exc}") from None
+        data = load_json(path, missing="no capture manifest here; is this a capture directory?")
         return cls.from_dict(data, where=str(path))
+
+
+def load_json(path: str | Path, *, missing: str) -> Any:
+    """Read a JSON file; errors name the file (`missing` says what was expected there)."""
+    return _load_text(path, json.loads, json.JSONDecodeError, "JSON", missing)
 
 
 def load_toml(path: str | Path, *, missing: str) -> dict[str, Any]:
     """Read a TOML configuration file; errors name the file (`missing` says what was expected there)."""
+    return _load_text(path, tomllib.loads, tomllib.TOMLDecodeError, "TOML", missing)
+
+
+def _load_text(path: str | Path, parse, error: type[Exception], fmt: str, missing: str) -> Any:
     path = Path(path)
     try:
-        return tomllib.loads(path.read_text())
+        return parse(path.read_text())
     except FileNotFoundError:
         raise InputError(path, missing) from None
-    except tomllib.TOMLDecodeError as exc:
-        raise InputError(path, f"not valid TOML: {exc}") from None
+    except error as exc:
+        raise InputError(path, f"not valid {fmt}: {exc}") from None
 
 
 def from_plain(cls: type, data: Any, where: str) -> Any:

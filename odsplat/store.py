@@ -56,21 +56,26 @@ def fsync_path(path: Path) -> None:
 
 
 @contextlib.contextmanager
-def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[IO]:
-    """Open a temporary file beside `path`; on a clean exit it is fsynced and renamed over `path` (and the
-    directory fsynced), on an error removed. A crash leaves either the old file or the new one, never half."""
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary path beside `path` to write; on a clean exit the file is fsynced and renamed over `path` (and
+    the directory fsynced), on an error removed. A crash leaves either the old file or the new one, never half."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        with open(tmp, mode) as fh:
-            yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
+        yield tmp
+        fsync_path(tmp)
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
     fsync_path(path.parent)
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[IO]:
+    """Open a temporary file beside `path`, made durable and renamed over `path` on a clean exit (`atomic_path`)."""
+    with atomic_path(path) as tmp, open(tmp, mode) as fh:
+        yield fh
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -441,6 +446,10 @@ class TakeReader:
 
     def channel_info(self, name: str) -> ChannelInfo:
         return ChannelInfo(**json.loads(self._channel(name).attrs["info"]))
+
+    def channels_of_kind(self, kind: str) -> list[str]:
+        """The DAQ channels of one kind (`manifest.CHANNEL_KINDS`: force, acceleration, ttl, ...), in order."""
+        return [n for n in self.channel_names if self.channel_info(n).kind == kind]
 
     def channel(self, name: str) -> np.ndarray:
         """A DAQ channel's samples in SI units (float32)."""

@@ -9,20 +9,21 @@ from __future__ import annotations
 import json
 import logging
 import os
+import time
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import h5py
 import numpy as np
 import torch
 from tqdm import tqdm
 
 from odsplat.errors import InputError, OdsplatError
+from odsplat.framefile import FrameFile, atomic_h5, create_frames, to_stored
 from odsplat.manifest import utc_now
-from odsplat.store import Capture, atomic_write_text, frame_compression, fsync_path
+from odsplat.store import Capture, atomic_write_text
 
 from .base import Magnifier, check_alpha
 from .filters import KINDS, check_band, make_filter
@@ -164,8 +165,6 @@ def _from_tensor(x: torch.Tensor, full_scale: float, rgb: bool) -> np.ndarray:
 def magnify_take(capture_root: str, name: str, aligned_file: str | None, settings: MagnifySettings,
                  out_path: str, threads: int = 1) -> MagnifiedTake:
     """Stream one take through a fresh magnifier into out_path (temporary file, fsync, rename)."""
-    import time
-
     torch.set_num_threads(threads)
     t0 = time.perf_counter()
     capture = Capture.open(capture_root)
@@ -177,43 +176,28 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
         full = float(2 ** src.bit_depth - 1)
         rgb = len(src.frame_shape) == 3
         out = Path(out_path)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = out.with_name(f".{out.name}.{os.getpid()}.tmp")
-        scale = float(2 ** max(0, min(2, 16 - src.bit_depth)))
         written = 0
-        try:
-            with h5py.File(tmp, "w") as f:
-                f.attrs.update(kind=OUT_KIND, format_version=1, take=name, source=src.kind, bit_depth=src.bit_depth,
-                               value_scale=scale, method=settings.method, alpha=settings.alpha,
-                               filter=settings.filter_kind, mode=settings.mode,
-                               band_hz=json.dumps(list(settings.band_hz) if settings.band_hz else None))
-                if src.view is not None:
-                    f.attrs["view"] = int(src.view)
-                ds = f.create_dataset("frames", shape=(0, *src.frame_shape), maxshape=(None, *src.frame_shape),
-                                      dtype=np.uint16, chunks=(1, *src.frame_shape), **frame_compression())
-                f.create_dataset("times_s", data=np.asarray(src.times_s, float))
+        with atomic_h5(out) as f:
+            attrs = dict(take=name, source=src.kind, method=settings.method, alpha=settings.alpha,
+                         filter=settings.filter_kind, mode=settings.mode,
+                         band_hz=json.dumps(list(settings.band_hz) if settings.band_hz else None),
+                         view=None if src.view is None else int(src.view))
+            ds, scale = create_frames(f, OUT_KIND, frame_shape=src.frame_shape, bit_depth=src.bit_depth,
+                                      times_s=src.times_s, attrs=attrs)
 
-                def emit(y: torch.Tensor) -> None:
-                    nonlocal written
-                    if y.shape[0] == 0:
-                        return
-                    v = np.clip(np.rint(_from_tensor(y, full, rgb) * scale), 0, 65535).astype(np.uint16)
-                    ds.resize(written + len(v), axis=0)
-                    ds[written:written + len(v)] = v
-                    written += len(v)
+            def emit(y: torch.Tensor) -> None:
+                nonlocal written
+                if y.shape[0] == 0:
+                    return
+                ds.resize(written + len(y), axis=0)
+                ds[written:written + len(y)] = to_stored(_from_tensor(y, full, rgb), scale)
+                written += len(y)
 
-                for block in src.chunks(settings.chunk_frames):
-                    emit(mag.push(_to_tensor(block, full)))
-                emit(mag.flush())
-                if written != src.n_frames:
-                    raise OdsplatError(f"{name}: the magnifier returned {written} frames for {src.n_frames}")
-            with open(tmp, "rb+") as fh:
-                os.fsync(fh.fileno())
-            os.replace(tmp, out)
-            fsync_path(out.parent)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+            for block in src.chunks(settings.chunk_frames):
+                emit(mag.push(_to_tensor(block, full)))
+            emit(mag.flush())
+            if written != src.n_frames:
+                raise OdsplatError(f"{name}: the magnifier returned {written} frames for {src.n_frames}")
     finally:
         src.close()
     return MagnifiedTake(name, None if src.view is None else int(src.view), src.kind, written,
@@ -278,43 +262,12 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
     return result
 
 
-class MagnifiedVideo:
+class MagnifiedVideo(FrameFile):
     """Reads a magnified take: frames as float32 DN of the source take, with their times."""
 
-    def __init__(self, path: str | Path):
-        self.path = Path(path)
-        try:
-            self._file = h5py.File(self.path, "r")
-        except (FileNotFoundError, OSError) as exc:
-            raise InputError(self.path, f"cannot open the magnified take ({exc})") from None
-        if self._file.attrs.get("kind") != OUT_KIND:
-            self._file.close()
-            raise InputError(self.path, f"not a magnified take (kind {OUT_KIND!r} expected)")
-        self.scale = float(self._file.attrs["value_scale"])
-
-    @property
-    def attrs(self) -> dict[str, Any]:
-        return dict(self._file.attrs)
-
-    @property
-    def n_frames(self) -> int:
-        return int(self._file["frames"].shape[0])
-
-    @property
-    def times_s(self) -> np.ndarray:
-        return self._file["times_s"][:]
-
-    def read_frames(self, start: int = 0, stop: int | None = None) -> np.ndarray:
-        return self._file["frames"][start:stop].astype(np.float32) / self.scale
-
-    def close(self) -> None:
-        self._file.close()
-
-    def __enter__(self) -> MagnifiedVideo:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+    KIND = OUT_KIND
+    WHAT = "magnified take"
+    MISSING = "no such magnified take (run `odsplat magnify` first)"
 
 
 __all__ = ["METHODS", "MagnifiedTake", "MagnifiedVideo", "MagnifyResult", "MagnifySettings", "magnify_capture",

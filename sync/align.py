@@ -21,11 +21,11 @@ from tqdm import tqdm
 
 from odsplat.errors import InputError, OdsplatError
 from odsplat.impulse import find_impacts, fit_pulse
-from odsplat.manifest import CameraInfo, TagLayout, utc_now
+from odsplat.manifest import CameraInfo, TagLayout, load_json, utc_now
 from odsplat.store import Capture, TakeReader, atomic_write_text
 from odsplat.tags import detect_tags
 
-from .aligned import AlignedWriter
+from .aligned import write_aligned
 from .image import DisplacementBasis, fit_frame_times, motion_gram, noise_sd
 from .resample import fill_dropped, fractional_shift, interpolate_gaps
 from .strobe import fit_strobe
@@ -37,6 +37,7 @@ SYNC_DIR = "sync"
 FORMAT = "odsplat-sync"
 METHODS = ("auto", "ttl", "image")
 TAKE_SELECTIONS = ("accepted", "all")
+RESPONSE_S = 0.05  # how much of each take's response the cross-check compares
 
 
 @dataclass(frozen=True)
@@ -130,14 +131,8 @@ class SyncResult:
 
     @classmethod
     def load(cls, path: str | Path) -> SyncResult:
-        path = Path(path)
-        try:
-            d = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise InputError(path, "no sync result (run `odsplat sync` first)") from None
-        except json.JSONDecodeError as e:
-            raise InputError(path, f"not valid JSON: {e}") from None
-        if d.pop("format", None) != FORMAT or d.pop("version", None) != 1:
+        d = load_json(path, missing="no sync result (run `odsplat sync` first)")
+        if not isinstance(d, dict) or d.pop("format", None) != FORMAT or d.pop("version", None) != 1:
             raise InputError(path, f"not an {FORMAT} version 1 file")
         names = {f.name for f in fields(TakeSync)}
         d["takes"] = [TakeSync(**{k: v for k, v in t.items() if k in names}) for t in d["takes"]]
@@ -165,15 +160,12 @@ def sync_path(capture: Capture) -> Path:
 
 # ---------------------------------------------------------------------------------------------- per take
 
-def _force_channel(reader: TakeReader) -> str:
-    names = [n for n in reader.channel_names if reader.channel_info(n).kind == "force"]
+def force_channel(reader: TakeReader) -> str:
+    """The take's one force channel (the hammer's load cell)."""
+    names = reader.channels_of_kind("force")
     if len(names) != 1:
         raise InputError(reader.path, f"expected exactly one DAQ channel of kind 'force', found {names}")
     return names[0]
-
-
-def _channels_of(reader: TakeReader, kind: str) -> list[str]:
-    return [n for n in reader.channel_names if reader.channel_info(n).kind == kind]
 
 
 class _TakeAnalysis:
@@ -186,7 +178,8 @@ class _TakeAnalysis:
         self.cam_exposure_s = camera.exposure_s
         self.fps = camera.fps
         self.out = TakeSync(reader.name, reader.view)
-        self.onset_sample: float | None = None
+        # The accelerometers locked to the onset (and the DAQ rate), for the cross-check between takes.
+        self.response: tuple[np.ndarray, float] | None = None
 
     def run(self) -> TakeSync:
         try:
@@ -206,7 +199,7 @@ class _TakeAnalysis:
         if self.fps is not None and abs(r.fps - self.fps) > 1e-6 * self.fps:
             raise InputError(r.path, f"filmed at {r.fps:g} fps; the capture's camera runs at {self.fps:g} fps")
         fs = r.sample_rate_hz
-        force_name = _force_channel(r)
+        force_name = force_channel(r)
         force = r.channel(force_name).astype(float)
         hits = find_impacts(force, fraction=s.double_hit_fraction, min_peak_n=s.min_peak_n)
         peak = float(np.nanmax(force)) if np.isfinite(force).any() else 0.0
@@ -216,7 +209,8 @@ class _TakeAnalysis:
             gaps = ", ".join(f"{1e3 * (b - a) / fs:.2f}" for a, b in zip(hits, hits[1:]))
             raise InputError(force_name, f"{hits.size} hits found ({gaps} ms apart): a double hit cannot be locked to one impact")
         pulse = fit_pulse(force, fs, peak_index=int(hits[0]), source=force_name)
-        self.onset_sample = pulse.onset_sample
+        resp = _response(r, pulse.onset_sample, pulse.impulse_n_s, int(RESPONSE_S * fs))
+        self.response = None if resp is None else (resp, fs)
         out.hit_daq_time_s = r.daq_t0_s + pulse.onset_s
         out.peak_force_n, out.impulse_n_s, out.pulse_duration_s = pulse.peak_n, pulse.impulse_n_s, pulse.duration_s
         out.pulse_residual, out.pulse_method = pulse.residual, pulse.method
@@ -231,7 +225,7 @@ class _TakeAnalysis:
             out.flags.append("dropped_frames_filled")
         period = 1.0 / r.fps
         trigger_time = r.trigger.trigger_time_s
-        ttl = _channels_of(r, "ttl")
+        ttl = r.channels_of_kind("ttl")
         method = s.method if s.method != "auto" else ("ttl" if ttl else "image")
         if method == "ttl" and not ttl:
             raise InputError(r.path, "method 'ttl' asked for, but the take records no channel of kind 'ttl'")
@@ -254,8 +248,7 @@ class _TakeAnalysis:
         rest_image, rest_std, rest = self._rest(counters, start_guess, period, method == "ttl")
         self._check_tags(rest_image)
         if method == "image" or s.check_with_image:
-            timing = self._image_timing(counters, rest, rest_image, rest_std, period,
-                                        start_guess, method == "ttl")
+            timing = self._image_timing(counters, rest, rest_image, rest_std, period, start_guess)
             if method == "image":
                 if timing is None:
                     raise InputError(r.path, "image timing needs accelerometer channels (kind 'acceleration') in the take")
@@ -314,14 +307,11 @@ class _TakeAnalysis:
         if not self.out.tags_seen:
             raise InputError(self.r.path, "no AprilTag of the capture's layout is visible: the take cannot be located")
 
-    def _image_timing(self, counters, rest, rest_image, rest_std, period, start_guess, known):
+    def _image_timing(self, counters, rest, rest_image, rest_std, period, start_guess):
         r = self.r
-        accels = _channels_of(r, "acceleration")
-        if not accels:
+        basis = DisplacementBasis.from_take(r, self.out.hit_daq_time_s, self.cam_exposure_s or period)
+        if basis is None:
             return None
-        exposure = self.cam_exposure_s or period
-        basis = DisplacementBasis(np.stack([r.channel(a) for a in accels]), r.sample_rate_hz, r.daq_t0_s,
-                                  self.out.hit_daq_time_s, exposure)
         motion = motion_gram(r.iter_frames(32), r.n_frames, rest_image, rest_std,
                              max_memory_bytes=self.s.max_memory_mb * 1e6)
         return fit_frame_times(motion, counters, period, basis, start_guess,
@@ -332,7 +322,7 @@ class _TakeAnalysis:
 
 def _response(reader: TakeReader, onset_sample: float, impulse: float, n: int) -> np.ndarray | None:
     """The accelerometers' response from 1 ms before the onset, locked to it to a fraction of a sample, per unit impulse."""
-    accels = _channels_of(reader, "acceleration")
+    accels = reader.channels_of_kind("acceleration")
     if not accels:
         return None
     fs = reader.sample_rate_hz
@@ -390,10 +380,10 @@ def _write_aligned(capture: Capture, t: TakeSync, reader: TakeReader, rest_count
     row_bytes = full.size * int(np.prod(shape[1:])) * 8 * 4
     band = max(1, min(shape[0], int(settings.max_memory_mb * 1e6 // row_bytes)))
     path = out_dir / f"{t.name}.h5"
-    w = AlignedWriter(path, n_frames=n_grid, frame_shape=shape, band_rows=band, bit_depth=reader.bit_depth,
-                      times_s=grid, attrs=dict(take=t.name, view=t.view, offset_s=t.offset_s, method=t.method,
-                                               impulse_scale=t.impulse_scale or 1.0, grid_shift_frames=mean_shift))
-    try:
+    with write_aligned(path, n_frames=n_grid, frame_shape=shape, band_rows=band, bit_depth=reader.bit_depth,
+                       times_s=grid, attrs=dict(take=t.name, view=t.view, offset_s=t.offset_s, method=t.method,
+                                                impulse_scale=t.impulse_scale or 1.0,
+                                                grid_shift_frames=mean_shift)) as write_band:
         for r0 in range(0, shape[0], band):
             rows = slice(r0, min(r0 + band, shape[0]))
             x = np.empty((full.size, rows.stop - r0, *shape[1:]), np.float64)
@@ -403,11 +393,7 @@ def _write_aligned(capture: Capture, t: TakeSync, reader: TakeReader, rest_count
                 rest = x[np.isin(full, rest_counters)].mean(axis=0)
                 x = rest + (x - rest) * t.impulse_scale
             y = fractional_shift(x, frac, axis=0)
-            w.write_band(rows, y[whole:whole + n_grid])
-        w.close()
-    except BaseException:
-        w.abort()
-        raise
+            write_band(rows, y[whole:whole + n_grid])
     t.aligned_file = str(path.relative_to(capture.root))
 
 
@@ -419,13 +405,13 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
     if not records:
         raise OdsplatError(f"{capture.root}: no {'' if s.takes == 'all' else 'accepted '}takes to sync")
     results: list[TakeSync] = []
-    onsets: dict[str, float] = {}
+    responses: dict[str, tuple[np.ndarray, float]] = {}
     for rec in tqdm(records, desc="sync: timing", unit="take", disable=not progress):
         with capture.open_take(rec.name) as r:
             a = _TakeAnalysis(r, m.tags, m.camera, s)
             results.append(a.run())
-            if a.onset_sample is not None:
-                onsets[rec.name] = a.onset_sample
+            if a.response is not None:
+                responses[rec.name] = a.response
     ok = [t for t in results if t.status == "ok"]
     fps = m.camera.fps
     if ok and fps is None:
@@ -434,7 +420,7 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
             raise OdsplatError(f"{capture.root}: the takes were filmed at different frame rates {sorted(nominal)} fps")
         fps = 1.0 / float(np.median([t.period_s for t in ok]))
     ref_impulse = float(np.median([t.impulse_n_s for t in ok])) if ok else None
-    _cross_check(capture, ok, onsets, ref_impulse)
+    _cross_check(ok, responses)
     for t in ok:
         t.impulse_scale = ref_impulse / t.impulse_n_s if s.normalize_impulse else 1.0
     t0, n_grid, shape = None, 0, []
@@ -461,8 +447,9 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
     return result
 
 
-def _cross_check(capture: Capture, ok: list[TakeSync], onsets: dict[str, float], ref_impulse: float | None) -> None:
-    """Lock every take's accelerometer response to its onset and cross-correlate it with the first take's.
+def _cross_check(ok: list[TakeSync], responses: dict[str, tuple[np.ndarray, float]]) -> None:
+    """Cross-correlate every take's response (accelerometers locked to its onset, per unit impulse) with the
+    first take's.
 
     A linear structure hit at the same place gives the same response per unit impulse: a lag means an onset
     is off, a low coefficient that the hit (place, direction) differed."""
@@ -470,12 +457,9 @@ def _cross_check(capture: Capture, ok: list[TakeSync], onsets: dict[str, float],
         return
     ref = None
     for t in ok:
-        with capture.open_take(t.name) as r:
-            n = int(0.05 * r.sample_rate_hz)
-            resp = _response(r, onsets[t.name], t.impulse_n_s, n)
-            fs = r.sample_rate_hz
-        if resp is None:
+        if t.name not in responses:
             continue
+        resp, fs = responses[t.name]
         if ref is None:
             ref = resp
         if resp.shape != ref.shape:

@@ -58,6 +58,15 @@ class DisplacementBasis:
         self.exposure_s = float(exposure_s)
         self.n_channels = d.shape[0]
 
+    @classmethod
+    def from_take(cls, reader, hit_time_s: float, exposure_s: float) -> DisplacementBasis | None:
+        """From a take's accelerometer channels (kind 'acceleration'); None when it has none."""
+        accels = reader.channels_of_kind("acceleration")
+        if not accels:
+            return None
+        return cls(np.stack([reader.channel(a) for a in accels]), reader.sample_rate_hz, reader.daq_t0_s,
+                   hit_time_s, exposure_s)
+
     def __call__(self, start_s: np.ndarray) -> np.ndarray:
         """(N, n_channels): mean displacement over [start, start + exposure] for each start time."""
         s = np.asarray(start_s, float)

@@ -9,7 +9,7 @@ import numpy as np
 from odsplat.impulse import half_sine
 from odsplat.store import Capture
 
-from .align import SyncResult
+from .align import SyncResult, force_channel
 
 
 def plot_sync(capture: Capture, result: SyncResult, path: Path | None = None) -> Path:
@@ -24,8 +24,7 @@ def plot_sync(capture: Capture, result: SyncResult, path: Path | None = None) ->
     ok = result.ok
     for t in ok:
         with capture.open_take(t.name) as r:
-            force_name = next(n for n in r.channel_names if r.channel_info(n).kind == "force")
-            f = r.channel(force_name)
+            f = r.channel(force_channel(r))
             tt = r.daq_t0_s + np.arange(len(f)) / r.sample_rate_hz - t.hit_daq_time_s
         near = (tt > -1e-3) & (tt < 4e-3)
         ax_f.plot(1e3 * tt[near], f[near], ".", ms=2)

@@ -7,8 +7,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -21,6 +19,7 @@ from odsplat.errors import InputError
 from odsplat.processing.learned.network import MagNet, from_net, to_net
 from odsplat.processing.learned.synth import SynthConfig, make_batch, make_sample
 from odsplat.processing.metrics import estimate_translation, psnr, ssim
+from odsplat.store import atomic_open
 
 log = logging.getLogger(__name__)
 
@@ -85,17 +84,8 @@ def losses(net: MagNet, batch: dict[str, torch.Tensor], reg_weight: float) -> tu
 
 def _atomic_save(obj, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; the weights are package data others read
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_open(path, "wb") as f:
+        torch.save(obj, f)
 
 
 def weights_payload(net: MagNet) -> dict:

@@ -36,9 +36,7 @@ def _gain(cap: Capture, name: str, before: np.ndarray, after: np.ndarray, times_
     sync = load_sync(cap)
     t = next(t for t in sync.ok if t.name == name)
     with cap.open_take(name) as r:
-        accels = [n for n in r.channel_names if r.channel_info(n).kind == "acceleration"]
-        basis = DisplacementBasis(np.stack([r.channel(n) for n in accels]), r.sample_rate_hz, r.daq_t0_s,
-                                  t.hit_daq_time_s, t.exposure_s)
+        basis = DisplacementBasis.from_take(r, t.hit_daq_time_s, t.exposure_s)
     m = np.column_stack([basis(t.hit_daq_time_s + times_s - 0.5 * t.exposure_s), np.ones(len(times_s))])
 
     def coeffs(v: np.ndarray) -> np.ndarray:

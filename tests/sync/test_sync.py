@@ -71,9 +71,7 @@ def test_aligned_frames_are_on_the_common_grid(sim_capture, ttl_result):
             frames = a.read_frames()
             mean, var = frames[rest].mean(axis=0), frames[rest].var(axis=0, ddof=1)
             motion = motion_gram(iter([frames]), len(frames), mean, noise_sd(mean, var, int(rest.sum())))
-            accels = [n for n in raw.channel_names if raw.channel_info(n).kind == "acceleration"]
-            basis = DisplacementBasis(np.stack([raw.channel(n) for n in accels]), raw.sample_rate_hz, raw.daq_t0_s,
-                                      t.hit_daq_time_s, exposure)
+            basis = DisplacementBasis.from_take(raw, t.hit_daq_time_s, exposure)
             start = t.hit_daq_time_s + res.t0_s - 0.5 * exposure  # where grid frame 0's exposure should start
             timing = fit_frame_times(motion, np.arange(len(frames)), 1 / FPS, basis, start, rest=rest)
             assert abs((timing.frame0_start_s - start) * FPS) < 0.15, (t.name, timing)

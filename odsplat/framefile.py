@@ -1,0 +1,113 @@
+"""Derived frame files (`derived/sync/NAME.h5`, `derived/magnified/METHOD/NAME.h5`): frames computed from a
+take, written once (temporary file, fsync, rename) and read back in chunks. One layout for every stage.
+
+Layout (HDF5): attribute `kind` names what the file holds; dataset `frames` (n, H, W[, C]) uint16 holds
+value * `value_scale`, value in the source take's digital numbers (DN), `value_scale` 4 (1 for 15- and
+16-bit cameras) so that a quarter DN of the sub-DN detail resampling and filtering create survives, far
+below the sensor's noise; dataset `times_s` (n,), each frame's time; `bit_depth` of the source.
+"""
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any, ClassVar
+
+import h5py
+import numpy as np
+
+from .errors import InputError, SchemaError
+from .store import atomic_path, frame_compression
+
+
+def value_scale(bit_depth: int) -> float:
+    """How much finer than a DN the stored values are: up to 2 extra bits, within 16."""
+    return float(2 ** max(0, min(2, 16 - int(bit_depth))))
+
+
+def to_stored(values_dn: np.ndarray, scale: float) -> np.ndarray:
+    """DN (float) to the stored uint16: rounded, clipped to the 16-bit range."""
+    return np.clip(np.rint(values_dn * scale), 0, 65535).astype(np.uint16)
+
+
+@contextlib.contextmanager
+def atomic_h5(path: str | Path) -> Iterator[h5py.File]:
+    """An HDF5 file that appears at `path` only once written whole (`store.atomic_path`)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:
+        yield f
+
+
+def create_frames(f: h5py.File, kind: str, *, frame_shape: tuple[int, ...], bit_depth: int, times_s: np.ndarray,
+                  n_frames: int | None = None, chunk_rows: int | None = None,
+                  attrs: Mapping[str, Any] | None = None) -> tuple[h5py.Dataset, float]:
+    """The `frames` dataset (n_frames long, or growable from 0 when None) and `times_s`, with the file's
+    attributes; returns the dataset and its value scale. Chunks are one frame, or bands of `chunk_rows`
+    rows for writers that go band by band."""
+    scale = value_scale(bit_depth)
+    f.attrs.update(kind=kind, format_version=1, bit_depth=int(bit_depth), value_scale=scale,
+                   **{k: v for k, v in (attrs or {}).items() if v is not None})
+    rows = frame_shape[0] if chunk_rows is None else min(chunk_rows, frame_shape[0])
+    n = 0 if n_frames is None else n_frames
+    ds = f.create_dataset("frames", shape=(n, *frame_shape), maxshape=(n_frames, *frame_shape), dtype=np.uint16,
+                          chunks=(1, rows, *frame_shape[1:]), **frame_compression())
+    f.create_dataset("times_s", data=np.asarray(times_s, float))
+    return ds, scale
+
+
+class FrameFile:
+    """Reads a derived frame file: frames as float32 in the source take's DN. Subclasses name the kind."""
+
+    KIND: ClassVar[str] = ""
+    WHAT: ClassVar[str] = "derived frame file"
+    MISSING: ClassVar[str] = "no such file"
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        try:
+            self._file = h5py.File(self.path, "r")
+        except FileNotFoundError:
+            raise InputError(self.path, self.MISSING) from None
+        except OSError as exc:
+            raise InputError(self.path, f"cannot be opened as HDF5 ({exc})") from None
+        if self._file.attrs.get("kind") != self.KIND:
+            self._file.close()
+            raise SchemaError(self.path, f"not a {self.WHAT} (kind {self.KIND!r} expected)")
+        self.scale = float(self._file.attrs["value_scale"])
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        return dict(self._file.attrs)
+
+    @property
+    def n_frames(self) -> int:
+        return int(self._file["frames"].shape[0])
+
+    @property
+    def frame_shape(self) -> tuple[int, ...]:
+        return tuple(self._file["frames"].shape[1:])
+
+    @property
+    def times_s(self) -> np.ndarray:
+        return self._file["times_s"][:]
+
+    def read_frames(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        stop = self.n_frames if stop is None else min(stop, self.n_frames)
+        return self._file["frames"][start:stop].astype(np.float32) / self.scale
+
+    def iter_frames(self, chunk_frames: int = 16) -> Iterator[np.ndarray]:
+        for k in range(0, self.n_frames, chunk_frames):
+            yield self.read_frames(k, k + chunk_frames)
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+__all__ = ["FrameFile", "atomic_h5", "create_frames", "to_stored", "value_scale"]
