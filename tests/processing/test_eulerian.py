@@ -9,24 +9,11 @@ from odsplat.errors import InputError
 from odsplat.processing.base import rgb_to_yiq
 from odsplat.processing.eulerian import LinearMagnifier, collapse, laplacian_pyramid, level_gains, max_levels
 from odsplat.processing.filters import make_filter
-from tests.processing.test_phase import (BAND_HZ, FPS_HZ, displacement_px, expected_motion_px, gain,
-                                         measured_motion_px, run, texture, translating_video)
+
+from .motion import (BAND_HZ, FPS_HZ, displacement_px, expected_motion_px, gain, measured_motion_px, run, texture,
+                     translating_video)
 
 BORDER_PX = 8  # the Laplacian pyramid mirrors at the borders; the test texture is periodic
-
-
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Small tensors gain nothing from threads, and two threads on two shared cores run 5-10x slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
-@pytest.fixture(scope="module")
-def tex() -> torch.Tensor:
-    return texture()
 
 
 @pytest.mark.parametrize("h,w", [(64, 64), (67, 90), (31, 17)])

@@ -10,15 +10,6 @@ from odsplat.errors import InputError
 from odsplat.processing.pyramid import ComplexSteerablePyramid, max_scales
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Small FFTs gain nothing from threads, and two threads on two shared cores run 5-10x slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _grating(h: int, w: int, cycles_x: float, cycles_y: float) -> torch.Tensor:
     y, x = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     return (0.5 + 0.2 * torch.cos(2 * math.pi * (cycles_x * x / w + cycles_y * y / h))).float()
