@@ -221,6 +221,30 @@ def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: 
     click.echo(magnify_capture(Capture.open(capture_dir), settings).summary())
 
 
+@main.command()
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--no-static", is_flag=True, help="Leave out the still photos in static/.")
+@click.option("--estimate-intrinsics", is_flag=True, help="Refine the manifest's intrinsics instead of holding them fixed.")
+@click.option("--masks", "masks_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Folder of mask PNGs, TAKE.png and static/PHOTO.png; black = no features there.")
+@click.option("--min-registered", type=int, default=3, show_default=True,
+              help="Fewer images registered by SfM: fall back to poses from the tags alone.")
+def poses(capture_dir: Path, no_static: bool, estimate_intrinsics: bool, masks_dir: Path | None,
+          min_registered: int) -> None:
+    """Camera poses of every view of CAPTURE_DIR in metres, floor z = 0: derived/poses.json, derived/points.npz."""
+    from .reconstruction.poses import PoseSettings, estimate_poses
+    from .store import Capture
+
+    cap = Capture.open(capture_dir)
+    settings = PoseSettings(use_static=not no_static, fixed_intrinsics=False if estimate_intrinsics else None,
+                            masks_dir=masks_dir, min_registered=min_registered)
+    result = estimate_poses(cap, settings)
+    result.save(cap)
+    for line in result.report_lines():
+        click.echo(line)
+    click.echo(f"wrote {cap.derived_dir / 'poses.json'} and {cap.derived_dir / 'points.npz'}")
+
+
 @main.command("train-mm")
 @click.option("-o", "--out", type=click.Path(path_type=Path, dir_okay=False), required=True,
               help="Weights file to write (its resumable checkpoint goes beside it as OUT.ckpt).")
@@ -243,6 +267,75 @@ def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, 
     click.echo(f"{report.steps} steps in {report.wall_s:.0f} s: validation SSIM {report.val_ssim:.3f} "
                f"(do nothing {report.val_ssim_frame_b:.3f}), PSNR {report.val_psnr:.2f} dB, gain {report.val_gain:.2f}; "
                f"weights {report.out}")
+
+
+@main.command()
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--source", default="magnified/phase", show_default=True,
+              help="Frames to fit: 'sync' (unmagnified, on the common grid) or 'magnified/METHOD'.")
+@click.option("--width", "width_px", type=int, default=128, show_default=True, help="Training image width in px.")
+@click.option("--timesteps", "n_timesteps", type=int, default=32, show_default=True)
+@click.option("--step", type=int, default=1, show_default=True, help="Grid frames between timesteps.")
+@click.option("--start", type=int, default=None, help="First grid frame (default: the last before the impact).")
+@click.option("--holdout", multiple=True, help="A take never used in training (repeatable).")
+@click.option("--no-static", is_flag=True, help="Do not condition the t=0 fit on static photos.")
+@click.option("--iters-t0", type=int, default=1500, show_default=True)
+@click.option("--iters-step", "iters_per_step", type=int, default=150, show_default=True)
+@click.option("--threads", type=int, default=None, help="Torch threads (default: torch's).")
+@click.option("--seed", type=int, default=0, show_default=True)
+def reconstruct(capture_dir: Path, source: str, width_px: int, n_timesteps: int, step: int, start: int | None,
+                holdout: tuple[str, ...], no_static: bool, iters_t0: int, iters_per_step: int, threads: int | None,
+                seed: int) -> None:
+    """Train dynamic 3D Gaussians on CAPTURE_DIR's posed views into derived/reconstruction/ (docs/reconstruction.md)."""
+    from .reconstruction.dynamic import FitSettings
+    from .reconstruction.run import ReconstructSettings, reconstruct as run
+    from .store import Capture
+
+    fit = FitSettings(iters_t0=iters_t0, iters_per_step=iters_per_step, seed=seed)
+    settings = ReconstructSettings(source=source, width_px=width_px, n_timesteps=n_timesteps, step=step, start=start,
+                                   holdout=holdout, use_static=not no_static, threads=threads, fit=fit)
+    click.echo(run(Capture.open(capture_dir), settings).summary())
+
+
+@main.command()
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--camera", "camera_spec", default="orbit", show_default=True,
+              help="A take name (its estimated pose), orbit[:N[:ELEVATION_DEG[:DISTANCE_M]]], or a JSON camera path.")
+@click.option("--times", "times_spec", default="all", show_default=True,
+              help="'all' (the trained timesteps), 'A:B:N' (N times from A to B s) or 'a,b,c' (s after the impact).")
+@click.option("-o", "--out", type=click.Path(path_type=Path, file_okay=False), default=None,
+              help="Folder for the PNG frames and render.mp4 (default: derived/reconstruction/render/).")
+@click.option("--width", "width_px", type=int, default=None, help="Image width in px (default: the camera's).")
+@click.option("--fps", type=float, default=30.0, show_default=True, help="Frame rate of the mp4.")
+@click.option("--no-mp4", is_flag=True)
+def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | None, width_px: int | None, fps: float,
+           no_mp4: bool) -> None:
+    """Render the reconstruction of CAPTURE_DIR from any camera path over any time range."""
+    from .errors import InputError
+    from .reconstruction.poses import PoseResult
+    from .reconstruction.run import (DynamicScene, cameras_from_json, orbit, out_dir, parse_times, pose_camera,
+                                     render_sequence)
+    from .store import Capture
+
+    cap = Capture.open(capture_dir)
+    scene = DynamicScene.load(cap)
+    times = parse_times(times_spec, scene.times_s)
+    if camera_spec.endswith(".json"):
+        cameras = cameras_from_json(Path(camera_spec), width_px)
+    elif camera_spec.split(":")[0] == "orbit":
+        parts = camera_spec.split(":")[1:]
+        try:
+            n = int(parts[0]) if parts else max(2, len(times))
+            elev = float(parts[1]) if len(parts) > 1 else 30.0
+            dist = float(parts[2]) if len(parts) > 2 else None
+        except ValueError:
+            raise InputError("--camera", f"expected orbit[:N[:ELEVATION_DEG[:DISTANCE_M]]], got {camera_spec!r}") from None
+        cameras = orbit(PoseResult.load(cap), n, elevation_deg=elev, distance_m=dist, width_px=width_px)
+    else:
+        cameras = [pose_camera(PoseResult.load(cap), camera_spec, width_px)]
+    paths = render_sequence(scene, cameras, times, out or out_dir(cap) / "render", fps=fps, mp4=not no_mp4)
+    click.echo(f"{sum(p.suffix == '.png' for p in paths)} frames -> {paths[0].parent}"
+               + (f" (and {paths[-1].name})" if paths and paths[-1].suffix == ".mp4" else ""))
 
 
 def _plan(settings):

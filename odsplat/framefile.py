@@ -60,6 +60,7 @@ class FrameFile:
     """Reads a derived frame file: frames as float32 in the source take's DN. Subclasses name the kind."""
 
     KIND: ClassVar[str] = ""
+    KINDS: ClassVar[tuple[str, ...]] = ()  # when set, any of these kinds is accepted instead of KIND alone
     WHAT: ClassVar[str] = "derived frame file"
     MISSING: ClassVar[str] = "no such file"
 
@@ -71,9 +72,10 @@ class FrameFile:
             raise InputError(self.path, self.MISSING) from None
         except OSError as exc:
             raise InputError(self.path, f"cannot be opened as HDF5 ({exc})") from None
-        if self._file.attrs.get("kind") != self.KIND:
+        kinds = self.KINDS or (self.KIND,)
+        if self._file.attrs.get("kind") not in kinds:
             self._file.close()
-            raise SchemaError(self.path, f"not a {self.WHAT} (kind {self.KIND!r} expected)")
+            raise SchemaError(self.path, f"not a {self.WHAT} (kind {' or '.join(map(repr, kinds))} expected)")
         self.scale = float(self._file.attrs["value_scale"])
 
     @property

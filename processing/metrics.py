@@ -7,6 +7,8 @@ import math
 import torch
 import torch.nn.functional as F
 
+from odsplat.similarity import ssim_map
+
 
 def _as_nchw(x: torch.Tensor) -> torch.Tensor:
     if x.ndim == 2:
@@ -30,20 +32,7 @@ def ssim(a: torch.Tensor, b: torch.Tensor, data_range: float = 1.0, *, window: i
     x, y = _as_nchw(a).double(), _as_nchw(b).double()
     if x.shape != y.shape:
         raise ValueError(f"images of different shapes: {tuple(x.shape)} and {tuple(y.shape)}")
-    n, c, h, w = x.shape
-    window = min(window, h, w)
-    r = torch.arange(window, dtype=torch.float64) - (window - 1) / 2
-    g = torch.exp(-r ** 2 / (2 * sigma ** 2))
-    g = g / g.sum()
-    k = (g[:, None] * g[None, :]).expand(c, 1, window, window).contiguous()
-    blur = lambda z: F.conv2d(z, k, groups=c)  # noqa: E731
-    mx, my = blur(x), blur(y)
-    sxx = blur(x * x) - mx * mx
-    syy = blur(y * y) - my * my
-    sxy = blur(x * y) - mx * my
-    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    return s.mean().item()
+    return ssim_map(x, y, data_range=data_range, window=window, sigma=sigma).mean().item()
 
 
 def estimate_translation(a: torch.Tensor, b: torch.Tensor, *, border: int = 8, iters: int = 20) -> tuple[float, float]:

@@ -1,0 +1,227 @@
+"""The paper's evaluation on hil_sim: held-out views of dynamic Gaussians against natively magnified ground truth.
+
+Records a capture (force held constant take to take), syncs it, magnifies every view in 2D (phase, alpha),
+estimates poses with pycolmap and the tags, trains dynamic 3D Gaussians on all views but the held-out ones,
+and renders the held-out views (at their estimated poses) at every timestep. Ground truth: hil_sim's noise-free
+renders from the true camera with the structure's motion multiplied by alpha. PSNR, SSIM and L2 are taken in
+the structure's box (the foreground), as the paper crops. Baseline in the same run: the rest state rendered
+at every time (what a static reconstruction would show). Sensitivity, each varied on its own: training views,
+pose noise on the training views, rgb noise on the training images. Speed: the rasterizer (bench/raster.py).
+
+Prints one JSON line on stdout; progress goes to stderr.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib.util
+import json
+import logging
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
+from odsplat.hil_sim.camera import SimCameraConfig  # noqa: E402
+from odsplat.hil_sim.render import PinholeCamera, render, to_mono  # noqa: E402
+from odsplat.hil_sim.rig import SimRig, TakeTruth, truth_path  # noqa: E402
+from odsplat.hil_sim.scene import STRUCTURE, STRUCTURE_TAG  # noqa: E402
+from odsplat.processing.metrics import psnr, ssim  # noqa: E402
+from odsplat.processing.run import MagnifySettings, magnify_capture  # noqa: E402
+from odsplat.reconstruction.dynamic import FitSettings  # noqa: E402
+from odsplat.reconstruction.poses import PoseResult, estimate_poses  # noqa: E402
+from odsplat.reconstruction.run import ReconstructSettings, train  # noqa: E402
+from odsplat.reconstruction.views import Camera, load_views  # noqa: E402
+from odsplat.store import Capture  # noqa: E402
+from odsplat.sync import SyncSettings, sync_capture  # noqa: E402
+
+log = logging.getLogger("bench.reconstruct")
+
+
+class GroundTruth:
+    """Noise-free renders of the rig from a take's true camera, motion x alpha, at the training resolution."""
+
+    def __init__(self, rig: SimRig, truth: TakeTruth, width_px: int, supersample: int = 3):
+        self.rig, self.truth = rig, truth
+        w, h = (int(v) for v in truth.camera_size_px)
+        self.full = PinholeCamera(K=truth.camera_K, R=truth.camera_R, t=truth.camera_t, width_px=w, height_px=h)
+        self.size = (width_px, max(1, round(h * width_px / w)))
+        self.supersample = supersample
+
+    def q(self, time_s: float) -> np.ndarray:
+        """Modal coordinates at time_s after the impact onset (the sync grid's times), from the take's truth."""
+        tr = self.truth
+        x = tr.impact_daq_sample + time_s * tr.daq_rate_hz
+        n = tr.modal_q_daq.shape[1]
+        return np.array([np.interp(x, np.arange(n), row) for row in tr.modal_q_daq])
+
+    def image(self, time_s: float, alpha: float) -> tuple[np.ndarray, np.ndarray]:
+        """(H, W) image in [0, 1] and the structure's mask, at the training size."""
+        out = render(self.rig.scene.mesh(self.q(time_s), alpha), self.full, self.rig.scene.atlas,
+                     supersample=self.supersample)
+        img = out.image if out.image.ndim == 2 else to_mono(out.image)
+        fg = np.isin(out.object_id, (STRUCTURE, STRUCTURE_TAG)).astype(np.float32)
+        small = cv2.resize(img.astype(np.float32), self.size, interpolation=cv2.INTER_AREA)
+        return small, cv2.resize(fg, self.size, interpolation=cv2.INTER_AREA) > 0
+
+
+def box(mask: np.ndarray, margin_px: int = 2) -> tuple[slice, slice]:
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+    return (slice(max(0, ys.min() - margin_px), min(h, ys.max() + margin_px + 1)),
+            slice(max(0, xs.min() - margin_px), min(w, xs.max() + margin_px + 1)))
+
+
+def evaluate(model, poses: PoseResult, holdout: list[str], gts: dict[str, GroundTruth], alpha: float,
+             width_px: int) -> dict:
+    """PSNR/SSIM/L2 of held-out renders (and of the rest state held still) in the foreground box, over timesteps."""
+    scene = model.scene()
+    rows = {"dynamic": [], "rest": []}
+    for name in holdout:
+        v = poses.view(name)
+        cam = Camera(np.asarray(v.K), np.asarray(v.R), np.asarray(v.t), v.width_px, v.height_px, name).resized(width_px)
+        gt = gts[name]
+        _, mask0 = gt.image(float(scene.times_s[0]), alpha)
+        crop = box(mask0, 3)
+        for k, t in enumerate(scene.times_s):
+            ref, mask = gt.image(float(t), alpha)
+            crop = box(mask0 | mask, 3)
+            for kind, when in (("dynamic", float(t)), ("rest", float(scene.times_s[0]))):
+                img = scene.render(cam, when)[..., 0]
+                a, b = torch.as_tensor(img[crop]), torch.as_tensor(ref[crop])
+                rows[kind].append((psnr(a, b), ssim(a, b), float(torch.mean((a - b) ** 2))))
+    out = {}
+    for kind, r in rows.items():
+        r = np.array(r)
+        out[kind] = dict(psnr_db=float(r[:, 0].mean()), ssim=float(r[:, 1].mean()), l2=float(r[:, 2].mean()))
+    # Where the motion is largest (the last timesteps), the difference between the two is the motion's share.
+    return out
+
+
+def perturb_poses(poses: PoseResult, names: list[str], trans_mm: float, rot_deg: float, seed: int) -> PoseResult:
+    """Random pose errors on `names`: a rotation of rot_deg about a random axis, a shift of trans_mm of the centre."""
+    rng = np.random.default_rng(seed)
+    views = []
+    for v in poses.views:
+        if v.name in names and (trans_mm or rot_deg):
+            axis = rng.standard_normal(3)
+            dR = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(rot_deg))[0]
+            d = rng.standard_normal(3)
+            c = -v.R.T @ v.t + d / np.linalg.norm(d) * trans_mm * 1e-3
+            R = dR @ v.R
+            v = dataclasses.replace(v, R=R, t=-R @ c)
+        views.append(v)
+    return dataclasses.replace(poses, views=views)
+
+
+def run_config(capture, poses, settings: ReconstructSettings, holdout, gts, alpha, *, train_names=None,
+               rgb_noise=0.0, seed=0) -> dict:
+    vs = load_views(capture, poses, source=settings.source, width_px=settings.width_px,
+                    n_timesteps=settings.n_timesteps, step=settings.step, holdout=tuple(holdout), use_static=False)
+    if train_names is not None:
+        vs.views = [v for v in vs.views if v.name in train_names]
+    if rgb_noise:
+        gen = torch.Generator().manual_seed(seed)
+        for v in vs.views:
+            v.images = (v.images + rgb_noise * torch.randn(v.images.shape, generator=gen)).clamp(0, 1)
+    t0 = time.perf_counter()
+    model = train(vs, poses, settings)
+    seconds = time.perf_counter() - t0
+    res = evaluate(model, poses, holdout, gts, alpha, settings.width_px)
+    res.update(n_views=len(vs.views), n_gaussians=len(model.g0), train_s=seconds,
+               t0_s=model.stats_t0["seconds"], dynamic_s=model.seconds_dynamic)
+    print(f"  {len(vs.views)} views, rgb noise {rgb_noise}: held-out PSNR {res['dynamic']['psnr_db']:.2f} dB "
+          f"(rest {res['rest']['psnr_db']:.2f}) in {seconds:.0f} s", file=sys.stderr)
+    return res
+
+
+def raster_speed(threads: int) -> dict:
+    spec = importlib.util.spec_from_file_location("bench_raster", REPO / "bench" / "raster.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = {}
+    for n in (10_000, 50_000):
+        for size in (128, 256):
+            out[f"{size}px_{n // 1000}k_ms"] = mod.time_forward_backward(n, size, "torch", 3, threads)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--views", type=int, default=27, help="training views (3 more are recorded and held out)")
+    ap.add_argument("--frames", type=int, default=48)
+    ap.add_argument("--timesteps", type=int, default=16)
+    ap.add_argument("--step", type=int, default=2)
+    ap.add_argument("--alpha", type=float, default=30.0)
+    ap.add_argument("--width", type=int, default=128)
+    ap.add_argument("--iters-t0", type=int, default=1000)
+    ap.add_argument("--iters-step", type=int, default=60)
+    ap.add_argument("--sensitivity", action="store_true", help="also vary views, pose noise and rgb noise")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=5)
+    ap.add_argument("--keep", type=Path, default=None, help="record the capture here and keep it")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(name)s: %(message)s")
+    torch.set_num_threads(args.threads)
+    tmp = tempfile.TemporaryDirectory(prefix="bench-recon-")
+    out = args.keep or Path(tmp.name) / "cap"
+    n_total = args.views + 3
+    rig = SimRig()
+    t = time.perf_counter()
+    if not (out / "capture.json").exists():
+        simulate_capture(out, n_views=n_total, n_frames=args.frames, pretrigger_frames=6, record_s=0.1,
+                         settings=SimBenchSettings(camera=SimCameraConfig(fps=2000.0), force_scatter=0.0,
+                                                   seed=args.seed), rig=rig)
+    figures: dict = {"record_s": time.perf_counter() - t}
+    cap = Capture.open(out)
+    t = time.perf_counter()
+    if not (cap.derived_dir / "sync.json").exists():
+        sync_capture(cap, SyncSettings())
+    if not (cap.derived_dir / "magnified" / "phase").exists():
+        magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha), progress=False)
+    figures["sync_magnify_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    poses = estimate_poses(cap)
+    poses.save(cap)
+    figures["poses_s"] = time.perf_counter() - t
+    figures["poses"] = dict(method=poses.method, registered=poses.registered, n_images=poses.n_images)
+    names = [v.name for v in poses.views if v.kind == "take"]
+    holdout = names[1::max(1, len(names) // 3)][:3]
+    train_names = [n for n in names if n not in holdout]
+    gts = {n: GroundTruth(rig, TakeTruth.load(truth_path(cap.takes_dir / f"{n}.h5")), args.width) for n in holdout}
+    fit = FitSettings(iters_t0=args.iters_t0, iters_per_step=args.iters_step, seed=args.seed, progress=False)
+    base = ReconstructSettings(source="magnified/phase", width_px=args.width, n_timesteps=args.timesteps,
+                               step=args.step, use_static=False, fit=fit)
+    print(f"main run: {len(train_names)} training views, held out {holdout}", file=sys.stderr)
+    figures["main"] = run_config(cap, poses, base, holdout, gts, args.alpha)
+    if args.sensitivity:
+        quick = dataclasses.replace(base, n_timesteps=max(4, args.timesteps // 2))
+        rng = np.random.default_rng(args.seed)
+        sens: dict = {"views": {}, "pose_noise": {}, "rgb_noise": {}}
+        for n in sorted({3, 9, len(train_names)}):
+            pick = list(rng.choice(train_names, size=min(n, len(train_names)), replace=False))
+            sens["views"][str(n)] = run_config(cap, poses, quick, holdout, gts, args.alpha, train_names=pick)
+        for mm, deg in ((5.0, 0.5), (20.0, 2.0)):
+            noisy = perturb_poses(poses, train_names, mm, deg, args.seed)
+            sens["pose_noise"][f"{mm:g}mm_{deg:g}deg"] = run_config(cap, noisy, quick, holdout, gts, args.alpha)
+        for sd in (0.01, 0.05):
+            sens["rgb_noise"][f"{sd:g}"] = run_config(cap, poses, quick, holdout, gts, args.alpha, rgb_noise=sd,
+                                                      seed=args.seed)
+        figures["sensitivity"] = sens
+    figures["raster_fwd_bwd"] = raster_speed(args.threads)
+    figures.update(settings=dict(views=args.views, frames=args.frames, timesteps=args.timesteps, step=args.step,
+                                 alpha=args.alpha, width_px=args.width, iters_t0=args.iters_t0,
+                                 iters_step=args.iters_step, threads=args.threads))
+    print(json.dumps(figures, default=float))
+
+
+if __name__ == "__main__":
+    main()

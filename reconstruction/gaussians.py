@@ -1,0 +1,194 @@
+"""A set of 3D Gaussians as trainable tensors, its initialisation from points, and the INRIA `.ply` layout.
+
+Parameters are stored unconstrained (log scales, opacity and colour logits, unnormalised quaternions) and
+exposed through the activations the rasterizer takes. Colour is view-independent (degree-0 only): the
+structures we film are matte, and the cameras look at them from a hemisphere with one exposure.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from odsplat.errors import InputError, SchemaError
+from odsplat.store import atomic_path
+
+SH_C0 = 0.28209479177387814  # the degree-0 spherical-harmonic constant: colour = 0.5 + SH_C0 * f_dc
+_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "color_logits")
+
+
+def _logit(p: np.ndarray | torch.Tensor, eps: float = 1e-4):
+    if isinstance(p, torch.Tensor):
+        p = p.clamp(eps, 1 - eps)
+        return torch.log(p / (1 - p))
+    p = np.clip(p, eps, 1 - eps)
+    return np.log(p / (1 - p))
+
+
+@dataclass
+class Gaussians:
+    """N Gaussians: means (N,3), quats (N,4) w-x-y-z, log_scales (N,3), opacity_logits (N,), color_logits (N,C)."""
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    log_scales: torch.Tensor
+    opacity_logits: torch.Tensor
+    color_logits: torch.Tensor
+
+    def __post_init__(self) -> None:
+        n = self.means.shape[0]
+        shapes = {"means": (n, 3), "quats": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,)}
+        for name, shape in shapes.items():
+            if tuple(getattr(self, name).shape) != shape:
+                raise InputError(f"Gaussians.{name}", f"expected shape {shape}, got {tuple(getattr(self, name).shape)}")
+        if self.color_logits.ndim != 2 or self.color_logits.shape[0] != n:
+            raise InputError("Gaussians.color_logits", f"expected shape ({n}, C), got {tuple(self.color_logits.shape)}")
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def n_colors(self) -> int:
+        return int(self.color_logits.shape[1])
+
+    # The activations the rasterizer takes.
+    @property
+    def scales(self) -> torch.Tensor:
+        return torch.exp(self.log_scales)
+
+    @property
+    def opacities(self) -> torch.Tensor:
+        return torch.sigmoid(self.opacity_logits)
+
+    @property
+    def colors(self) -> torch.Tensor:
+        return torch.sigmoid(self.color_logits)
+
+    @property
+    def unit_quats(self) -> torch.Tensor:
+        return self.quats / self.quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {name: getattr(self, name) for name in _FIELDS}
+
+    def detached(self) -> Gaussians:
+        return Gaussians(**{k: v.detach().clone() for k, v in self.tensors().items()})
+
+    def subset(self, index: torch.Tensor) -> Gaussians:
+        return Gaussians(**{k: v[index] for k, v in self.tensors().items()})
+
+    def to(self, dtype: torch.dtype) -> Gaussians:
+        return Gaussians(**{k: v.to(dtype) for k, v in self.tensors().items()})
+
+    @classmethod
+    def concat(cls, parts: list[Gaussians]) -> Gaussians:
+        return cls(**{k: torch.cat([getattr(p, k) for p in parts]) for k in _FIELDS})
+
+    @classmethod
+    def from_points(cls, points: np.ndarray, colors: np.ndarray, *, opacity: float = 0.1,
+                    min_scale: float = 1e-4, dtype: torch.dtype = torch.float32) -> Gaussians:
+        """Isotropic Gaussians at `points`, each as wide as the mean distance to its three nearest neighbours."""
+        points = np.asarray(points, float)
+        colors = np.asarray(colors, float)
+        if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
+            raise InputError("points", f"expected at least 4 points of shape (P, 3), got {points.shape}")
+        if colors.ndim != 2 or len(colors) != len(points):
+            raise InputError("colors", f"expected ({len(points)}, C) colours in [0, 1], got {colors.shape}")
+        dist, _ = cKDTree(points).query(points, k=4)
+        scale = np.maximum(dist[:, 1:].mean(axis=1), min_scale)
+        n = len(points)
+        t = lambda a: torch.as_tensor(np.asarray(a), dtype=dtype)  # noqa: E731
+        return cls(means=t(points), quats=t(np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))),
+                   log_scales=t(np.log(np.repeat(scale[:, None], 3, axis=1))),
+                   opacity_logits=t(np.full(n, _logit(np.array(opacity)))),
+                   color_logits=t(_logit(np.clip(colors, 0.0, 1.0))))
+
+    def transformed(self, scale: float, offset: np.ndarray | torch.Tensor) -> Gaussians:
+        """The same Gaussians in coordinates x' = scale * x + offset (scene normalisation and back)."""
+        offset = torch.as_tensor(np.asarray(offset), dtype=self.means.dtype)
+        return Gaussians(means=self.means * scale + offset, quats=self.quats, log_scales=self.log_scales + np.log(scale),
+                         opacity_logits=self.opacity_logits, color_logits=self.color_logits)
+
+
+# ---------------------------------------------------------------------------------------------------- INRIA .ply
+def _ply_names(n_colors_rest: int) -> list[str]:
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in range(n_colors_rest)]
+    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    return names
+
+
+def save_ply(g: Gaussians, path: str | Path) -> Path:
+    """Write the INRIA 3DGS layout (binary little-endian float32) that standard splat viewers open.
+
+    Mono colour goes to all three f_dc channels. Higher SH bands (f_rest_*, 45 of them for degree 3) are written
+    as zeros: viewers expect them, and our colour has none.
+    """
+    path = Path(path)
+    n = len(g)
+    with torch.no_grad():
+        rgb = g.colors.double().cpu().numpy()
+        if rgb.shape[1] == 1:
+            rgb = np.repeat(rgb, 3, axis=1)
+        elif rgb.shape[1] != 3:
+            raise InputError(str(path), f"a .ply holds 1 or 3 colour channels, the Gaussians have {rgb.shape[1]}")
+        names = _ply_names(45)
+        data = np.zeros((n, len(names)), np.float32)
+        col = {name: i for i, name in enumerate(names)}
+        data[:, 0:3] = g.means.double().cpu().numpy()
+        data[:, col["f_dc_0"]:col["f_dc_0"] + 3] = (rgb - 0.5) / SH_C0
+        data[:, col["opacity"]] = g.opacity_logits.double().cpu().numpy()
+        data[:, col["scale_0"]:col["scale_0"] + 3] = g.log_scales.double().cpu().numpy()
+        data[:, col["rot_0"]:col["rot_0"] + 4] = g.unit_quats.double().cpu().numpy()
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
+    header += [f"property float {name}" for name in names] + ["end_header"]
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fh.write(("\n".join(header) + "\n").encode("ascii"))
+            fh.write(data.astype("<f4").tobytes())
+    return path
+
+
+def load_ply(path: str | Path, *, n_colors: int = 3, dtype: torch.dtype = torch.float32) -> Gaussians:
+    """Read a binary INRIA-layout `.ply` (ours or another tool's); mono when n_colors is 1 (the mean of f_dc)."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(path, "no such .ply file") from None
+    end = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply\n") or end < 0:
+        raise SchemaError(path, "not a PLY file (no 'ply' magic or 'end_header')")
+    lines = raw[:end].decode("ascii", "replace").splitlines()
+    if "format binary_little_endian 1.0" not in lines:
+        raise SchemaError(path, "expected 'format binary_little_endian 1.0'")
+    count, props = None, []
+    for line in lines:
+        parts = line.split()
+        if parts[:2] == ["element", "vertex"]:
+            count = int(parts[2])
+        elif parts[:1] == ["element"] and count is not None:
+            break  # a later element (faces) is not ours to read
+        elif parts[:1] == ["property"] and count is not None:
+            if parts[1] not in ("float", "float32"):
+                raise SchemaError(path, f"property {parts[-1]}: expected float, got {parts[1]}")
+            props.append(parts[-1])
+    missing = [p for p in _ply_names(0) if p not in props and p not in ("nx", "ny", "nz")]
+    if count is None or missing:
+        raise SchemaError(path, f"not a Gaussian splat .ply (missing {missing or 'element vertex'})")
+    body = np.frombuffer(raw, dtype="<f4", count=count * len(props), offset=end + len(b"end_header\n"))
+    data = body.reshape(count, len(props)).astype(np.float64)
+    col = {name: data[:, i] for i, name in enumerate(props)}
+    rgb = 0.5 + SH_C0 * np.stack([col["f_dc_0"], col["f_dc_1"], col["f_dc_2"]], axis=1)
+    colors = rgb.mean(axis=1, keepdims=True) if n_colors == 1 else rgb
+    t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=dtype)  # noqa: E731
+    return Gaussians(means=t(np.stack([col["x"], col["y"], col["z"]], 1)),
+                     quats=t(np.stack([col[f"rot_{i}"] for i in range(4)], 1)),
+                     log_scales=t(np.stack([col[f"scale_{i}"] for i in range(3)], 1)),
+                     opacity_logits=t(col["opacity"]), color_logits=t(_logit(np.clip(colors, 0.0, 1.0))))
+
+
+__all__ = ["Gaussians", "SH_C0", "load_ply", "save_ply"]

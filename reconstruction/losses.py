@@ -1,0 +1,107 @@
+"""Training losses: L1 + D-SSIM on images, and the neighbour priors of Luiten et al. 2023 (rigidity, rotation, isometry).
+
+The priors are written from the paper's equations. Neighbours are the k nearest Gaussians at t=0, weighted by an
+isotropic Gaussian of their distance; its width is a multiple of the median neighbour distance, so the weights
+mean the same in metres, millimetres or normalised units.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from odsplat.similarity import ssim_map
+
+
+# ------------------------------------------------------------------------------------------------ quaternions
+def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product of quaternions (..., 4) stored w, x, y, z."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
+                        aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx,
+                        aw * bz + ax * by - ay * bx + az * bw], dim=-1)
+
+
+def quat_conjugate(q: torch.Tensor) -> torch.Tensor:
+    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype, device=q.device)
+
+
+def quat_normalize(q: torch.Tensor) -> torch.Tensor:
+    return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (..., 3, 3) of quaternions (..., 4), normalised here."""
+    w, x, y, z = quat_normalize(q).unbind(-1)
+    return torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+# ----------------------------------------------------------------------------------------------------- images
+def ssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Mean SSIM of two (H, W, C) images with zero padding at the border, as the 3DGS loss has it; differentiable."""
+    if a.shape != b.shape or a.ndim != 3:
+        raise ValueError(f"ssim: expected two (H, W, C) images of one shape, got {tuple(a.shape)} and {tuple(b.shape)}")
+    return ssim_map(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], pad=True).mean()
+
+
+def image_loss(render: torch.Tensor, target: torch.Tensor, ssim_weight: float = 0.2) -> torch.Tensor:
+    """(1 - w) L1 + w (1 - SSIM), the 3DGS photometric loss Luiten et al. keep."""
+    l1 = (render - target).abs().mean()
+    if ssim_weight == 0:
+        return l1
+    return (1 - ssim_weight) * l1 + ssim_weight * (1 - ssim(render, target))
+
+
+# -------------------------------------------------------------------------------------------------- neighbours
+@dataclass
+class Neighbours:
+    """The k nearest neighbours of each Gaussian at t=0 and their weights."""
+
+    index: torch.Tensor    # (N, k) long
+    weight: torch.Tensor   # (N, k)
+    rest_dist: torch.Tensor  # (N, k) distances at t=0
+
+    @classmethod
+    def build(cls, means0: torch.Tensor, k: int = 20, width: float = 2.0) -> Neighbours:
+        """Neighbours of means0 (N, 3). Weights exp(-d^2 / (2 (width * median d)^2)): unit-free by construction."""
+        pts = means0.detach().cpu().double().numpy()
+        k = int(min(k, len(pts) - 1))
+        if k < 1:
+            raise ValueError(f"need at least 2 Gaussians for neighbour losses, got {len(pts)}")
+        dist, idx = cKDTree(pts).query(pts, k=k + 1)
+        dist, idx = dist[:, 1:], idx[:, 1:]
+        length = width * max(float(np.median(dist)), 1e-12)
+        weight = np.exp(-dist ** 2 / (2 * length ** 2))
+        as_t = lambda a, dt: torch.as_tensor(a, dtype=dt, device=means0.device)  # noqa: E731
+        return cls(as_t(idx, torch.long), as_t(weight, means0.dtype), as_t(dist, means0.dtype))
+
+    def _mean(self, per_pair: torch.Tensor) -> torch.Tensor:
+        return (self.weight * per_pair).sum() / self.weight.sum().clamp_min(1e-12)
+
+    def rigidity(self, means_prev: torch.Tensor, quats_prev: torch.Tensor, means: torch.Tensor,
+                 quats: torch.Tensor) -> torch.Tensor:
+        """|| (mu_j,t-1 - mu_i,t-1) - R_i,t-1 R_i,t^-1 (mu_j,t - mu_i,t) ||: neighbours move with i as a rigid body."""
+        rel = quat_to_matrix(quats_prev) @ quat_to_matrix(quats).transpose(-1, -2)  # (N, 3, 3)
+        off_prev = means_prev[self.index] - means_prev[:, None]
+        off = means[self.index] - means[:, None]
+        pred = torch.einsum("nab,nkb->nka", rel, off)
+        return self._mean((off_prev - pred).norm(dim=-1))
+
+    def rotation(self, quats_prev: torch.Tensor, quats: torch.Tensor) -> torch.Tensor:
+        """|| q_j,t q_j,t-1^-1 - q_i,t q_i,t-1^-1 ||: neighbours turn alike."""
+        delta = quat_multiply(quat_normalize(quats), quat_conjugate(quat_normalize(quats_prev)))
+        return self._mean((delta[self.index] - delta[:, None]).norm(dim=-1))
+
+    def isometry(self, means: torch.Tensor) -> torch.Tensor:
+        """| ||mu_j,0 - mu_i,0|| - ||mu_j,t - mu_i,t|| |: distances to neighbours kept over the whole sequence."""
+        dist = (means[self.index] - means[:, None]).norm(dim=-1)
+        return self._mean((dist - self.rest_dist).abs())
+
+
+__all__ = ["Neighbours", "image_loss", "quat_conjugate", "quat_multiply", "quat_normalize", "quat_to_matrix", "ssim"]

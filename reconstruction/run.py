@@ -1,0 +1,350 @@
+"""Reconstruct a capture: posed views -> Gaussians at rest -> per-timestep motion; the saved model and its renders.
+
+Output in `derived/reconstruction/`:
+- `gaussians_t0.ply`: the rest state in the INRIA layout (world frame, metres), for standard splat viewers;
+- `trajectories.npz`: everything needed to render any time (see `DynamicScene`), world frame, metres;
+- `reconstruction.json`: settings, views, timesteps, per-stage figures.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from odsplat.errors import InputError
+from odsplat.geometry import look_at
+from odsplat.manifest import load_json, utc_now
+from odsplat.store import Capture, atomic_path, atomic_write_text
+
+from .dynamic import FitSettings, Trajectory, fit_dynamic, fit_static, render
+from .gaussians import Gaussians, save_ply
+from .views import Camera, SceneFrame, ViewSet, load_views
+
+log = logging.getLogger(__name__)
+
+FORMAT = "odsplat-reconstruction"
+
+
+@dataclass(frozen=True)
+class ReconstructSettings:
+    source: str = "magnified/phase"      # or "sync" (unmagnified frames on the common grid)
+    width_px: int = 128                  # training image width (height by aspect)
+    n_timesteps: int = 32
+    step: int = 1                        # grid frames between timesteps
+    start: int | None = None             # first grid frame (default: the last before the impact, at rest)
+    holdout: tuple[str, ...] = ()        # takes never used in training (for evaluation)
+    use_static: bool = True              # condition the t=0 fit on static photos too
+    init_opacity: float = 0.1
+    threads: int | None = None
+    fit: FitSettings = FitSettings()
+
+
+def out_dir(capture: Capture) -> Path:
+    return capture.derived_dir / "reconstruction"
+
+
+def _poses(capture: Capture):
+    from .poses import PoseResult  # the pose stage's saved result; imported late (pycolmap is heavy)
+
+    return PoseResult.load(capture)
+
+
+def initial_points(poses, scene: SceneFrame, n_colors: int, rng: np.random.Generator,
+                   n_random: int = 5000) -> tuple[np.ndarray, np.ndarray, str]:
+    """SfM points in scene coordinates with their colours; random points in the cameras' common view when none."""
+    pts = np.asarray(getattr(poses, "points_m", np.zeros((0, 3))), float).reshape(-1, 3)
+    if len(pts) >= 16:
+        col = np.asarray(poses.points_color, float).reshape(len(pts), -1)
+        if col.shape[1] != n_colors:
+            col = np.repeat(col.mean(axis=1, keepdims=True), n_colors, axis=1)
+        return scene.to_scene(pts), col, "sfm"
+    # Without points (tag-only poses and no triangulation), a uniform cloud around the cameras' look-at point.
+    target = look_at_point([v.R for v in poses.views], [v.t for v in poses.views])
+    dist = np.median([np.linalg.norm(-v.R.T @ v.t - target) for v in poses.views])
+    box = rng.uniform(-0.5, 0.5, (n_random, 3)) * dist
+    return scene.to_scene(target + box), np.full((n_random, n_colors), 0.5), "random"
+
+
+def look_at_point(Rs, ts) -> np.ndarray:
+    """The point nearest to every camera's optical axis (least squares): what the views look at."""
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for R, t in zip(Rs, ts):
+        R, t = np.asarray(R, float), np.asarray(t, float)
+        c, d = -R.T @ t, R[2]
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+    return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+@dataclass
+class ReconstructResult:
+    out_dir: Path
+    n_gaussians: int
+    n_views: int
+    n_static: int
+    n_timesteps: int
+    seconds_t0: float
+    seconds_dynamic: float
+    psnr_t0_db: float
+    psnr_last_db: float
+    notes: list[str] = field(default_factory=list)
+
+    def summary(self) -> str:
+        return (f"{self.n_gaussians} Gaussians from {self.n_views} views (+{self.n_static} static) over "
+                f"{self.n_timesteps} timesteps: t=0 fit {self.seconds_t0:.0f} s (train PSNR {self.psnr_t0_db:.1f} dB), "
+                f"dynamic {self.seconds_dynamic:.0f} s (last timestep {self.psnr_last_db:.1f} dB) -> {self.out_dir}")
+
+
+def _psnr(g: Gaussians, views, t: int, means=None, quats=None, background: float = 0.0) -> float:
+    with torch.no_grad():
+        errs = [float(((render(g, v.camera, means=means, quats=quats, background=background).image - v.images[t]) ** 2)
+                      .mean()) for v in views]
+    return float(10 * np.log10(1.0 / max(np.mean(errs), 1e-12)))
+
+
+@dataclass
+class Model:
+    """A trained model in scene coordinates: the rest Gaussians, their motion, and what it was trained on."""
+
+    g0: Gaussians
+    trajectory: Trajectory
+    views: ViewSet
+    stats_t0: dict
+    seconds_dynamic: float
+    init: str
+
+    def scene(self) -> DynamicScene:
+        return DynamicScene.from_model(self.g0, self.trajectory, self.views)
+
+
+def train(vs: ViewSet, poses, settings: ReconstructSettings) -> Model:
+    """Fit the rest state to every view's rest frame (and static photos), then each later timestep."""
+    s = settings
+    if s.threads:
+        torch.set_num_threads(s.threads)
+    rng = np.random.default_rng(s.fit.seed)
+    pts, col, init = initial_points(poses, vs.scene, vs.n_colors, rng)
+    g = Gaussians.from_points(pts, col, opacity=s.init_opacity)
+    rest = [(v.camera, v.images[0]) for v in vs.views] + [(v.camera, v.images[0]) for v in vs.static]
+    g0, stats0 = fit_static(g, rest, s.fit)
+    log.info("t=0: %d Gaussians in %.0f s", len(g0), stats0["seconds"])
+    t1 = time.perf_counter()
+    traj = fit_dynamic(g0, vs.views, s.fit)
+    return Model(g0, traj, vs, stats0, time.perf_counter() - t1, init)
+
+
+def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -> ReconstructResult:
+    """Train the dynamic Gaussians on the capture's posed views; writes derived/reconstruction/."""
+    s = settings or ReconstructSettings()
+    poses = _poses(capture)
+    vs = load_views(capture, poses, source=s.source, width_px=s.width_px, n_timesteps=s.n_timesteps, step=s.step,
+                    start=s.start, holdout=s.holdout, use_static=s.use_static)
+    m = train(vs, poses, s)
+    last = vs.n_timesteps - 1
+    bg = s.fit.background
+    psnr0 = _psnr(m.g0, vs.views, 0, background=bg)
+    psnr_last = _psnr(m.g0, vs.views, last, m.trajectory.means[last], m.trajectory.quats[last], bg)
+    dest = out_dir(capture)
+    dest.mkdir(parents=True, exist_ok=True)
+    save_model(dest, m.g0, m.trajectory, vs)
+    result = ReconstructResult(dest, len(m.g0), len(vs.views), len(vs.static), vs.n_timesteps, m.stats_t0["seconds"],
+                               m.seconds_dynamic, psnr0, psnr_last, vs.notes + [f"initialised from {m.init} points"])
+    report = dict(format=FORMAT, version=1, created_utc=utc_now(), settings=_plain(asdict(s)),
+                  views=[v.name for v in vs.views], static=[v.name for v in vs.static], holdout=list(s.holdout),
+                  frame_index=vs.frame_index.tolist(), times_s=vs.times_s.tolist(), t0=m.stats_t0,
+                  dynamic=m.trajectory.losses, result=_plain(asdict(result)))
+    atomic_write_text(dest / "reconstruction.json", json.dumps(report, indent=1))
+    log.info(result.summary())
+    return result
+
+
+def _plain(d: Any) -> Any:
+    if isinstance(d, dict):
+        return {k: _plain(v) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [_plain(v) for v in d]
+    return str(d) if isinstance(d, Path) else d
+
+
+def save_model(dest: Path, g0: Gaussians, traj: Trajectory, vs: ViewSet) -> None:
+    """The rest state as .ply and the whole motion as .npz, both in world coordinates (the pose stage's metres)."""
+    sc = vs.scene
+    world = g0.transformed(sc.radius, sc.center)
+    save_ply(world, dest / "gaussians_t0.ply")
+    means = traj.means.double().numpy()
+    rest = sc.to_world(means[0])
+    with atomic_path(dest / "trajectories.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, times_s=vs.times_s, frame_index=vs.frame_index, means_rest_m=rest,
+                     displacement_m=((means - means[:1]) * sc.radius).astype(np.float32),
+                     quats=traj.quats.float().numpy(), log_scales_m=world.log_scales.double().numpy(),
+                     opacity_logits=g0.opacity_logits.double().numpy(), color_logits=g0.color_logits.double().numpy(),
+                     scene_center_m=sc.center, scene_radius_m=sc.radius, bit_depth=vs.bit_depth)
+
+
+@dataclass
+class DynamicScene:
+    """A trained model, in world coordinates: renders any camera at any time within the trained range."""
+
+    times_s: np.ndarray
+    means_rest_m: np.ndarray      # (N, 3)
+    displacement_m: np.ndarray    # (T, N, 3)
+    quats: np.ndarray             # (T, N, 4)
+    rest: Gaussians               # scene coordinates, at rest
+    scene: SceneFrame
+    bit_depth: int
+
+    @classmethod
+    def load(cls, capture: Capture) -> DynamicScene:
+        path = out_dir(capture) / "trajectories.npz"
+        if not path.exists():
+            raise InputError(path, "no reconstruction (run `odsplat reconstruct` first)")
+        with np.load(path) as z:
+            d = {k: z[k] for k in z.files}
+        scene = SceneFrame(d["scene_center_m"], float(d["scene_radius_m"]))
+        t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+        rest = Gaussians(means=t(scene.to_scene(d["means_rest_m"])), quats=t(d["quats"][0]),
+                         log_scales=t(d["log_scales_m"] - np.log(scene.radius)), opacity_logits=t(d["opacity_logits"]),
+                         color_logits=t(d["color_logits"]))
+        return cls(d["times_s"], d["means_rest_m"], d["displacement_m"], d["quats"], rest, scene, int(d["bit_depth"]))
+
+    @classmethod
+    def from_model(cls, g0: Gaussians, traj: Trajectory, vs: ViewSet) -> DynamicScene:
+        sc = vs.scene
+        means = traj.means.double().numpy()
+        rest = g0.detached()
+        return cls(np.asarray(vs.times_s, float), sc.to_world(means[0]), (means - means[:1]) * sc.radius,
+                   traj.quats.double().numpy(), rest, sc, vs.bit_depth)
+
+    def state(self, time_s: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Scene-coordinate means and quaternions at time_s: linear between timesteps, clamped to the trained range."""
+        ts = self.times_s
+        if len(ts) == 1 or time_s <= ts[0]:
+            k, w = 0, 0.0
+        elif time_s >= ts[-1]:
+            k, w = len(ts) - 2, 1.0
+        else:
+            k = int(np.searchsorted(ts, time_s, side="right") - 1)
+            w = float((time_s - ts[k]) / (ts[k + 1] - ts[k]))
+        disp = (1 - w) * self.displacement_m[k] + w * self.displacement_m[min(k + 1, len(ts) - 1)]
+        q = (1 - w) * self.quats[k] + w * self.quats[min(k + 1, len(ts) - 1)]
+        means = self.scene.to_scene(self.means_rest_m + disp)
+        return torch.as_tensor(means, dtype=torch.float32), torch.as_tensor(q, dtype=torch.float32)
+
+    def render(self, camera: Camera, time_s: float, *, background: float = 0.0, backend: str = "auto") -> np.ndarray:
+        """(H, W, C) image in [0, 1] of `camera` (world frame) at time_s."""
+        means, quats = self.state(time_s)
+        with torch.no_grad():
+            out = render(self.rest, camera.in_scene(self.scene), means=means, quats=quats, background=background,
+                         backend=backend)
+        return out.image.clamp(0, 1).numpy()
+
+
+def orbit(poses, n: int, *, elevation_deg: float = 30.0, distance_m: float | None = None,
+          width_px: int | None = None) -> list[Camera]:
+    """n cameras on a circle around what the posed views look at, with the first view's intrinsics."""
+    views = [v for v in poses.views if v.kind == "take"] or list(poses.views)
+    target = look_at_point([v.R for v in views], [v.t for v in views])
+    dist = distance_m or float(np.median([np.linalg.norm(-v.R.T @ v.t - target) for v in views]))
+    v0 = views[0]
+    cams = []
+    for k in range(n):
+        az = 2 * np.pi * k / n
+        el = np.radians(elevation_deg)
+        eye = target + dist * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        R, t = look_at(eye, target)
+        cam = Camera(np.asarray(v0.K, float), R, t, v0.width_px, v0.height_px, f"orbit_{k:03d}")
+        cams.append(cam.resized(width_px) if width_px else cam)
+    return cams
+
+
+def pose_camera(poses, name: str, width_px: int | None = None) -> Camera:
+    """The estimated camera of a take (or static photo) by name."""
+    try:
+        v = poses.view(name)
+    except KeyError:
+        known = ", ".join(v.name for v in poses.views)
+        raise InputError("--camera", f"no posed view named {name!r} (posed: {known})") from None
+    cam = Camera(np.asarray(v.K, float), np.asarray(v.R, float), np.asarray(v.t, float), v.width_px, v.height_px, name)
+    return cam.resized(width_px) if width_px else cam
+
+
+def cameras_from_json(path: Path, width_px: int | None = None) -> list[Camera]:
+    """A camera path: a JSON list of {K, R, t, width_px, height_px} (world-to-camera, OpenCV axes)."""
+    data = load_json(path, missing="no such camera-path file")
+    if not isinstance(data, list) or not data:
+        raise InputError(path, "expected a JSON list of cameras {K, R, t, width_px, height_px}")
+    cams = []
+    for i, c in enumerate(data):
+        try:
+            cam = Camera(np.asarray(c["K"], float).reshape(3, 3), np.asarray(c["R"], float).reshape(3, 3),
+                         np.asarray(c["t"], float).reshape(3), int(c["width_px"]), int(c["height_px"]), f"path_{i:03d}")
+        except (KeyError, TypeError, ValueError) as e:
+            raise InputError(f"{path}[{i}]", f"expected K (3x3), R (3x3), t (3), width_px, height_px: {e}") from None
+        cams.append(cam.resized(width_px) if width_px else cam)
+    return cams
+
+
+def parse_times(spec: str, trained_s: np.ndarray) -> np.ndarray:
+    """'all' (the trained timesteps), 'A:B:N' (N times from A to B s), or 'a,b,c' (s)."""
+    spec = spec.strip()
+    try:
+        if spec == "all":
+            return np.asarray(trained_s, float)
+        if ":" in spec:
+            a, b, n = spec.split(":")
+            if int(n) < 1:
+                raise ValueError
+            return np.linspace(float(a), float(b), int(n))
+        return np.array([float(x) for x in spec.split(",")])
+    except ValueError:
+        raise InputError("--times", f"expected 'all', 'A:B:N' or 'a,b,c' in seconds, got {spec!r}") from None
+
+
+def render_sequence(scene: DynamicScene, cameras: list[Camera], times_s: np.ndarray, out: Path, *,
+                    fps: float = 30.0, mp4: bool = True, progress: bool = True) -> list[Path]:
+    """PNG frames (and an mp4) of cameras x times: one camera over all times, one time over all cameras, or pairs."""
+    import cv2
+    from tqdm import tqdm
+
+    if len(cameras) == 1:
+        cameras = cameras * len(times_s)
+    elif len(times_s) == 1:
+        times_s = np.repeat(times_s, len(cameras))
+    elif len(cameras) != len(times_s):
+        raise InputError("--camera/--times", f"{len(cameras)} cameras and {len(times_s)} times: give one camera, "
+                                             "one time, or as many of each")
+    out.mkdir(parents=True, exist_ok=True)
+    paths, frames = [], []
+    for k, (cam, t) in enumerate(tqdm(list(zip(cameras, times_s)), desc="render", unit="frame", disable=not progress)):
+        img = scene.render(cam, float(t))
+        u8 = np.round(img * 255).astype(np.uint8)
+        u8 = cv2.cvtColor(u8, cv2.COLOR_RGB2BGR) if u8.shape[-1] == 3 else u8[..., 0]
+        path = out / f"frame_{k:04d}.png"
+        if not cv2.imwrite(str(path), u8):
+            raise InputError(path, "could not write the PNG frame")
+        paths.append(path)
+        frames.append(u8)
+    if mp4 and frames:
+        h, w = frames[0].shape[:2]
+        video = out / "render.mp4"
+        writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+        if not writer.isOpened():
+            raise InputError(video, "OpenCV cannot write mp4 (mp4v) here")
+        for f in frames:
+            writer.write(f if f.ndim == 3 else cv2.cvtColor(f, cv2.COLOR_GRAY2BGR))
+        writer.release()
+        paths.append(video)
+    return paths
+
+
+__all__ = ["DynamicScene", "Model", "train", "ReconstructResult", "ReconstructSettings", "cameras_from_json", "initial_points",
+           "look_at_point", "orbit", "out_dir", "parse_times", "pose_camera", "reconstruct", "render_sequence",
+           "save_model"]

@@ -1,0 +1,220 @@
+"""Training views for the Gaussians: posed cameras, their frames at the chosen timesteps, and the scene's normalisation.
+
+Frames come from a derived frame file per take (`derived/sync/NAME.h5`, or the magnified takes in
+`derived/magnified/METHOD/NAME.h5`), all on sync's common grid; static photos add views at rest. Images are
+resampled to the training width (area filter) and the intrinsics with them, keeping the pixel-centre convention.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import ClassVar
+
+import cv2
+import numpy as np
+import torch
+
+from odsplat.errors import InputError
+from odsplat.framefile import FrameFile
+from odsplat.store import Capture
+
+log = logging.getLogger(__name__)
+
+ALIGNED_KIND, MAGNIFIED_KIND = "odsplat-aligned-take", "odsplat-magnified-take"
+
+
+class SourceFrames(FrameFile):
+    """A take's frames on the common grid: sync's aligned take or processing's magnified one."""
+
+    KINDS: ClassVar[tuple[str, ...]] = (ALIGNED_KIND, MAGNIFIED_KIND)
+    WHAT = "aligned or magnified take"
+    MISSING = "no such frame file (run `odsplat sync`, and `odsplat magnify` for a magnified source)"
+
+
+def source_path(capture: Capture, source: str, name: str) -> Path:
+    """'sync' -> derived/sync/NAME.h5; 'magnified/METHOD' -> derived/magnified/METHOD/NAME.h5."""
+    if source == "sync" or source.startswith("magnified/"):
+        return capture.derived_dir / source / f"{name}.h5"
+    raise InputError("source", f"expected 'sync' or 'magnified/METHOD' (e.g. magnified/phase), got {source!r}")
+
+
+@dataclass(frozen=True)
+class SceneFrame:
+    """x_scene = (x_world - center) / radius: the training coordinates, about unit size whatever the units."""
+
+    center: np.ndarray
+    radius: float
+
+    @classmethod
+    def fit(cls, camera_centers: np.ndarray, margin: float = 1.1) -> SceneFrame:
+        """Centred on the cameras, radius 1.1 x their farthest distance from that centre (as 3DGS does)."""
+        c = np.asarray(camera_centers, float)
+        center = c.mean(axis=0)
+        radius = margin * float(np.max(np.linalg.norm(c - center, axis=1))) if len(c) > 1 else 1.0
+        return cls(center, radius if radius > 0 else 1.0)
+
+    def to_scene(self, x: np.ndarray) -> np.ndarray:
+        return (np.asarray(x, float) - self.center) / self.radius
+
+    def to_world(self, x: np.ndarray) -> np.ndarray:
+        return np.asarray(x, float) * self.radius + self.center
+
+    def pose_to_scene(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World-to-camera (R, t) as scene-to-camera, with the camera's frame also scaled by 1/radius."""
+        return np.asarray(R, float), (np.asarray(t, float) + np.asarray(R, float) @ self.center) / self.radius
+
+
+@dataclass
+class Camera:
+    """A pinhole camera, world-to-camera (OpenCV axes), pixel (0, 0)'s centre at (0, 0)."""
+
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    width_px: int
+    height_px: int
+    name: str = ""
+
+    @property
+    def center(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+    def resized(self, width_px: int, height_px: int | None = None) -> Camera:
+        """The same camera with its image resampled to width_px (height by aspect): K keeps pixel centres aligned."""
+        height_px = height_px or max(1, round(self.height_px * width_px / self.width_px))
+        sx, sy = width_px / self.width_px, height_px / self.height_px
+        K = np.array(self.K, float)
+        K[0, 0], K[0, 2] = K[0, 0] * sx, (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 1], K[1, 2] = K[1, 1] * sy, (K[1, 2] + 0.5) * sy - 0.5
+        K[0, 1] *= sx
+        return Camera(K, self.R, self.t, width_px, height_px, self.name)
+
+    def in_scene(self, frame: SceneFrame) -> Camera:
+        R, t = frame.pose_to_scene(self.R, self.t)
+        return Camera(self.K, R, t, self.width_px, self.height_px, self.name)
+
+    def viewmat(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = self.R, self.t
+        return torch.as_tensor(m, dtype=dtype)
+
+    def K_tensor(self, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(self.K, float), dtype=dtype)
+
+
+@dataclass
+class TrainView:
+    """One posed view and its images (T, H, W, C) in [0, 1]; a static photo has T = 1 and is at rest."""
+
+    camera: Camera
+    images: torch.Tensor
+    kind: str = "take"
+
+    @property
+    def name(self) -> str:
+        return self.camera.name
+
+
+@dataclass
+class ViewSet:
+    """The training views on the selected timesteps, in scene coordinates."""
+
+    views: list[TrainView]
+    static: list[TrainView]
+    frame_index: np.ndarray      # the grid frames used, (T,)
+    times_s: np.ndarray          # their times after the impact onset, (T,)
+    scene: SceneFrame
+    bit_depth: int
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def n_timesteps(self) -> int:
+        return len(self.frame_index)
+
+    @property
+    def n_colors(self) -> int:
+        return int(self.views[0].images.shape[-1])
+
+
+def select_frames(times_s: np.ndarray, n_timesteps: int, step: int = 1, start: int | None = None) -> np.ndarray:
+    """Grid frames start, start+step, ...; start defaults to the last frame before the impact (the rest state)."""
+    times_s = np.asarray(times_s, float)
+    if start is None:
+        before = np.flatnonzero(times_s < 0)
+        start = int(before[-1]) if len(before) else 0
+    if step < 1 or n_timesteps < 1:
+        raise InputError("timesteps", f"expected n_timesteps >= 1 and step >= 1, got {n_timesteps} and {step}")
+    idx = start + step * np.arange(n_timesteps)
+    if start < 0 or idx[-1] >= len(times_s):
+        raise InputError("timesteps", f"frames {start}..{idx[-1]} (step {step}) run past the grid's {len(times_s)} frames")
+    return idx
+
+
+def _resize(image: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
+    out = cv2.resize(image, (width_px, height_px), interpolation=cv2.INTER_AREA)
+    return out[..., None] if out.ndim == 2 else out
+
+
+def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timesteps: int, step: int = 1,
+               start: int | None = None, holdout: tuple[str, ...] = (), use_static: bool = True,
+               dtype: torch.dtype = torch.float32) -> ViewSet:
+    """The posed takes' frames (and static photos) at the selected grid frames, resampled to width_px.
+
+    `poses` is the pose stage's result (views with name, kind, K, R, t, width_px, height_px).
+    """
+    take_poses = [v for v in poses.views if v.kind == "take" and v.name not in holdout]
+    if not take_poses:
+        raise InputError(capture.derived_dir / "poses.json", "no posed takes to train on")
+    notes: list[str] = []
+    views, grid, bit_depth, frames = [], None, None, None
+    for vp in take_poses:
+        path = source_path(capture, source, vp.name)
+        if not path.exists():
+            notes.append(f"{vp.name}: no {source} frames, left out")
+            continue
+        with SourceFrames(path) as ff:
+            times = ff.times_s
+            if grid is None:
+                grid, bit_depth = times, int(ff.attrs["bit_depth"])
+                frames = select_frames(grid, n_timesteps, step, start)
+            elif len(times) != len(grid) or not np.allclose(times, grid, atol=1e-9):
+                raise InputError(path, "times_s differ from the other takes' (not on one sync grid)")
+            data = np.stack([ff.read_frames(int(k), int(k) + 1)[0] for k in frames])
+        full = 2.0 ** bit_depth - 1
+        cam = Camera(vp.K, vp.R, vp.t, vp.width_px, vp.height_px, vp.name)
+        if data.shape[1:3] != (cam.height_px, cam.width_px):
+            raise InputError(path, f"frames are {data.shape[2]}x{data.shape[1]} px, the pose says "
+                                   f"{cam.width_px}x{cam.height_px}")
+        small = cam.resized(width_px)
+        imgs = np.stack([_resize(f / full, small.width_px, small.height_px) for f in data])
+        views.append(TrainView(small, torch.as_tensor(np.clip(imgs, 0, 1), dtype=dtype)))
+    if not views:
+        raise InputError(capture.derived_dir / source, f"no frame files for the posed takes ({'; '.join(notes)})")
+    static = []
+    if use_static:
+        for vp in (v for v in poses.views if v.kind == "static" and v.name not in holdout):
+            img = _read_photo(capture.root / f"{vp.name}.png")
+            cam = Camera(vp.K, vp.R, vp.t, vp.width_px, vp.height_px, vp.name).resized(width_px)
+            static.append(TrainView(cam, torch.as_tensor(_resize(img, cam.width_px, cam.height_px)[None], dtype=dtype),
+                                    kind="static"))
+    scene = SceneFrame.fit(np.array([v.camera.center for v in views + static]))
+    for v in views + static:
+        v.camera = v.camera.in_scene(scene)
+    log.info("%d views x %d timesteps (%s), %d static photos, %dx%d px", len(views), len(frames), source,
+             len(static), views[0].camera.width_px, views[0].camera.height_px)
+    return ViewSet(views, static, frames, grid[frames], scene, bit_depth, notes)
+
+
+def _read_photo(path: Path) -> np.ndarray:
+    """A static photo as float32 (H, W, C) in [0, 1] (16-bit PNGs are full scale; colour returned as RGB)."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(path, "cannot read the static photo (expected a PNG written by the capture session)")
+    full = float(np.iinfo(img.dtype).max) if img.dtype.kind == "u" else 1.0
+    img = img.astype(np.float32) / full
+    return img[..., ::-1].copy() if img.ndim == 3 else img
+
+
+__all__ = ["Camera", "SceneFrame", "SourceFrames", "TrainView", "ViewSet", "load_views", "select_frames",
+           "source_path"]
