@@ -24,14 +24,18 @@ test: $(STAMP)
 
 # The demo runs what works end to end: a guided 27-view capture on the simulated rig (with two
 # injected faults that QC catches and the session redoes), sync of its takes onto one impact-locked
-# timeline, phase-based magnification of every view, then real recordings imported from
-# $(SHARED_DATA) when that folder exists. Later stages add their steps here.
+# timeline, phase-based magnification of every view, camera poses (pycolmap + tags), dynamic 3D
+# Gaussians on the magnified views (demo-sized: 16 timesteps at 128 px) and an orbit render, then real
+# recordings imported from $(SHARED_DATA) when that folder exists. Later stages add their steps here.
 demo: $(STAMP)
 	rm -rf $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat capture $(DEMO_OUT)/sim-rig --sim --auto --no-window --frames 100 --sim-faults 3:double_hit,9:dropped_packet
 	$(BIN)/odsplat info $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat sync $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat magnify $(DEMO_OUT)/sim-rig --method phase --alpha 30
+	$(BIN)/odsplat poses $(DEMO_OUT)/sim-rig
+	$(BIN)/odsplat reconstruct $(DEMO_OUT)/sim-rig --timesteps 16 --step 2 --iters-t0 800 --iters-step 50
+	$(BIN)/odsplat render $(DEMO_OUT)/sim-rig --camera orbit:16:30 --times -0.0005:0.0145:16
 	@if test -d $(SHARED_DATA); then \
 	  rm -rf $(DEMO_OUT)/ladisk-beam && \
 	  $(BIN)/odsplat import examples/ladisk-beam.toml --data $(SHARED_DATA) -o $(DEMO_OUT)/ladisk-beam && \
@@ -45,6 +49,8 @@ bench: $(STAMP)
 	$(BIN)/python bench/daq.py
 	$(BIN)/python bench/sync.py
 	$(BIN)/python bench/magnify.py
+	$(BIN)/python bench/raster.py
+	$(BIN)/python bench/reconstruct.py --sensitivity
 
 clean:
 	rm -rf $(VENV) $(DEMO_OUT) build *.egg-info

@@ -61,7 +61,7 @@ class FitSettings:
     iso_weight: float = 2.0
     k_neighbours: int = 20
     neighbour_width: float = 2.0            # weight width, x the median neighbour distance
-    background: float = 0.0
+    background: float | None = None         # None: learned at t = 0 (one value per channel), then frozen
     backend: str = "auto"
     seed: int = 0
     progress: bool = True
@@ -75,10 +75,10 @@ class FitSettings:
 
 
 def render(g: Gaussians, camera: Camera, *, means: torch.Tensor | None = None, quats: torch.Tensor | None = None,
-           background: float = 0.0, backend: str = "auto", extras: torch.Tensor | None = None):
+           background: float | torch.Tensor = 0.0, backend: str = "auto", extras: torch.Tensor | None = None):
     """Rasterize Gaussians (optionally with other means/quats, e.g. a later timestep) seen by `camera`."""
     dt = g.means.dtype
-    bg = torch.full((g.n_colors,), float(background), dtype=dt)
+    bg = background.to(dt) if isinstance(background, torch.Tensor) else torch.full((g.n_colors,), float(background), dtype=dt)
     return rasterize(g.means if means is None else means, g.quats if quats is None else quats, g.scales,
                      g.opacities, g.colors, camera.viewmat(dt), camera.K_tensor(dt), camera.width_px,
                      camera.height_px, background=bg, extras=extras, backend=backend)
@@ -96,12 +96,22 @@ class _StaticFit:
         self.params = {k: torch.nn.Parameter(v.detach().clone()) for k, v in g.tensors().items()}
         lrs = dict(means=s.lr_means, quats=s.lr_quats, log_scales=s.lr_scales, opacity_logits=s.lr_opacity,
                    color_logits=s.lr_colors)
-        self.opt = torch.optim.Adam([{"params": [self.params[k]], "lr": lrs[k], "name": k} for k in _GROUPS],
-                                    eps=1e-15)
+        groups = [{"params": [self.params[k]], "lr": lrs[k], "name": k} for k in _GROUPS]
+        # What lies beyond the scene (past the floor's edge) shows as one level per channel: learned unless given.
+        dt = g.means.dtype
+        bg = torch.full((g.n_colors,), 0.5 if s.background is None else float(s.background), dtype=dt)
+        self.background_logit = torch.nn.Parameter(torch.logit(bg.clamp(1e-4, 1 - 1e-4)))
+        if s.background is None:
+            groups.append({"params": [self.background_logit], "lr": s.lr_opacity, "name": "background"})
+        self.opt = torch.optim.Adam(groups, eps=1e-15)
         self._reset_stats()
 
     def gaussians(self) -> Gaussians:
         return Gaussians(**self.params)
+
+    @property
+    def background(self) -> torch.Tensor:
+        return torch.sigmoid(self.background_logit)
 
     def _reset_stats(self) -> None:
         n = len(self.params["means"])
@@ -174,6 +184,8 @@ class _StaticFit:
         """New parameters; Adam's moments follow their rows (zero for new Gaussians)."""
         for group in self.opt.param_groups:
             name = group["name"]
+            if name not in data:
+                continue
             old = group["params"][0]
             par = torch.nn.Parameter(data[name].clone())
             state = self.opt.state.pop(old, None)
@@ -200,7 +212,7 @@ def fit_static(g: Gaussians, views: list[tuple[Camera, torch.Tensor]], s: FitSet
     for it in bar:
         fit.set_means_lr(it)
         cam, target = views[rng.integers(len(views))]
-        out = render(fit.gaussians(), cam, background=s.background, backend=s.backend)
+        out = render(fit.gaussians(), cam, background=fit.background, backend=s.backend)
         out.means2d.retain_grad()
         loss = image_loss(out.image, target, s.ssim_weight)
         fit.opt.zero_grad(set_to_none=True)
@@ -217,7 +229,7 @@ def fit_static(g: Gaussians, views: list[tuple[Camera, torch.Tensor]], s: FitSet
             bar.set_postfix(loss=f"{np.mean(losses[-50:]):.4f}", n=len(fit.params["means"]))
     bar.close()
     out_g = fit.gaussians().detached()
-    stats = dict(iterations=s.iters_t0, seconds=time.perf_counter() - t0, n_gaussians=len(out_g),
+    stats = dict(background=fit.background.detach().tolist(), iterations=s.iters_t0, seconds=time.perf_counter() - t0, n_gaussians=len(out_g),
                  loss_first=float(np.mean(losses[:20])) if losses else None,
                  loss_last=float(np.mean(losses[-20:])) if losses else None)
     return out_g, stats
@@ -233,11 +245,13 @@ class Trajectory:
     losses: list[dict] = field(default_factory=list)
 
 
-def fit_dynamic(g0: Gaussians, views: list[TrainView], s: FitSettings) -> Trajectory:
+def fit_dynamic(g0: Gaussians, views: list[TrainView], s: FitSettings,
+                background: float | torch.Tensor | None = None) -> Trajectory:
     """Per-timestep fits of means and rotations to each view's frame at that timestep (views' images (T, H, W, C)).
 
-    Timestep 0 is g0 itself (the rest fit). Scale, opacity and colour stay g0's.
+    Timestep 0 is g0 itself (the rest fit). Scale, opacity, colour and the background stay the rest fit's.
     """
+    background = (s.background or 0.0) if background is None else background
     n_t = int(views[0].images.shape[0])
     if any(int(v.images.shape[0]) != n_t for v in views):
         raise InputError("views", "every view needs the same number of timesteps")
@@ -263,7 +277,7 @@ def fit_dynamic(g0: Gaussians, views: list[TrainView], s: FitSettings) -> Trajec
         img_losses, prior_losses = [], []
         for _ in range(iters):
             v = views[rng.integers(len(views))]
-            out = render(frozen, v.camera, means=m, quats=q, background=s.background, backend=s.backend)
+            out = render(frozen, v.camera, means=m, quats=q, background=background, backend=s.backend)
             l_img = image_loss(out.image, v.images[t], s.ssim_weight)
             l_prior = (s.rigid_weight * nb.rigidity(means[-1], quats[-1], m, q)
                        + s.rot_weight * nb.rotation(quats[-1], q) + s.iso_weight * nb.isometry(m))

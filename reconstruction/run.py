@@ -102,7 +102,7 @@ class ReconstructResult:
                 f"dynamic {self.seconds_dynamic:.0f} s (last timestep {self.psnr_last_db:.1f} dB) -> {self.out_dir}")
 
 
-def _psnr(g: Gaussians, views, t: int, means=None, quats=None, background: float = 0.0) -> float:
+def _psnr(g: Gaussians, views, t: int, means=None, quats=None, background=0.0) -> float:
     with torch.no_grad():
         errs = [float(((render(g, v.camera, means=means, quats=quats, background=background).image - v.images[t]) ** 2)
                       .mean()) for v in views]
@@ -119,9 +119,10 @@ class Model:
     stats_t0: dict
     seconds_dynamic: float
     init: str
+    background: torch.Tensor
 
     def scene(self) -> DynamicScene:
-        return DynamicScene.from_model(self.g0, self.trajectory, self.views)
+        return DynamicScene.from_model(self.g0, self.trajectory, self.views, self.background)
 
 
 def train(vs: ViewSet, poses, settings: ReconstructSettings) -> Model:
@@ -135,9 +136,10 @@ def train(vs: ViewSet, poses, settings: ReconstructSettings) -> Model:
     rest = [(v.camera, v.images[0]) for v in vs.views] + [(v.camera, v.images[0]) for v in vs.static]
     g0, stats0 = fit_static(g, rest, s.fit)
     log.info("t=0: %d Gaussians in %.0f s", len(g0), stats0["seconds"])
+    background = torch.tensor(stats0["background"], dtype=g0.means.dtype)
     t1 = time.perf_counter()
-    traj = fit_dynamic(g0, vs.views, s.fit)
-    return Model(g0, traj, vs, stats0, time.perf_counter() - t1, init)
+    traj = fit_dynamic(g0, vs.views, s.fit, background)
+    return Model(g0, traj, vs, stats0, time.perf_counter() - t1, init, background)
 
 
 def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -> ReconstructResult:
@@ -148,12 +150,12 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
                     start=s.start, holdout=s.holdout, use_static=s.use_static)
     m = train(vs, poses, s)
     last = vs.n_timesteps - 1
-    bg = s.fit.background
+    bg = m.background
     psnr0 = _psnr(m.g0, vs.views, 0, background=bg)
     psnr_last = _psnr(m.g0, vs.views, last, m.trajectory.means[last], m.trajectory.quats[last], bg)
     dest = out_dir(capture)
     dest.mkdir(parents=True, exist_ok=True)
-    save_model(dest, m.g0, m.trajectory, vs)
+    save_model(dest, m.g0, m.trajectory, vs, m.background)
     result = ReconstructResult(dest, len(m.g0), len(vs.views), len(vs.static), vs.n_timesteps, m.stats_t0["seconds"],
                                m.seconds_dynamic, psnr0, psnr_last, vs.notes + [f"initialised from {m.init} points"])
     report = dict(format=FORMAT, version=1, created_utc=utc_now(), settings=_plain(asdict(s)),
@@ -173,7 +175,7 @@ def _plain(d: Any) -> Any:
     return str(d) if isinstance(d, Path) else d
 
 
-def save_model(dest: Path, g0: Gaussians, traj: Trajectory, vs: ViewSet) -> None:
+def save_model(dest: Path, g0: Gaussians, traj: Trajectory, vs: ViewSet, background: torch.Tensor) -> None:
     """The rest state as .ply and the whole motion as .npz, both in world coordinates (the pose stage's metres)."""
     sc = vs.scene
     world = g0.transformed(sc.radius, sc.center)
@@ -186,7 +188,8 @@ def save_model(dest: Path, g0: Gaussians, traj: Trajectory, vs: ViewSet) -> None
                      displacement_m=((means - means[:1]) * sc.radius).astype(np.float32),
                      quats=traj.quats.float().numpy(), log_scales_m=world.log_scales.double().numpy(),
                      opacity_logits=g0.opacity_logits.double().numpy(), color_logits=g0.color_logits.double().numpy(),
-                     scene_center_m=sc.center, scene_radius_m=sc.radius, bit_depth=vs.bit_depth)
+                     scene_center_m=sc.center, scene_radius_m=sc.radius, bit_depth=vs.bit_depth,
+                     background=background.double().numpy())
 
 
 @dataclass
@@ -200,6 +203,7 @@ class DynamicScene:
     rest: Gaussians               # scene coordinates, at rest
     scene: SceneFrame
     bit_depth: int
+    background: np.ndarray        # (C,) what shows beyond the scene
 
     @classmethod
     def load(cls, capture: Capture) -> DynamicScene:
@@ -213,15 +217,16 @@ class DynamicScene:
         rest = Gaussians(means=t(scene.to_scene(d["means_rest_m"])), quats=t(d["quats"][0]),
                          log_scales=t(d["log_scales_m"] - np.log(scene.radius)), opacity_logits=t(d["opacity_logits"]),
                          color_logits=t(d["color_logits"]))
-        return cls(d["times_s"], d["means_rest_m"], d["displacement_m"], d["quats"], rest, scene, int(d["bit_depth"]))
+        return cls(d["times_s"], d["means_rest_m"], d["displacement_m"], d["quats"], rest, scene, int(d["bit_depth"]),
+                   d["background"])
 
     @classmethod
-    def from_model(cls, g0: Gaussians, traj: Trajectory, vs: ViewSet) -> DynamicScene:
+    def from_model(cls, g0: Gaussians, traj: Trajectory, vs: ViewSet, background: torch.Tensor) -> DynamicScene:
         sc = vs.scene
         means = traj.means.double().numpy()
         rest = g0.detached()
         return cls(np.asarray(vs.times_s, float), sc.to_world(means[0]), (means - means[:1]) * sc.radius,
-                   traj.quats.double().numpy(), rest, sc, vs.bit_depth)
+                   traj.quats.double().numpy(), rest, sc, vs.bit_depth, background.double().numpy())
 
     def state(self, time_s: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Scene-coordinate means and quaternions at time_s: linear between timesteps, clamped to the trained range."""
@@ -238,11 +243,12 @@ class DynamicScene:
         means = self.scene.to_scene(self.means_rest_m + disp)
         return torch.as_tensor(means, dtype=torch.float32), torch.as_tensor(q, dtype=torch.float32)
 
-    def render(self, camera: Camera, time_s: float, *, background: float = 0.0, backend: str = "auto") -> np.ndarray:
+    def render(self, camera: Camera, time_s: float, *, backend: str = "auto") -> np.ndarray:
         """(H, W, C) image in [0, 1] of `camera` (world frame) at time_s."""
         means, quats = self.state(time_s)
         with torch.no_grad():
-            out = render(self.rest, camera.in_scene(self.scene), means=means, quats=quats, background=background,
+            out = render(self.rest, camera.in_scene(self.scene), means=means, quats=quats,
+                         background=torch.as_tensor(self.background, dtype=torch.float32),
                          backend=backend)
         return out.image.clamp(0, 1).numpy()
 

@@ -18,6 +18,18 @@ def _shared_data_dir() -> Path:
     return Path(env) if env else REPO.parent / "shared" / "data"
 
 
+@pytest.fixture(scope="session", autouse=True)
+def one_torch_thread():
+    """Test-sized tensors gain nothing from threads, and two OpenMP threads on two shared cores can stall for
+    seconds (a thread waits on one that is descheduled). Code under test that wants threads sets its own."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """The folder of real recordings made by others; tests that need it skip when it is absent."""

@@ -16,14 +16,6 @@ TARGET = np.array([0.1, 0.0, 0.35])
 TIP_MOTION_M = 0.03  # the most moving vertex at the last timestep: about 1.5 px at the training size (64 px)
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    old = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(old)
-
-
 @pytest.fixture(scope="module")
 def rig():
     """Eight views of the rig with mode 1 growing linearly over three timesteps, 64 x 48 px."""

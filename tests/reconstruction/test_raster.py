@@ -15,15 +15,6 @@ from odsplat.reconstruction.raster import RasterOutput, rasterize, rasterize_ref
 OUTPUTS = ("image", "alpha", "depth", "extras")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Small tensors gain nothing from threads, and two threads on two shared cores run much slower."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
-
-
 def _rot_y(angle: float, dtype) -> torch.Tensor:
     c, s = math.cos(angle), math.sin(angle)
     return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=dtype)
