@@ -106,3 +106,43 @@ def test_per_timestep_fit_recovers_the_true_displacement(rig, tmp_path):
     assert np.median(np.linalg.norm(disp[floor], axis=1)) < 0.15 * TIP_MOTION_M, np.linalg.norm(disp[floor], axis=1)
     # The fitted last timestep explains its images better than the rest state does.
     assert _psnr(g0, tv, 2, traj.means[2], traj.quats[2]) > _psnr(g0, tv, 2) + 0.3
+
+
+def test_densify_clones_splits_prunes_and_keeps_adam_moments():
+    from odsplat.reconstruction.dynamic import _StaticFit
+
+    rng = np.random.default_rng(1)
+    pts = rng.uniform(-0.5, 0.5, (40, 3))
+    g = Gaussians.from_points(pts, np.full((40, 1), 0.5), opacity=0.5)
+    s = FitSettings(percent_dense=0.01, grad_threshold=1e-3, prune_opacity=0.005, max_scale=0.5)
+    fit = _StaticFit(g, s)
+    with torch.no_grad():
+        fit.params["log_scales"][:10] = np.log(0.005)   # small: cloned when hot
+        fit.params["log_scales"][10:20] = np.log(0.05)  # large: split when hot
+        fit.params["opacity_logits"][30:33] = -8.0     # faint: pruned
+    # One optimiser step gives every row Adam moments to carry.
+    loss = sum((p ** 2).sum() for p in fit.params.values())
+    loss.backward()
+    fit.opt.step()
+    moments = fit.opt.state[fit.params["means"]]["exp_avg"].clone()
+    fit.grad_sum[:] = 0
+    fit.seen[:] = 1
+    fit.grad_sum[[0, 1, 2, 10, 11]] = 1.0               # hot: three small, two large
+    before = fit.params["means"].detach().clone()
+    parents = torch.exp(fit.params["log_scales"][[10, 11, 10, 11]]).detach()
+    cloned, split, pruned = fit.densify()
+    assert (cloned, split, pruned) == (3, 2, 3)
+    n = len(fit.params["means"])
+    assert n == 40 + 3 + 2 * 2 - 2 - 3
+    # Kept rows keep their moments (in order), the clones' and the split halves' start from zero.
+    kept = [i for i in range(40) if i not in (10, 11, 30, 31, 32)]
+    state = fit.opt.state[fit.params["means"]]["exp_avg"]
+    assert torch.equal(state[:len(kept)], moments[kept])
+    assert torch.all(state[len(kept):] == 0)
+    assert torch.equal(fit.params["means"][:len(kept)].detach(), before[kept])
+    # The split halves are 1.6 times smaller than their parent.
+    assert torch.allclose(torch.exp(fit.params["log_scales"][-4:]).detach(), parents / 1.6, rtol=1e-6)
+    # The optimiser goes on stepping the new tensors.
+    loss = sum((p ** 2).sum() for p in fit.params.values())
+    loss.backward()
+    fit.opt.step()
