@@ -211,7 +211,9 @@ def main() -> None:
     print(f"main run: {len(train_names)} training views, held out {holdout}", file=sys.stderr)
     figures["main"] = run_config(cap, poses, base, holdout, gts, args.alpha)
     if args.sensitivity:
-        quick = dataclasses.replace(base, n_timesteps=max(4, args.timesteps // 2))
+        # Cheaper fits for the sweep (half the timesteps, half the t=0 iterations): compare within the sweep.
+        quick = dataclasses.replace(base, n_timesteps=max(4, args.timesteps // 2),
+                                    fit=dataclasses.replace(fit, iters_t0=args.iters_t0 // 2))
         rng = np.random.default_rng(args.seed)
         sens: dict = {"views": {}, "pose_noise": {}, "rgb_noise": {}}
         for n in sorted({3, 9, len(train_names)}):

@@ -21,7 +21,8 @@ from tqdm import tqdm
 from odsplat.errors import InputError
 
 from .gaussians import Gaussians
-from .losses import Neighbours, image_loss, quat_normalize, quat_to_matrix
+from .losses import Neighbours, image_loss
+from .quaternion import quat_normalize, quat_to_matrix
 from .raster import rasterize
 from .views import Camera, TrainView
 

@@ -14,32 +14,7 @@ from scipy.spatial import cKDTree
 
 from odsplat.similarity import ssim_map
 
-
-# ------------------------------------------------------------------------------------------------ quaternions
-def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product of quaternions (..., 4) stored w, x, y, z."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
-                        aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx,
-                        aw * bz + ax * by - ay * bx + az * bw], dim=-1)
-
-
-def quat_conjugate(q: torch.Tensor) -> torch.Tensor:
-    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype, device=q.device)
-
-
-def quat_normalize(q: torch.Tensor) -> torch.Tensor:
-    return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-
-
-def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices (..., 3, 3) of quaternions (..., 4), normalised here."""
-    w, x, y, z = quat_normalize(q).unbind(-1)
-    return torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(q.shape[:-1] + (3, 3))
+from .quaternion import quat_conjugate, quat_multiply, quat_normalize, quat_to_matrix
 
 
 # ----------------------------------------------------------------------------------------------------- images
@@ -104,4 +79,4 @@ class Neighbours:
         return self._mean((dist - self.rest_dist).abs())
 
 
-__all__ = ["Neighbours", "image_loss", "quat_conjugate", "quat_multiply", "quat_normalize", "quat_to_matrix", "ssim"]
+__all__ = ["Neighbours", "image_loss", "ssim"]

@@ -41,6 +41,8 @@ from torch.utils.checkpoint import checkpoint
 
 from odsplat.errors import InputError
 
+from .quaternion import quat_to_matrix
+
 log = logging.getLogger(__name__)
 
 BACKENDS = ("auto", "torch", "reference", "gsplat")
@@ -90,13 +92,6 @@ def gsplat_available() -> bool:
         return False
 
 
-def _quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
-    w, x, y, z = (quats / quats.norm(dim=-1, keepdim=True)).unbind(-1)
-    return torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
-
-
 def _project(means, quats, scales, viewmat, K, width_px: int, height_px: int, near: float) -> _Projected:
     """Rules 1-4 per Gaussian: centre, negated half inverse of Sigma2, camera z and tile radius."""
     rot, trans = viewmat[:3, :3], viewmat[:3, 3]
@@ -114,7 +109,7 @@ def _project(means, quats, scales, viewmat, K, width_px: int, height_px: int, ne
     zero = torch.zeros_like(zs)
     jac = torch.stack([fx / zs, zero, -fx * xz / zs, zero, fy / zs, -fy * yz / zs], -1).reshape(-1, 2, 3)
     # Sigma2 = (J W R_q S)(J W R_q S)^T: the same product without forming the 3D covariance
-    m = jac @ rot @ (_quat_to_rotmat(quats) * scales[:, None, :])
+    m = jac @ rot @ (quat_to_matrix(quats) * scales[:, None, :])
     cov = m @ m.transpose(1, 2)
     a, b, c = cov[:, 0, 0] + EPS2D_PX2, cov[:, 0, 1], cov[:, 1, 1] + EPS2D_PX2
     det = a * c - b * b

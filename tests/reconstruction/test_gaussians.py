@@ -8,7 +8,8 @@ import torch
 from odsplat.errors import InputError, SchemaError
 from odsplat.reconstruction.gaussians import SH_C0, Gaussians, load_ply, save_ply
 from odsplat.processing.metrics import ssim as metric_ssim
-from odsplat.reconstruction.losses import Neighbours, image_loss, quat_multiply, quat_to_matrix, ssim
+from odsplat.reconstruction.losses import Neighbours, image_loss, ssim
+from odsplat.reconstruction.quaternion import quat_multiply, quat_to_matrix
 
 
 def _cloud(n=200, seed=0):
