@@ -38,8 +38,8 @@ from odsplat.processing.metrics import psnr, ssim  # noqa: E402
 from odsplat.processing.run import MagnifySettings, magnify_capture  # noqa: E402
 from odsplat.reconstruction.dynamic import FitSettings  # noqa: E402
 from odsplat.reconstruction.poses import PoseResult, compare_poses, estimate_poses  # noqa: E402
-from odsplat.reconstruction.run import ReconstructSettings, train  # noqa: E402
-from odsplat.reconstruction.views import Camera, load_views  # noqa: E402
+from odsplat.reconstruction.run import ReconstructSettings, pose_camera, train  # noqa: E402
+from odsplat.reconstruction.views import load_views  # noqa: E402
 from odsplat.store import Capture  # noqa: E402
 from odsplat.sync import SyncSettings, sync_capture  # noqa: E402
 
@@ -80,26 +80,27 @@ def box(mask: np.ndarray, margin_px: int = 2) -> tuple[slice, slice]:
             slice(max(0, xs.min() - margin_px), min(w, xs.max() + margin_px + 1)))
 
 
+def scores(img: np.ndarray, ref: np.ndarray, crop) -> tuple[float, float, float]:
+    a, b = torch.as_tensor(img[crop]), torch.as_tensor(ref[crop])
+    return psnr(a, b), ssim(a, b), float(torch.mean((a - b) ** 2))
+
+
 def evaluate(model, poses: PoseResult, holdout: list[str], gts: dict[str, GroundTruth], alpha: float,
              width_px: int) -> dict:
     """PSNR/SSIM/L2 of held-out renders (and of the rest state held still) in the foreground box, over timesteps."""
     scene = model.scene()
     rows = {"dynamic": [], "rest": [], "truth_still": []}
     for name in holdout:
-        v = poses.view(name)
-        cam = Camera(np.asarray(v.K), np.asarray(v.R), np.asarray(v.t), v.width_px, v.height_px, name).resized(width_px)
-        gt = gts[name]
-        ref0, mask0 = gt.image(float(scene.times_s[0]), alpha)
+        cam = pose_camera(poses, name, width_px)
+        ref0, mask0 = gts[name].image(float(scene.times_s[0]), alpha)
+        still = scene.render(cam, float(scene.times_s[0]))[..., 0]
         for t in scene.times_s:
-            ref, mask = gt.image(float(t), alpha)
+            ref, mask = gts[name].image(float(t), alpha)
             crop = box(mask0 | mask, 3)
             # The truth's own rest state against its moving state: how much the motion weighs in these metrics.
-            a, b = torch.as_tensor(ref0[crop]), torch.as_tensor(ref[crop])
-            rows["truth_still"].append((psnr(a, b), ssim(a, b), float(torch.mean((a - b) ** 2))))
-            for kind, when in (("dynamic", float(t)), ("rest", float(scene.times_s[0]))):
-                img = scene.render(cam, when)[..., 0]
-                a, b = torch.as_tensor(img[crop]), torch.as_tensor(ref[crop])
-                rows[kind].append((psnr(a, b), ssim(a, b), float(torch.mean((a - b) ** 2))))
+            rows["truth_still"].append(scores(ref0, ref, crop))
+            rows["rest"].append(scores(still, ref, crop))
+            rows["dynamic"].append(scores(scene.render(cam, float(t))[..., 0], ref, crop))
     out = {}
     for kind, r in rows.items():
         r = np.array(r)
@@ -118,7 +119,7 @@ def perturb_poses(poses: PoseResult, names: list[str], trans_mm: float, rot_deg:
             axis = rng.standard_normal(3)
             dR = cv2.Rodrigues(axis / np.linalg.norm(axis) * np.radians(rot_deg))[0]
             d = rng.standard_normal(3)
-            c = -v.R.T @ v.t + d / np.linalg.norm(d) * trans_mm * 1e-3
+            c = v.center_m + d / np.linalg.norm(d) * trans_mm * 1e-3
             R = dR @ v.R
             v = dataclasses.replace(v, R=R, t=-R @ c)
         views.append(v)

@@ -247,12 +247,12 @@ class Trajectory:
 
 
 def fit_dynamic(g0: Gaussians, views: list[TrainView], s: FitSettings,
-                background: float | torch.Tensor | None = None) -> Trajectory:
+                background: float | torch.Tensor) -> Trajectory:
     """Per-timestep fits of means and rotations to each view's frame at that timestep (views' images (T, H, W, C)).
 
-    Timestep 0 is g0 itself (the rest fit). Scale, opacity, colour and the background stay the rest fit's.
+    Timestep 0 is g0 itself (the rest fit). Scale, opacity, colour and the background (`fit_static`'s
+    stats["background"]) stay the rest fit's.
     """
-    background = (s.background or 0.0) if background is None else background
     n_t = int(views[0].images.shape[0])
     if any(int(v.images.shape[0]) != n_t for v in views):
         raise InputError("views", "every view needs the same number of timesteps")

@@ -20,10 +20,7 @@ SH_C0 = 0.28209479177387814  # the degree-0 spherical-harmonic constant: colour 
 _FIELDS = ("means", "quats", "log_scales", "opacity_logits", "color_logits")
 
 
-def _logit(p: np.ndarray | torch.Tensor, eps: float = 1e-4):
-    if isinstance(p, torch.Tensor):
-        p = p.clamp(eps, 1 - eps)
-        return torch.log(p / (1 - p))
+def _logit(p: np.ndarray, eps: float = 1e-4) -> np.ndarray:
     p = np.clip(p, eps, 1 - eps)
     return np.log(p / (1 - p))
 
@@ -76,16 +73,6 @@ class Gaussians:
 
     def detached(self) -> Gaussians:
         return Gaussians(**{k: v.detach().clone() for k, v in self.tensors().items()})
-
-    def subset(self, index: torch.Tensor) -> Gaussians:
-        return Gaussians(**{k: v[index] for k, v in self.tensors().items()})
-
-    def to(self, dtype: torch.dtype) -> Gaussians:
-        return Gaussians(**{k: v.to(dtype) for k, v in self.tensors().items()})
-
-    @classmethod
-    def concat(cls, parts: list[Gaussians]) -> Gaussians:
-        return cls(**{k: torch.cat([getattr(p, k) for p in parts]) for k in _FIELDS})
 
     @classmethod
     def from_points(cls, points: np.ndarray, colors: np.ndarray, *, opacity: float = 0.1,

@@ -12,7 +12,6 @@ import logging
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -66,7 +65,7 @@ def initial_points(poses, scene: SceneFrame, n_colors: int, rng: np.random.Gener
         return scene.to_scene(pts), col, "sfm"
     # Without points (tag-only poses and no triangulation), a uniform cloud around the cameras' look-at point.
     target = look_at_point([v.R for v in poses.views], [v.t for v in poses.views])
-    dist = np.median([np.linalg.norm(-v.R.T @ v.t - target) for v in poses.views])
+    dist = np.median([np.linalg.norm(v.center_m - target) for v in poses.views])
     box = rng.uniform(-0.5, 0.5, (n_random, 3)) * dist
     return scene.to_scene(target + box), np.full((n_random, n_colors), 0.5), "random"
 
@@ -154,42 +153,16 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
     psnr0 = _psnr(m.g0, vs.views, 0, background=bg)
     psnr_last = _psnr(m.g0, vs.views, last, m.trajectory.means[last], m.trajectory.quats[last], bg)
     dest = out_dir(capture)
-    dest.mkdir(parents=True, exist_ok=True)
-    save_model(dest, m.g0, m.trajectory, vs, m.background)
+    m.scene().save(dest)
     result = ReconstructResult(dest, len(m.g0), len(vs.views), len(vs.static), vs.n_timesteps, m.stats_t0["seconds"],
                                m.seconds_dynamic, psnr0, psnr_last, vs.notes + [f"initialised from {m.init} points"])
-    report = dict(format=FORMAT, version=1, created_utc=utc_now(), settings=_plain(asdict(s)),
+    report = dict(format=FORMAT, version=1, created_utc=utc_now(), settings=asdict(s),
                   views=[v.name for v in vs.views], static=[v.name for v in vs.static], holdout=list(s.holdout),
                   frame_index=vs.frame_index.tolist(), times_s=vs.times_s.tolist(), t0=m.stats_t0,
-                  dynamic=m.trajectory.losses, result=_plain(asdict(result)))
-    atomic_write_text(dest / "reconstruction.json", json.dumps(report, indent=1))
+                  dynamic=m.trajectory.losses, result=asdict(result))
+    atomic_write_text(dest / "reconstruction.json", json.dumps(report, indent=1, default=str))  # str: paths
     log.info(result.summary())
     return result
-
-
-def _plain(d: Any) -> Any:
-    if isinstance(d, dict):
-        return {k: _plain(v) for k, v in d.items()}
-    if isinstance(d, (list, tuple)):
-        return [_plain(v) for v in d]
-    return str(d) if isinstance(d, Path) else d
-
-
-def save_model(dest: Path, g0: Gaussians, traj: Trajectory, vs: ViewSet, background: torch.Tensor) -> None:
-    """The rest state as .ply and the whole motion as .npz, both in world coordinates (the pose stage's metres)."""
-    sc = vs.scene
-    world = g0.transformed(sc.radius, sc.center)
-    save_ply(world, dest / "gaussians_t0.ply")
-    means = traj.means.double().numpy()
-    rest = sc.to_world(means[0])
-    with atomic_path(dest / "trajectories.npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, times_s=vs.times_s, frame_index=vs.frame_index, means_rest_m=rest,
-                     displacement_m=((means - means[:1]) * sc.radius).astype(np.float32),
-                     quats=traj.quats.float().numpy(), log_scales_m=world.log_scales.double().numpy(),
-                     opacity_logits=g0.opacity_logits.double().numpy(), color_logits=g0.color_logits.double().numpy(),
-                     scene_center_m=sc.center, scene_radius_m=sc.radius, bit_depth=vs.bit_depth,
-                     background=background.double().numpy())
 
 
 @dataclass
@@ -197,6 +170,7 @@ class DynamicScene:
     """A trained model, in world coordinates: renders any camera at any time within the trained range."""
 
     times_s: np.ndarray
+    frame_index: np.ndarray       # (T,) the grid frames trained on
     means_rest_m: np.ndarray      # (N, 3)
     displacement_m: np.ndarray    # (T, N, 3)
     quats: np.ndarray             # (T, N, 4)
@@ -217,16 +191,32 @@ class DynamicScene:
         rest = Gaussians(means=t(scene.to_scene(d["means_rest_m"])), quats=t(d["quats"][0]),
                          log_scales=t(d["log_scales_m"] - np.log(scene.radius)), opacity_logits=t(d["opacity_logits"]),
                          color_logits=t(d["color_logits"]))
-        return cls(d["times_s"], d["means_rest_m"], d["displacement_m"], d["quats"], rest, scene, int(d["bit_depth"]),
-                   d["background"])
+        return cls(d["times_s"], d["frame_index"], d["means_rest_m"], d["displacement_m"], d["quats"], rest, scene,
+                   int(d["bit_depth"]), d["background"])
 
     @classmethod
     def from_model(cls, g0: Gaussians, traj: Trajectory, vs: ViewSet, background: torch.Tensor) -> DynamicScene:
         sc = vs.scene
         means = traj.means.double().numpy()
         rest = g0.detached()
-        return cls(np.asarray(vs.times_s, float), sc.to_world(means[0]), (means - means[:1]) * sc.radius,
-                   traj.quats.double().numpy(), rest, sc, vs.bit_depth, background.double().numpy())
+        return cls(np.asarray(vs.times_s, float), np.asarray(vs.frame_index), sc.to_world(means[0]),
+                   (means - means[:1]) * sc.radius, traj.quats.double().numpy(), rest, sc, vs.bit_depth,
+                   background.double().numpy())
+
+    def save(self, dest: Path) -> None:
+        """The rest state as `gaussians_t0.ply` and the whole motion as `trajectories.npz`, world frame (metres)."""
+        dest.mkdir(parents=True, exist_ok=True)
+        sc = self.scene
+        world = self.rest.transformed(sc.radius, sc.center)
+        save_ply(world, dest / "gaussians_t0.ply")
+        with atomic_path(dest / "trajectories.npz") as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez(fh, times_s=self.times_s, frame_index=self.frame_index, means_rest_m=self.means_rest_m,
+                         displacement_m=self.displacement_m.astype(np.float32), quats=self.quats.astype(np.float32),
+                         log_scales_m=world.log_scales.double().numpy(),
+                         opacity_logits=self.rest.opacity_logits.double().numpy(),
+                         color_logits=self.rest.color_logits.double().numpy(), scene_center_m=sc.center,
+                         scene_radius_m=sc.radius, bit_depth=self.bit_depth, background=self.background)
 
     def state(self, time_s: float) -> tuple[torch.Tensor, torch.Tensor]:
         """Scene-coordinate means and quaternions at time_s: linear between timesteps, clamped to the trained range."""
@@ -258,7 +248,7 @@ def orbit(poses, n: int, *, elevation_deg: float = 30.0, distance_m: float | Non
     """n cameras on a circle around what the posed views look at, with the first view's intrinsics."""
     views = [v for v in poses.views if v.kind == "take"] or list(poses.views)
     target = look_at_point([v.R for v in views], [v.t for v in views])
-    dist = distance_m or float(np.median([np.linalg.norm(-v.R.T @ v.t - target) for v in views]))
+    dist = distance_m or float(np.median([np.linalg.norm(v.center_m - target) for v in views]))
     v0 = views[0]
     cams = []
     for k in range(n):
@@ -352,5 +342,4 @@ def render_sequence(scene: DynamicScene, cameras: list[Camera], times_s: np.ndar
 
 
 __all__ = ["DynamicScene", "Model", "train", "ReconstructResult", "ReconstructSettings", "cameras_from_json", "initial_points",
-           "look_at_point", "orbit", "out_dir", "parse_times", "pose_camera", "reconstruct", "render_sequence",
-           "save_model"]
+           "look_at_point", "orbit", "out_dir", "parse_times", "pose_camera", "reconstruct", "render_sequence"]

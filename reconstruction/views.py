@@ -17,6 +17,7 @@ import torch
 
 from odsplat.errors import InputError
 from odsplat.framefile import FrameFile
+from odsplat.geometry import camera_center_m
 from odsplat.store import Capture
 
 log = logging.getLogger(__name__)
@@ -78,7 +79,7 @@ class Camera:
 
     @property
     def center(self) -> np.ndarray:
-        return -self.R.T @ self.t
+        return camera_center_m(self.R, self.t)
 
     def resized(self, width_px: int, height_px: int | None = None) -> Camera:
         """The same camera with its image resampled to width_px (height by aspect): K keeps pixel centres aligned."""

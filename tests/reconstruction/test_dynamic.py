@@ -84,8 +84,8 @@ def test_per_timestep_fit_recovers_the_true_displacement(rig, tmp_path):
     # 15 mm per timestep at the tip is fast for the default rate (0.27 mm per iteration here): a larger one.
     s = FitSettings(iters_t0=250, iters_per_step=50, lr_means_dynamic=8e-4, progress=False)
     g = Gaussians.from_points(frame.to_scene(pts), np.full((len(pts), 1), 0.5))
-    g0, _ = fit_static(g, [(v.camera, v.images[0]) for v in tv], s)
-    traj = fit_dynamic(g0, tv, s)
+    g0, stats = fit_static(g, [(v.camera, v.images[0]) for v in tv], s)
+    traj = fit_dynamic(g0, tv, s, torch.tensor(stats["background"]))
     assert traj.means.shape == (3, len(g0), 3) and len(traj.losses) == 2
     # Scale, opacity and colour are frozen: only means and rotations change.
     m = traj.means.double().numpy()
