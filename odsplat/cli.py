@@ -279,21 +279,30 @@ def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, 
 @click.option("--start", type=int, default=None, help="First grid frame (default: the last before the impact).")
 @click.option("--holdout", multiple=True, help="A take never used in training (repeatable).")
 @click.option("--no-static", is_flag=True, help="Do not condition the t=0 fit on static photos.")
-@click.option("--iters-t0", type=int, default=1500, show_default=True)
-@click.option("--iters-step", "iters_per_step", type=int, default=150, show_default=True)
+@click.option("--motion", type=click.Choice(["timestep", "modal"]), default="timestep", show_default=True,
+              help="timestep: a fit per timestep (Luiten et al.); modal: one temporal basis for every Gaussian, all "
+                   "timesteps at once (docs/reconstruction.md compares them).")
+@click.option("--iters-t0", type=int, default=1500, show_default=True, help="Iterations of the rest fit.")
+@click.option("--iters-modal", type=int, default=2000, show_default=True, help="Iterations of the modal fit.")
+@click.option("--components", type=int, default=4, show_default=True, help="Temporal basis functions (modal).")
+@click.option("--iters-step", "iters_per_step", type=int, default=150, show_default=True,
+              help="Iterations per timestep (timestep).")
 @click.option("--threads", type=int, default=None, help="Torch threads (default: torch's).")
 @click.option("--seed", type=int, default=0, show_default=True)
 def reconstruct(capture_dir: Path, source: str, width_px: int, n_timesteps: int, step: int, start: int | None,
-                holdout: tuple[str, ...], no_static: bool, iters_t0: int, iters_per_step: int, threads: int | None,
-                seed: int) -> None:
+                holdout: tuple[str, ...], no_static: bool, motion: str, iters_t0: int, iters_modal: int,
+                components: int, iters_per_step: int, threads: int | None, seed: int) -> None:
     """Train dynamic 3D Gaussians on CAPTURE_DIR's posed views into derived/reconstruction/ (docs/reconstruction.md)."""
     from .reconstruction.dynamic import FitSettings
+    from .reconstruction.modal import ModalSettings
     from .reconstruction.run import ReconstructSettings, reconstruct as run
     from .store import Capture
 
     fit = FitSettings(iters_t0=iters_t0, iters_per_step=iters_per_step, seed=seed)
+    modal = ModalSettings(iters=iters_modal, n_components=components, seed=seed)
     settings = ReconstructSettings(source=source, width_px=width_px, n_timesteps=n_timesteps, step=step, start=start,
-                                   holdout=holdout, use_static=not no_static, threads=threads, fit=fit)
+                                   holdout=holdout, use_static=not no_static, threads=threads, motion=motion,
+                                   fit=fit, modal=modal)
     click.echo(run(Capture.open(capture_dir), settings).summary())
 
 
@@ -306,10 +315,13 @@ def reconstruct(capture_dir: Path, source: str, width_px: int, n_timesteps: int,
 @click.option("-o", "--out", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="Folder for the PNG frames and render.mp4 (default: derived/reconstruction/render/).")
 @click.option("--width", "width_px", type=int, default=None, help="Image width in px (default: the camera's).")
+@click.option("--alpha", type=float, default=None,
+              help="Magnification to show (default: as trained, i.e. the frames' own). Scales every Gaussian's "
+                   "displacement and rotation from rest: any factor, no retraining.")
 @click.option("--fps", type=float, default=30.0, show_default=True, help="Frame rate of the mp4.")
 @click.option("--no-mp4", is_flag=True)
-def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | None, width_px: int | None, fps: float,
-           no_mp4: bool) -> None:
+def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | None, width_px: int | None,
+           alpha: float | None, fps: float, no_mp4: bool) -> None:
     """Render the reconstruction of CAPTURE_DIR from any camera path over any time range."""
     from .errors import InputError
     from .reconstruction.poses import PoseResult
@@ -333,7 +345,10 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
         cameras = orbit(PoseResult.load(cap), n, elevation_deg=elev, distance_m=dist, width_px=width_px)
     else:
         cameras = [pose_camera(PoseResult.load(cap), camera_spec, width_px)]
-    paths = render_sequence(scene, cameras, times, out or out_dir(cap) / "render", fps=fps, mp4=not no_mp4)
+    if alpha is not None and not 0 <= alpha < float("inf"):
+        raise InputError("--alpha", f"expected a magnification >= 0, got {alpha}")
+    paths = render_sequence(scene, cameras, times, out or out_dir(cap) / "render", alpha=alpha, fps=fps,
+                            mp4=not no_mp4)
     click.echo(f"{sum(p.suffix == '.png' for p in paths)} frames -> {paths[0].parent}"
                + (f" (and {paths[-1].name})" if paths and paths[-1].suffix == ".mp4" else ""))
 

@@ -30,4 +30,26 @@ def quat_to_matrix(q: torch.Tensor) -> torch.Tensor:
                         2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], dim=-1).reshape(q.shape[:-1] + (3, 3))
 
 
-__all__ = ["quat_conjugate", "quat_multiply", "quat_normalize", "quat_to_matrix"]
+def quat_from_rotvec(v: torch.Tensor) -> torch.Tensor:
+    """Unit quaternions (..., 4) of rotation vectors (..., 3) (axis times angle in rad); exact at any angle and
+    smooth through zero (sin(a/2)/a is evaluated by its series below 1e-4 rad)."""
+    angle = v.norm(dim=-1, keepdim=True)
+    small = angle < 1e-4
+    safe = torch.where(small, torch.ones_like(angle), angle)
+    half_sinc = torch.where(small, 0.5 - angle * angle / 48.0, torch.sin(0.5 * safe) / safe)
+    return torch.cat([torch.cos(0.5 * angle), half_sinc * v], dim=-1)
+
+
+def quat_to_rotvec(q: torch.Tensor) -> torch.Tensor:
+    """Rotation vectors (..., 3) of quaternions (..., 4), normalised here, angles in [0, pi]."""
+    q = quat_normalize(q)
+    q = torch.where(q[..., :1] < 0, -q, q)  # the same rotation with w >= 0: the angle is at most pi
+    s = q[..., 1:].norm(dim=-1, keepdim=True)
+    angle = 2.0 * torch.atan2(s, q[..., :1])
+    small = s < 1e-8
+    scale = torch.where(small, 2.0 / q[..., :1].clamp_min(1e-12), angle / torch.where(small, torch.ones_like(s), s))
+    return scale * q[..., 1:]
+
+
+__all__ = ["quat_conjugate", "quat_from_rotvec", "quat_multiply", "quat_normalize", "quat_to_matrix",
+           "quat_to_rotvec"]

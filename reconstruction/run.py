@@ -23,11 +23,14 @@ from odsplat.store import Capture, atomic_path, atomic_write_text
 
 from .dynamic import FitSettings, Trajectory, fit_dynamic, fit_static, render
 from .gaussians import Gaussians, save_ply
+from .modal import ModalMotion, ModalSettings, fit_modal
+from .quaternion import quat_conjugate, quat_from_rotvec, quat_multiply, quat_normalize, quat_to_rotvec
 from .views import Camera, SceneFrame, ViewSet, load_views
 
 log = logging.getLogger(__name__)
 
 FORMAT = "odsplat-reconstruction"
+MOTIONS = ("modal", "timestep")
 
 
 @dataclass(frozen=True)
@@ -41,7 +44,13 @@ class ReconstructSettings:
     use_static: bool = True              # condition the t=0 fit on static photos too
     init_opacity: float = 0.1
     threads: int | None = None
-    fit: FitSettings = FitSettings()
+    motion: str = "timestep"             # "timestep" (a fit per timestep) or "modal" (modal.py: one basis, all at once)
+    fit: FitSettings = FitSettings()     # the rest fit, and the per-timestep fits when motion == "timestep"
+    modal: ModalSettings = ModalSettings()
+
+    def __post_init__(self) -> None:
+        if self.motion not in MOTIONS:
+            raise InputError("motion", f"expected one of {', '.join(MOTIONS)}, got {self.motion!r}")
 
 
 def out_dir(capture: Capture) -> Path:
@@ -119,26 +128,31 @@ class Model:
     seconds_dynamic: float
     init: str
     background: torch.Tensor
+    modal: ModalMotion | None = None
 
     def scene(self) -> DynamicScene:
-        return DynamicScene.from_model(self.g0, self.trajectory, self.views, self.background)
+        return DynamicScene.from_model(self.g0, self.trajectory, self.views, self.background, self.modal)
 
 
 def train(vs: ViewSet, poses, settings: ReconstructSettings) -> Model:
-    """Fit the rest state to every view's rest frame (and static photos), then each later timestep."""
+    """Fit the rest state to every view's rest frames (and static photos), then the motion (modal or per timestep)."""
     s = settings
     if s.threads:
         torch.set_num_threads(s.threads)
     rng = np.random.default_rng(s.fit.seed)
     pts, col, init = initial_points(poses, vs.scene, vs.n_colors, rng)
     g = Gaussians.from_points(pts, col, opacity=s.init_opacity)
-    rest = [(v.camera, v.images[0]) for v in vs.views] + [(v.camera, v.images[0]) for v in vs.static]
+    rest = [(v.camera, v.rest_image) for v in vs.views] + [(v.camera, v.images[0]) for v in vs.static]
     g0, stats0 = fit_static(g, rest, s.fit)
     log.info("t=0: %d Gaussians in %.0f s", len(g0), stats0["seconds"])
     background = torch.tensor(stats0["background"], dtype=g0.means.dtype)
     t1 = time.perf_counter()
-    traj = fit_dynamic(g0, vs.views, s.fit, background)
-    return Model(g0, traj, vs, stats0, time.perf_counter() - t1, init, background)
+    if s.motion == "modal":
+        modal = fit_modal(g0, vs.views, s.modal, background)
+        traj = modal.trajectory(g0)
+    else:
+        modal, traj = None, fit_dynamic(g0, vs.views, s.fit, background)
+    return Model(g0, traj, vs, stats0, time.perf_counter() - t1, init, background, modal)
 
 
 def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -> ReconstructResult:
@@ -158,8 +172,11 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
                                m.seconds_dynamic, psnr0, psnr_last, vs.notes + [f"initialised from {m.init} points"])
     report = dict(format=FORMAT, version=1, created_utc=utc_now(), settings=asdict(s),
                   views=[v.name for v in vs.views], static=[v.name for v in vs.static], holdout=list(s.holdout),
-                  frame_index=vs.frame_index.tolist(), times_s=vs.times_s.tolist(), t0=m.stats_t0,
-                  dynamic=m.trajectory.losses, result=asdict(result))
+                  frame_index=vs.frame_index.tolist(), times_s=vs.times_s.tolist(), source_alpha=vs.source_alpha,
+                  t0=m.stats_t0, motion=s.motion, dynamic=m.trajectory.losses, result=asdict(result))
+    if m.modal is not None:
+        report["modal"] = dict(motion_scale_m=m.modal.scale * vs.scene.radius,
+                               energy_share=m.modal.principal()[3].tolist())
     atomic_write_text(dest / "reconstruction.json", json.dumps(report, indent=1, default=str))  # str: paths
     log.info(result.summary())
     return result
@@ -167,21 +184,39 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
 
 @dataclass
 class DynamicScene:
-    """A trained model, in world coordinates: renders any camera at any time within the trained range."""
+    """A trained model, in world coordinates: renders any camera at any time within the trained range, at any
+    magnification.
+
+    `displacement_m` is the motion as trained: it holds the frames' own magnification `source_alpha` (1 for
+    sync's frames, the 2D factor for magnified ones); `physical_displacement_m()` divides it out. A modal model
+    also keeps its basis and shape vectors (`basis`, `shapes_m`, `rot_shapes_rad`); the per-timestep model has
+    None there."""
 
     times_s: np.ndarray
     frame_index: np.ndarray       # (T,) the grid frames trained on
     means_rest_m: np.ndarray      # (N, 3)
-    displacement_m: np.ndarray    # (T, N, 3)
+    displacement_m: np.ndarray    # (T, N, 3) as trained (x source_alpha)
     quats: np.ndarray             # (T, N, 4)
     rest: Gaussians               # scene coordinates, at rest
     scene: SceneFrame
     bit_depth: int
     background: np.ndarray        # (C,) what shows beyond the scene
+    source_alpha: float = 1.0
+    basis: np.ndarray | None = None           # (T, K) modal model: displacement = basis @ shapes
+    shapes_m: np.ndarray | None = None        # (N, K, 3) as trained (x source_alpha)
+    rot_shapes_rad: np.ndarray | None = None  # (N, K, 3)
+
+    @property
+    def motion(self) -> str:
+        return "timestep" if self.basis is None else "modal"
 
     @classmethod
     def load(cls, capture: Capture) -> DynamicScene:
-        path = out_dir(capture) / "trajectories.npz"
+        return cls.read(out_dir(capture) / "trajectories.npz")
+
+    @classmethod
+    def read(cls, path: Path) -> DynamicScene:
+        """A model saved by `save` (its trajectories.npz)."""
         if not path.exists():
             raise InputError(path, "no reconstruction (run `odsplat reconstruct` first)")
         with np.load(path) as z:
@@ -192,16 +227,22 @@ class DynamicScene:
                          log_scales=t(d["log_scales_m"] - np.log(scene.radius)), opacity_logits=t(d["opacity_logits"]),
                          color_logits=t(d["color_logits"]))
         return cls(d["times_s"], d["frame_index"], d["means_rest_m"], d["displacement_m"], d["quats"], rest, scene,
-                   int(d["bit_depth"]), d["background"])
+                   int(d["bit_depth"]), d["background"], float(d.get("source_alpha", 1.0)), d.get("basis"),
+                   d.get("shapes_m"), d.get("rot_shapes_rad"))
 
     @classmethod
-    def from_model(cls, g0: Gaussians, traj: Trajectory, vs: ViewSet, background: torch.Tensor) -> DynamicScene:
+    def from_model(cls, g0: Gaussians, traj: Trajectory, vs: ViewSet, background: torch.Tensor,
+                   modal: ModalMotion | None = None) -> DynamicScene:
         sc = vs.scene
         means = traj.means.double().numpy()
         rest = g0.detached()
+        extra = {}
+        if modal is not None:
+            extra = dict(basis=modal.basis.double().numpy(), shapes_m=modal.shapes.double().numpy() * sc.radius,
+                         rot_shapes_rad=modal.rot_shapes.double().numpy())
         return cls(np.asarray(vs.times_s, float), np.asarray(vs.frame_index), sc.to_world(means[0]),
                    (means - means[:1]) * sc.radius, traj.quats.double().numpy(), rest, sc, vs.bit_depth,
-                   background.double().numpy())
+                   background.double().numpy(), float(vs.source_alpha), **extra)
 
     def save(self, dest: Path) -> None:
         """The rest state as `gaussians_t0.ply` and the whole motion as `trajectories.npz`, world frame (metres)."""
@@ -209,6 +250,8 @@ class DynamicScene:
         sc = self.scene
         world = self.rest.transformed(sc.radius, sc.center)
         save_ply(world, dest / "gaussians_t0.ply")
+        modal = {} if self.basis is None else dict(basis=self.basis, shapes_m=self.shapes_m,
+                                                   rot_shapes_rad=self.rot_shapes_rad)
         with atomic_path(dest / "trajectories.npz") as tmp:
             with open(tmp, "wb") as fh:
                 np.savez(fh, times_s=self.times_s, frame_index=self.frame_index, means_rest_m=self.means_rest_m,
@@ -216,10 +259,17 @@ class DynamicScene:
                          log_scales_m=world.log_scales.double().numpy(),
                          opacity_logits=self.rest.opacity_logits.double().numpy(),
                          color_logits=self.rest.color_logits.double().numpy(), scene_center_m=sc.center,
-                         scene_radius_m=sc.radius, bit_depth=self.bit_depth, background=self.background)
+                         scene_radius_m=sc.radius, bit_depth=self.bit_depth, background=self.background,
+                         source_alpha=self.source_alpha, **modal)
 
-    def state(self, time_s: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """Scene-coordinate means and quaternions at time_s: linear between timesteps, clamped to the trained range."""
+    def physical_displacement_m(self) -> np.ndarray:
+        """(T, N, 3) displacement of every Gaussian in metres, the frames' magnification divided out."""
+        return self.displacement_m / self.source_alpha
+
+    def state(self, time_s: float, alpha: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Scene-coordinate means and quaternions at time_s: linear between timesteps, clamped to the trained
+        range. alpha: the magnification to show (None: as trained); displacements and rotation vectors from rest
+        are scaled by alpha / source_alpha."""
         ts = self.times_s
         if len(ts) == 1 or time_s <= ts[0]:
             k, w = 0, 0.0
@@ -228,14 +278,20 @@ class DynamicScene:
         else:
             k = int(np.searchsorted(ts, time_s, side="right") - 1)
             w = float((time_s - ts[k]) / (ts[k + 1] - ts[k]))
-        disp = (1 - w) * self.displacement_m[k] + w * self.displacement_m[min(k + 1, len(ts) - 1)]
-        q = (1 - w) * self.quats[k] + w * self.quats[min(k + 1, len(ts) - 1)]
+        k1 = min(k + 1, len(ts) - 1)
+        gain = 1.0 if alpha is None else float(alpha) / self.source_alpha
+        disp = gain * ((1 - w) * self.displacement_m[k] + w * self.displacement_m[k1])
+        q = torch.as_tensor((1 - w) * self.quats[k] + w * self.quats[k1], dtype=torch.float64)
+        if gain != 1.0:
+            q0 = torch.as_tensor(self.quats[0], dtype=torch.float64)
+            turn = quat_to_rotvec(quat_multiply(quat_normalize(q), quat_conjugate(quat_normalize(q0))))
+            q = quat_multiply(quat_from_rotvec(gain * turn), q0)
         means = self.scene.to_scene(self.means_rest_m + disp)
-        return torch.as_tensor(means, dtype=torch.float32), torch.as_tensor(q, dtype=torch.float32)
+        return torch.as_tensor(means, dtype=torch.float32), q.float()
 
-    def render(self, camera: Camera, time_s: float, *, backend: str = "auto") -> np.ndarray:
-        """(H, W, C) image in [0, 1] of `camera` (world frame) at time_s."""
-        means, quats = self.state(time_s)
+    def render(self, camera: Camera, time_s: float, *, alpha: float | None = None, backend: str = "auto") -> np.ndarray:
+        """(H, W, C) image in [0, 1] of `camera` (world frame) at time_s, magnified by alpha (None: as trained)."""
+        means, quats = self.state(time_s, alpha)
         with torch.no_grad():
             out = render(self.rest, camera.in_scene(self.scene), means=means, quats=quats,
                          background=torch.as_tensor(self.background, dtype=torch.float32),
@@ -305,8 +361,10 @@ def parse_times(spec: str, trained_s: np.ndarray) -> np.ndarray:
 
 
 def render_sequence(scene: DynamicScene, cameras: list[Camera], times_s: np.ndarray, out: Path, *,
-                    fps: float = 30.0, mp4: bool = True, progress: bool = True) -> list[Path]:
-    """PNG frames (and an mp4) of cameras x times: one camera over all times, one time over all cameras, or pairs."""
+                    alpha: float | None = None, fps: float = 30.0, mp4: bool = True,
+                    progress: bool = True) -> list[Path]:
+    """PNG frames (and an mp4) of cameras x times: one camera over all times, one time over all cameras, or pairs;
+    magnified by alpha (None: as trained)."""
     import cv2
     from tqdm import tqdm
 
@@ -320,7 +378,7 @@ def render_sequence(scene: DynamicScene, cameras: list[Camera], times_s: np.ndar
     out.mkdir(parents=True, exist_ok=True)
     paths, frames = [], []
     for k, (cam, t) in enumerate(tqdm(list(zip(cameras, times_s)), desc="render", unit="frame", disable=not progress)):
-        img = scene.render(cam, float(t))
+        img = scene.render(cam, float(t), alpha=alpha)
         u8 = np.round(img * 255).astype(np.uint8)
         u8 = cv2.cvtColor(u8, cv2.COLOR_RGB2BGR) if u8.shape[-1] == 3 else u8[..., 0]
         path = out / f"frame_{k:04d}.png"

@@ -111,6 +111,12 @@ class TrainView:
     camera: Camera
     images: torch.Tensor
     kind: str = "take"
+    rest: torch.Tensor | None = None  # (H, W, C) mean of the take's frames before the impact (less noise than one)
+
+    @property
+    def rest_image(self) -> torch.Tensor:
+        """The image at rest: the mean of the frames before the impact when known, else timestep 0's."""
+        return self.images[0] if self.rest is None else self.rest
 
     @property
     def name(self) -> str:
@@ -128,6 +134,7 @@ class ViewSet:
     scene: SceneFrame
     bit_depth: int
     notes: list[str] = field(default_factory=list)
+    source_alpha: float = 1.0    # the magnification already in the frames (1 for sync's, alpha for magnified ones)
 
     @property
     def n_timesteps(self) -> int:
@@ -168,7 +175,7 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
     if not take_poses:
         raise InputError(capture.derived_dir / "poses.json", "no posed takes to train on")
     notes: list[str] = []
-    views, grid, bit_depth, frames = [], None, None, None
+    views, grid, bit_depth, frames, alphas = [], None, None, None, set()
     for vp in take_poses:
         path = source_path(capture, source, vp.name)
         if not path.exists():
@@ -182,6 +189,10 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
             elif len(times) != len(grid) or not np.allclose(times, grid, atol=1e-9):
                 raise InputError(path, "times_s differ from the other takes' (not on one sync grid)")
             data = np.stack([ff.read_frames(int(k), int(k) + 1)[0] for k in frames])
+            before = np.flatnonzero(times < 0)
+            rest = ff.read_frames(int(before[0]), int(before[-1]) + 1).astype(np.float64).mean(axis=0) \
+                if len(before) else None
+            alphas.add(float(ff.attrs.get("alpha", 1.0)))
         full = 2.0 ** bit_depth - 1
         cam = Camera(vp.K, vp.R, vp.t, vp.width_px, vp.height_px, vp.name)
         if data.shape[1:3] != (cam.height_px, cam.width_px):
@@ -189,7 +200,9 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
                                    f"{cam.width_px}x{cam.height_px}")
         small = cam.resized(width_px)
         imgs = np.stack([_resize(f / full, small.width_px, small.height_px) for f in data])
-        views.append(TrainView(small, torch.as_tensor(np.clip(imgs, 0, 1), dtype=dtype)))
+        rest_t = None if rest is None else torch.as_tensor(
+            np.clip(_resize(rest / full, small.width_px, small.height_px), 0, 1), dtype=dtype)
+        views.append(TrainView(small, torch.as_tensor(np.clip(imgs, 0, 1), dtype=dtype), rest=rest_t))
     if not views:
         raise InputError(capture.derived_dir / source, f"no frame files for the posed takes ({'; '.join(notes)})")
     static = []
@@ -199,12 +212,14 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
             cam = Camera(vp.K, vp.R, vp.t, vp.width_px, vp.height_px, vp.name).resized(width_px)
             static.append(TrainView(cam, torch.as_tensor(_resize(img, cam.width_px, cam.height_px)[None], dtype=dtype),
                                     kind="static"))
+    if len(alphas) > 1:
+        raise InputError(capture.derived_dir / source, f"the takes were magnified by different factors: {sorted(alphas)}")
     scene = SceneFrame.fit(np.array([v.camera.center for v in views + static]))
     for v in views + static:
         v.camera = v.camera.in_scene(scene)
     log.info("%d views x %d timesteps (%s), %d static photos, %dx%d px", len(views), len(frames), source,
              len(static), views[0].camera.width_px, views[0].camera.height_px)
-    return ViewSet(views, static, frames, grid[frames], scene, bit_depth, notes)
+    return ViewSet(views, static, frames, grid[frames], scene, bit_depth, notes, alphas.pop())
 
 
 def _read_photo(path: Path) -> np.ndarray:

@@ -89,6 +89,38 @@ def test_render_held_out_view_and_orbit(reconstructed, tmp_path):
     assert "5 frames" in out and len(list((tmp_path / "o").glob("*.png"))) == 5
 
 
+def test_modal_model_on_raw_frames_and_magnification_at_render(reconstructed, tmp_path):
+    cap, _ = reconstructed
+    # The same capture, the modal model on sync's unmagnified frames (a copy: the fixture's model stays).
+    raw = tmp_path / "raw"
+    shutil.copytree(cap.root, raw)
+    text = _ok(["reconstruct", raw, "--source", "sync", "--motion", "modal", "--components", "2", "--width", "64",
+                "--timesteps", "3", "--iters-t0", "100", "--iters-modal", "30", "--threads", "1"])
+    assert "over 3 timesteps" in text
+    report = json.loads((raw / "derived" / "reconstruction" / "reconstruction.json").read_text())
+    assert report["motion"] == "modal" and report["source_alpha"] == 1.0
+    assert len(report["modal"]["energy_share"]) == 2
+    scene = DynamicScene.load(Capture.open(raw))
+    assert scene.motion == "modal" and scene.basis.shape == (3, 2)
+    assert np.allclose(np.einsum("tk,nkc->tnc", scene.basis, scene.shapes_m), scene.displacement_m, atol=1e-6)
+    # The fixture's model was trained on frames magnified 20x in 2D: its physical displacement divides that out.
+    mag = DynamicScene.load(cap)
+    assert mag.source_alpha == 20.0 and mag.motion == "timestep"
+    assert np.allclose(mag.physical_displacement_m(), mag.displacement_m / 20.0)
+    # --alpha at render time: 0 shows the rest state at every time, 60 three times the trained motion.
+    t = float(mag.times_s[-1])
+    _ok(["render", cap.root, "--camera", "v03_000", "--times", f"{t},{mag.times_s[0]}", "--alpha", "0", "--width",
+         "64", "-o", tmp_path / "a0", "--no-mp4"])
+    a, b = (cv2.imread(str(tmp_path / "a0" / f"frame_000{k}.png"), cv2.IMREAD_UNCHANGED) for k in (0, 1))
+    assert np.array_equal(a, b)
+    means, _ = mag.state(t, alpha=60.0)
+    rest = mag.scene.to_scene(mag.means_rest_m)
+    assert np.allclose(means.numpy() - rest, 3 * mag.scene.to_scene(mag.means_rest_m + mag.displacement_m[-1])
+                       - 3 * rest, atol=1e-5)
+    r = CliRunner().invoke(main, ["render", str(cap.root), "--camera", "v03_000", "--alpha", "-1"])
+    assert r.exit_code == 2 and "--alpha" in r.output
+
+
 def test_render_errors(reconstructed, tmp_path):
     cap, _ = reconstructed
     r = CliRunner().invoke(main, ["render", str(cap.root), "--camera", "nope", "--times", "0"])
