@@ -1,7 +1,8 @@
-"""Differentiable 3D Gaussian splatting rasterizer: a tile-based PyTorch path (CPU), a brute-force reference and
-an optional gsplat (CUDA) back end behind one `rasterize` call.
+"""Differentiable 3D Gaussian splatting rasterizer: a numba path (CPU), a tile-based PyTorch path, a brute-force
+reference and an optional gsplat (CUDA) back end behind one `rasterize` call.
 
-Image formation, the same in the tile path and the reference (they agree to float rounding):
+Image formation, the same in the numba path, the torch tile path and the reference (they agree to float
+rounding):
 
 1. Camera-space mean m_c = R m + t (OpenCV camera: x right, y down, z forward); z = m_c[2]. Gaussians with
    z <= near are culled: radius 0, no contribution, zero (finite) gradients.
@@ -22,10 +23,16 @@ Image formation, the same in the tile path and the reference (they agree to floa
 6. image = sum w_i c_i + T_final background; alpha = 1 - T_final; depth = sum w_i z_i (alpha-weighted, not
    divided by alpha: divide by alpha for the expected depth); extras = sum w_i e_i (no background).
 
-Back ends: "torch" bins Gaussians into tiles by their boxes and evaluates each tile's padded, depth-sorted list
-densely; autograd does the backward, and when its saved tensors would pass ~256 MB each chunk of tiles is
-recomputed in backward instead (torch.utils.checkpoint). "reference" evaluates every visible Gaussian at every
-pixel. "gsplat" (CUDA, float32) follows the same formation but clamps a at 0.999, has no q <= 9 cutoff (it
+Back ends: "numba" (raster_cpu) projects and composites in numba kernels with hand-written backward passes:
+rules 1-3 and the radius in float64, the per-pixel test and alpha of rule 4 in the dtype of the inputs, T and
+the sums of rules 5-6 in float64, outputs in the dtype of the inputs. Each tile of tile_px^2 pixels walks its
+front-to-back list, visiting each Gaussian only over the pixels where rule 4 can hold. It runs on
+torch.get_num_threads() threads and its gradients do not depend on the thread count. In float64 it agrees with
+the reference to rounding; in float32 it is nearer the float64 result than the torch path, which projects in
+float32. "torch" bins Gaussians into tiles by their boxes and evaluates each tile's padded,
+depth-sorted list densely; autograd does the backward, and when its saved tensors would pass ~256 MB each chunk of
+tiles is recomputed in backward instead (torch.utils.checkpoint). "reference" evaluates every visible Gaussian at
+every pixel. "gsplat" (CUDA, float32) follows the same formation but clamps a at 0.999, has no q <= 9 cutoff (it
 agrees exactly when o < 0.35, where a >= 1/255 already implies q < 9) and stops at T <= 1e-4; its means2d is
 a leaf whose .grad a hook fills with the view-space gradient.
 """
@@ -42,10 +49,11 @@ from torch.utils.checkpoint import checkpoint
 from odsplat.errors import InputError
 
 from .quaternion import quat_to_matrix
+from .raster_cpu import composite_numba, project_numba
 
 log = logging.getLogger(__name__)
 
-BACKENDS = ("auto", "torch", "reference", "gsplat")
+BACKENDS = ("auto", "numba", "torch", "reference", "gsplat")
 EPS2D_PX2 = 0.3  # dilation of Sigma2: a Gaussian covers at least ~one pixel (anti-aliasing)
 Q_MAX = 9.0  # contributes inside its 3-sigma ellipse only
 ALPHA_MIN = 1.0 / 255.0
@@ -329,8 +337,9 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
     means (N, 3) world; quats (N, 4) as (w, x, y, z), normalised here; scales (N, 3) standard deviations;
     opacities (N,) in (0, 1); colors (N, C); viewmat (4, 4) world-to-camera (OpenCV); K (3, 3) in px, centre
     of pixel (0, 0) at (0, 0); background (C,) or None (zeros); extras (N, E) or None, composited like colors
-    without background. Gradients reach every tensor but K. backend: "torch" (tiles of tile_px^2), "reference"
-    (brute force), "gsplat" (CUDA, float32), "auto" (gsplat for float32 CUDA tensors when available, else torch).
+    without background. Gradients reach every tensor but K. backend: "numba" (CPU, float32 or float64; tiles of
+    tile_px^2), "torch" (tiles of tile_px^2), "reference" (brute force), "gsplat" (CUDA, float32), "auto" (gsplat
+    for float32 CUDA tensors when available, else numba for float32 or float64 CPU tensors, else torch).
     """
     if backend not in BACKENDS:
         raise InputError("backend", f"expected one of {', '.join(BACKENDS)}, got {backend!r}")
@@ -338,7 +347,8 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
               tile_px)
     if backend == "auto":
         cuda32 = means.is_cuda and means.dtype == torch.float32
-        backend = "gsplat" if cuda32 and gsplat_available() else "torch"
+        cpu = means.device.type == "cpu" and means.dtype in (torch.float32, torch.float64)
+        backend = "gsplat" if cuda32 and gsplat_available() else ("numba" if cpu else "torch")
     if backend == "gsplat":
         if not gsplat_available():
             raise InputError("backend", "gsplat needs CUDA and the gsplat package, which this machine lacks")
@@ -346,15 +356,23 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
             raise InputError("means", f"the gsplat back end needs CUDA tensors, got {means.device}")
         return _rasterize_gsplat(means, quats, scales, opacities, colors, viewmat, K, width_px, height_px,
                                  background, extras, near, tile_px)
-    proj = _project(means, quats, scales, viewmat, K, width_px, height_px, near)
+    if backend == "numba":
+        proj = _Projected(*project_numba(means, quats, scales, viewmat, K, width_px, height_px, near,
+                                         eps2d=EPS2D_PX2, frustum_margin=FRUSTUM_MARGIN))
+    else:
+        proj = _project(means, quats, scales, viewmat, K, width_px, height_px, near)
     n_colors = colors.shape[1]
     table = torch.cat([proj.means2d, proj.conics, opacities[:, None], colors, proj.depths[:, None]]
                       + ([extras] if extras is not None else []), 1)
-    table = torch.cat([table, table.new_zeros(1, table.shape[1])])  # an empty last row (opacity 0) for padding
-    if backend == "reference":
-        feats, t_final = _composite_reference(table, proj, width_px, height_px)
+    if backend == "numba":
+        feats, t_final = composite_numba(table, proj.radii, proj.depths, width_px, height_px, tile_px,
+                                         alpha_min=ALPHA_MIN, alpha_max=ALPHA_MAX, q_max=Q_MAX, t_min=T_MIN)
     else:
-        feats, t_final = _composite_tiles(table, proj, width_px, height_px, tile_px)
+        table = torch.cat([table, table.new_zeros(1, table.shape[1])])  # an empty last row (opacity 0): padding
+        if backend == "reference":
+            feats, t_final = _composite_reference(table, proj, width_px, height_px)
+        else:
+            feats, t_final = _composite_tiles(table, proj, width_px, height_px, tile_px)
     image = feats[..., :n_colors]
     if background is not None:
         image = image + t_final[..., None] * background

@@ -1,5 +1,5 @@
-"""Tests of reconstruction.raster: the tile path against the brute-force reference, gradients, geometry against
-OpenCV, the compositing rules by hand, culling, background and argument checks."""
+"""Tests of reconstruction.raster: the torch tile path and the numba path against the brute-force reference,
+gradients, geometry against OpenCV, the compositing rules by hand, culling, background and argument checks."""
 from __future__ import annotations
 
 import math
@@ -13,6 +13,7 @@ from odsplat.errors import InputError
 from odsplat.reconstruction.raster import RasterOutput, rasterize, rasterize_reference
 
 OUTPUTS = ("image", "alpha", "depth", "extras")
+TILED = ("torch", "numba")  # the back ends that bin into tiles; "reference" is what they are checked against
 
 
 def _rot_y(angle: float, dtype) -> torch.Tensor:
@@ -49,17 +50,23 @@ def _max_diff(a: RasterOutput, b: RasterOutput) -> dict[str, float]:
     return {k: float((getattr(a, k) - getattr(b, k)).detach().abs().max()) for k in OUTPUTS}
 
 
+@pytest.mark.parametrize("backend", TILED)
 @pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-6), (torch.float64, 1e-12)])
 @pytest.mark.parametrize("size", [(37, 23), (64, 48)])
 @pytest.mark.parametrize("tile_px", [16, 8])
-def test_tiles_match_reference(dtype, tol, size, tile_px, monkeypatch):
+def test_tiles_match_reference(dtype, tol, size, tile_px, backend, monkeypatch):
+    """In float32 the numba path (which projects in float64) is held to the float64 reference of the same inputs,
+    the torch path (which projects like the reference) to the float32 reference."""
     from odsplat.reconstruction import raster
 
     w, h = size
     for dense in (False, True):
         params, bg, extras = random_scene(300, w, h, dtype, seed=w + tile_px, dense=dense)
-        ref = rasterize_reference(**params, width_px=w, height_px=h, background=bg, extras=extras)
-        out = rasterize(**params, width_px=w, height_px=h, background=bg, extras=extras, tile_px=tile_px)
+        as_ref = (lambda t: t.double()) if backend == "numba" else (lambda t: t)  # noqa: E731
+        ref = rasterize_reference(**{k: as_ref(v) for k, v in params.items()}, width_px=w, height_px=h,
+                                  background=as_ref(bg), extras=as_ref(extras))
+        out = rasterize(**params, width_px=w, height_px=h, background=bg, extras=extras, tile_px=tile_px,
+                        backend=backend)
         u, v = out.means2d.unbind(-1)
         partly_off = (out.radii_px > 0) & ((u < 0) | (u > w - 1) | (v < 0) | (v > h - 1))
         assert int(partly_off.sum()) >= 3 and int((out.radii_px == 0).sum()) >= 30  # the scene is what it claims
@@ -70,7 +77,8 @@ def test_tiles_match_reference(dtype, tol, size, tile_px, monkeypatch):
         if dense:  # early termination did act: without it the image changes
             with monkeypatch.context() as m:
                 m.setattr(raster, "T_MIN", 0.0)
-                unstopped = rasterize(**params, width_px=w, height_px=h, background=bg, extras=extras, tile_px=tile_px)
+                unstopped = rasterize(**params, width_px=w, height_px=h, background=bg, extras=extras, tile_px=tile_px,
+                                      backend=backend)
             assert float((unstopped.image - out.image).abs().max()) > 1e-5
 
 
@@ -87,16 +95,63 @@ def _grads(backend: str, params, bg, extras, weights):
     return {**grads, "background": bg.grad, "extras": extras.grad, "means2d": out.means2d.grad}
 
 
+@pytest.mark.parametrize("backend,tol", [("torch", 1e-10), ("numba", 1e-12)])
 @pytest.mark.parametrize("dense", [False, True])
-def test_tile_gradients_match_reference(dense):
+def test_tile_gradients_match_reference(dense, backend, tol):
     params, bg, extras = random_scene(300, 37, 23, torch.float64, seed=5, dense=dense)
     weights = torch.rand(23, 37, 3, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-    ours, ref = _grads("torch", params, bg, extras, weights), _grads("reference", params, bg, extras, weights)
+    ours, ref = _grads(backend, params, bg, extras, weights), _grads("reference", params, bg, extras, weights)
     for k, g in ref.items():
         assert torch.isfinite(ours[k]).all(), k
         scale = float(g.abs().max())
         assert scale > 0, k
-        assert float((ours[k] - g).abs().max()) <= 1e-10 * scale, k
+        assert float((ours[k] - g).abs().max()) <= tol * scale, k
+
+
+def test_numba_float32_agrees_with_torch():
+    """Training runs in float32: the numba path (float64 projection and sums) and the torch path (float32 throughout)
+    agree to float32 rounding in the images and in every gradient, early termination included."""
+    params, bg, extras = random_scene(400, 48, 40, torch.float32, seed=9, dense=True)
+    weights = torch.rand(40, 48, 3, generator=torch.Generator().manual_seed(3))
+    outs = {b: rasterize(**params, width_px=48, height_px=40, background=bg, extras=extras, backend=b)
+            for b in TILED}
+    for k in OUTPUTS:
+        a, b = getattr(outs["numba"], k), getattr(outs["torch"], k)
+        assert a.dtype == torch.float32 and float((a - b).abs().max()) <= 1e-5 * max(1.0, float(b.abs().max())), k
+    assert float(outs["torch"].alpha.max()) > 1 - 1e-3  # pixels that stop early
+    ours, theirs = _grads("numba", params, bg, extras, weights), _grads("torch", params, bg, extras, weights)
+    for k, g in theirs.items():
+        assert ours[k].dtype == torch.float32, k
+        assert float((ours[k] - g).abs().max()) <= 1e-5 * float(g.abs().max()), k
+
+
+def test_numba_gradients_do_not_depend_on_the_thread_count():
+    """Each (Gaussian, tile) pair has its own gradient row and the rows are added in a fixed order."""
+    params, bg, extras = random_scene(300, 64, 48, torch.float32, seed=8, dense=True)
+    weights = torch.rand(48, 64, 3, generator=torch.Generator().manual_seed(4))
+    threads = torch.get_num_threads()
+    runs = []
+    for n in (1, 2):
+        torch.set_num_threads(n)
+        try:
+            runs.append(_grads("numba", params, bg, extras, weights))
+            assert torch.get_num_threads() == n  # starting numba's threads leaves torch's count alone
+        finally:
+            torch.set_num_threads(threads)
+    for k, g in runs[0].items():
+        assert torch.equal(g, runs[1][k]), k
+
+
+def test_auto_on_cpu_is_numba_for_float32_and_float64():
+    for dtype in (torch.float32, torch.float64):
+        params, bg, extras = random_scene(100, 24, 16, dtype, seed=10)
+        auto = rasterize(**params, width_px=24, height_px=16, background=bg, extras=extras)
+        numba = rasterize(**params, width_px=24, height_px=16, background=bg, extras=extras, backend="numba")
+        assert all(torch.equal(getattr(auto, k), getattr(numba, k)) for k in OUTPUTS)
+    params, _, _ = random_scene(10, 16, 12, torch.float16, seed=1)
+    with pytest.raises(InputError) as err:
+        rasterize(**params, width_px=16, height_px=12, backend="numba")
+    assert err.value.source == "means" and "float32 or float64" in err.value.problem
 
 
 def test_small_chunks_and_recomputation_change_nothing(monkeypatch):
@@ -141,7 +196,8 @@ def _tiny_scene():
     return means, quats, scales, opac, colors, view, K, torch.tensor([0.2, 0.4], dtype=dt), extras
 
 
-def test_gradcheck_tiles():
+@pytest.mark.parametrize("backend", TILED)
+def test_gradcheck_tiles(backend):
     means, quats, scales, opac, colors, view, K, bg, extras = _tiny_scene()
     w, h = 10, 8
     out = rasterize_reference(means, quats, scales, opac, colors, view, K, w, h)
@@ -156,14 +212,15 @@ def test_gradcheck_tiles():
     assert float(out.alpha.max()) < 0.99 and float((out.alpha > 0.05).double().mean()) > 0.9  # nearly all pixels
 
     def render(means, quats, scales, opac, colors, bg, extras):
-        o = rasterize(means, quats, scales, opac, colors, view, K, w, h, background=bg, extras=extras, tile_px=4)
+        o = rasterize(means, quats, scales, opac, colors, view, K, w, h, background=bg, extras=extras, tile_px=4,
+                      backend=backend)
         return o.image, o.alpha, o.depth, o.extras
 
     inputs = tuple(t.clone().requires_grad_(True) for t in (means, quats, scales, opac, colors, bg, extras))
     assert torch.autograd.gradcheck(render, inputs, eps=1e-6, atol=1e-7, rtol=1e-5)
 
 
-@pytest.mark.parametrize("backend", ["torch", "reference"])
+@pytest.mark.parametrize("backend", ["torch", "numba", "reference"])
 def test_compositing_rules_by_hand(backend):
     """Five Gaussians on one line of sight through pixel (3, 2), given out of depth order: the second in depth
     clamps at 0.99, the fourth would take T below 1e-4, so it and the fifth are dropped."""
@@ -194,12 +251,14 @@ def _camera():
     return K, rvec, tvec, view
 
 
-def _one(point_w, sigma, opacity, K, view, w, h, dtype=torch.float64) -> RasterOutput:
+def _one(point_w, sigma, opacity, K, view, w, h, dtype=torch.float64, backend="auto") -> RasterOutput:
     t = lambda x: torch.tensor(np.asarray(x), dtype=dtype)  # noqa: E731
-    return rasterize(t([point_w]), t([[1.0, 0, 0, 0]]), t([[sigma] * 3]), t([opacity]), t([[1.0]]), t(view), t(K), w, h)
+    return rasterize(t([point_w]), t([[1.0, 0, 0, 0]]), t([[sigma] * 3]), t([opacity]), t([[1.0]]), t(view), t(K), w, h,
+                     backend=backend)
 
 
-def test_centroid_at_opencv_projection():
+@pytest.mark.parametrize("backend", TILED)
+def test_centroid_at_opencv_projection(backend):
     K, rvec, tvec, view = _camera()
     w, h = 48, 40
     rng = np.random.default_rng(3)
@@ -208,24 +267,26 @@ def test_centroid_at_opencv_projection():
         pc = np.array([rng.uniform(-0.25, 0.25), rng.uniform(-0.2, 0.2), rng.uniform(1.5, 2.5)])
         pw = view[:3, :3].T @ (pc - tvec)
         uv = cv2.projectPoints(pw[None], rvec, tvec, K, None)[0].reshape(2)
-        img = _one(pw, 2.0 * pc[2] / K[0, 0], 0.5, K, view, w, h).image[..., 0].numpy()  # ~2 px on the image
+        img = _one(pw, 2.0 * pc[2] / K[0, 0], 0.5, K, view, w, h, backend=backend).image[..., 0].numpy()  # ~2 px
         ys, xs = np.mgrid[:h, :w]
         errs.append(np.abs(np.array([(img * xs).sum(), (img * ys).sum()]) / img.sum() - uv).max())
     assert max(errs) < 0.02, errs
 
 
-def test_depth_and_alpha_at_centre_pixel():
+@pytest.mark.parametrize("backend", TILED)
+def test_depth_and_alpha_at_centre_pixel(backend):
     K, _, tvec, view = _camera()
     z = 2.3
     pc = np.array([(17 - K[0, 2]) * z / K[0, 0], (21 - K[1, 2]) * z / K[1, 1], z])  # onto pixel (17, 21)
-    out = _one(view[:3, :3].T @ (pc - tvec), 0.02, 0.99, K, view, 48, 40, torch.float32)
+    out = _one(view[:3, :3].T @ (pc - tvec), 0.02, 0.99, K, view, 48, 40, torch.float32, backend)
     assert float(out.alpha[21, 17]) == pytest.approx(0.99, abs=1e-6)
     assert float(out.depth[21, 17] / out.alpha[21, 17]) == pytest.approx(z, rel=1e-4)
     assert float(out.depths[0]) == pytest.approx(z, rel=1e-6)
     assert float(out.alpha[21, 19]) < 0.9  # and it is a small Gaussian, not a flat field
 
 
-def test_projected_covariance_by_hand():
+@pytest.mark.parametrize("backend", TILED)
+def test_projected_covariance_by_hand(backend):
     """Sigma2 on the optical axis (J = diag(f/z) there): the 0.3 px^2 dilation, the scales' axes and the
     (w, x, y, z) quaternion; off to the sides: J's x/z clamped to [-(cx + 0.5)/fx, (W - 0.5 - cx)/fx] widened by
     0.3 W/(2 fx) on each side."""
@@ -236,7 +297,7 @@ def test_projected_covariance_by_hand():
     def alpha(mean, quat, scale):
         t = lambda x: torch.tensor([x], dtype=dt)  # noqa: E731
         return rasterize(t(mean), t(quat), t(scale), t(o)[0:1], torch.ones(1, 1, dtype=dt), torch.eye(4, dtype=dt),
-                         K, w, h)
+                         K, w, h, backend=backend)
 
     sx, sy = (f * 0.05 / z) ** 2 + 0.3, (f * 0.1 / z) ** 2 + 0.3  # px^2 along x and y
     on_axis = alpha([0.0, 0.0, z], [1.0, 0.0, 0.0, 0.0], [0.05, 0.1, 0.3])
@@ -262,8 +323,9 @@ def test_projected_covariance_by_hand():
                                                      abs=1e-12)
 
 
+@pytest.mark.parametrize("backend", ["torch", "numba", "reference"])
 @pytest.mark.parametrize("opacity", [0.1, 0.8])
-def test_cutoffs_by_hand(opacity):
+def test_cutoffs_by_hand(opacity, backend):
     """One isotropic Gaussian on the optical axis (Sigma2 = (s^2 + 0.3) I exactly): alpha is o exp(-q/2) where
     q <= 9 and that is >= 1/255, else 0. At o = 0.1 the 1/255 cutoff binds (at q = 6.5), at o = 0.8 the q = 9 one.
     Two more left of the image: radius 0 when the box ends half a pixel short of column 0, not when it reaches
@@ -278,7 +340,8 @@ def test_cutoffs_by_hand(opacity):
     us = [19.3, -r_side - 0.5, -r_side + 0.5]
     means = torch.tensor([[(u - 19.3) * z / f, 0.0, z] for u in us], dtype=dt)
     out = rasterize(means, torch.tensor([[1.0, 0, 0, 0]] * 3, dtype=dt), torch.full((3, 3), sigma, dtype=dt),
-                    torch.full((3,), opacity, dtype=dt), torch.ones(3, 1, dtype=dt), torch.eye(4, dtype=dt), K, w, h)
+                    torch.full((3,), opacity, dtype=dt), torch.ones(3, 1, dtype=dt), torch.eye(4, dtype=dt), K, w, h,
+                    backend=backend)
     ys, xs = torch.meshgrid(torch.arange(h, dtype=dt), torch.arange(w, dtype=dt), indexing="ij")
     q = ((xs - 19.3) ** 2 + (ys - 14.6) ** 2) / var
     a = opacity * torch.exp(-q / 2)
@@ -289,8 +352,9 @@ def test_cutoffs_by_hand(opacity):
     assert out.radii_px.tolist() == [r, 0, r_side]
 
 
+@pytest.mark.parametrize("backend", TILED)
 @pytest.mark.parametrize("front", [0, 1])
-def test_extras_as_segmentation(front):
+def test_extras_as_segmentation(front, backend):
     """A wide Gaussian (id 0) and a narrow one (id 1) whose centre lies inside the wide one's core; one-hot
     extras. The front one must win wherever its own alpha exceeds 1/2 (then a_f > (1 - a_f) a_b for any
     a_b <= 0.99), the narrow one's centre included; far left only the wide one reaches."""
@@ -301,10 +365,10 @@ def test_extras_as_segmentation(front):
     scales = (torch.tensor([4.0, 2.5], dtype=dt) * z / 30)[:, None].expand(2, 3).clone()
     args = (torch.tensor([[1.0, 0, 0, 0]] * 2, dtype=dt), scales, torch.tensor([0.99, 0.99], dtype=dt),
             torch.ones(2, 1, dtype=dt), torch.eye(4, dtype=dt), K, 40, 24)
-    out = rasterize(means, *args, extras=torch.eye(2, dtype=dt))
+    out = rasterize(means, *args, extras=torch.eye(2, dtype=dt), backend=backend)
     label = out.extras.argmax(-1)
     sel = torch.arange(2) == front
-    alone = rasterize(means[sel], *(a[sel] if i < 4 else a for i, a in enumerate(args))).alpha
+    alone = rasterize(means[sel], *(a[sel] if i < 4 else a for i, a in enumerate(args)), backend=backend).alpha
     core = alone > 0.5
     assert int(core.sum()) > 20 and bool((label[core] == front).all())
     assert int(label[12, 20]) == front and int(label[12, 11]) == 0 and float(out.extras[12, 11, 1]) == 0.0
@@ -326,7 +390,7 @@ def test_culled_gaussians_contribute_nothing_and_get_zero_gradients():
                      ("colors", torch.ones(4, 3, dtype=dt))):
         both[k] = torch.cat([params[k], extra]).requires_grad_(True)
     ex_all = torch.cat([extras, torch.ones(4, 2, dtype=torch.float64)]).requires_grad_(True)
-    for backend in ("torch", "reference"):
+    for backend in ("torch", "numba", "reference"):
         out = rasterize(**both, width_px=32, height_px=24, background=bg, extras=ex_all, near=near, backend=backend)
         ref = rasterize(**keep, width_px=32, height_px=24, background=bg, extras=extras, near=near, backend=backend)
         assert max(_max_diff(out, ref).values()) <= 1e-12
@@ -341,7 +405,7 @@ def test_culled_gaussians_contribute_nothing_and_get_zero_gradients():
         ex_all.grad = None
 
 
-@pytest.mark.parametrize("backend", ["torch", "reference"])
+@pytest.mark.parametrize("backend", ["torch", "numba", "reference"])
 def test_empty_scene_and_background(backend):
     dt = torch.float64
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=dt, requires_grad=True)
@@ -389,4 +453,4 @@ def test_bad_arguments_name_the_argument(change, source):
     assert err.value.source == source
     assert "expected" in err.value.problem
     if source == "backend":
-        assert all(b in err.value.problem for b in ("auto", "torch", "reference", "gsplat", "'cuda'"))
+        assert all(b in err.value.problem for b in ("auto", "numba", "torch", "reference", "gsplat", "'cuda'"))

@@ -74,7 +74,7 @@ def test_gsplat_unavailable_here():
     assert err.value.source == "backend"
 
 
-def test_auto_on_cpu_tensors_takes_the_torch_path(monkeypatch):
+def test_auto_on_cpu_tensors_takes_the_numba_path(monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("the gsplat path was taken for CPU tensors")
 
@@ -83,7 +83,7 @@ def test_auto_on_cpu_tensors_takes_the_torch_path(monkeypatch):
     monkeypatch.setattr(raster, "_rasterize_gsplat", refuse)
     params, bg, extras = random_scene(200, 37, 23, torch.float32, seed=3)
     auto = rasterize(**params, width_px=37, height_px=23, background=bg, extras=extras)
-    tiles = rasterize(**params, width_px=37, height_px=23, background=bg, extras=extras, backend="torch")
+    tiles = rasterize(**params, width_px=37, height_px=23, background=bg, extras=extras, backend="numba")
     for k in ("image", "alpha", "depth", "extras"):
         assert torch.equal(getattr(auto, k), getattr(tiles, k)), k
     assert float(auto.alpha.max()) > 0.5
