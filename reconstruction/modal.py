@@ -13,8 +13,9 @@ frame of every view constrains the same few shape vectors, instead of a fit per 
 The fit is amplitude-free, so the same settings fit the raw motion (a fraction of a pixel) and motion
 magnified in 2D. Two choices make it so:
 - The image term compares the rendered change from rest with the observed change from rest,
-  (R_t - R_0) - (I_t - I_rest), in the mean square (I_rest: the mean of the take's frames before the impact). The rest model's own rendering error cancels (to first
-  order), which matters when the motion is smaller than that error.
+  (R_t - R_0) - (I_t - I_rest), in the mean square (I_rest: the mean of the take's frames before the impact).
+  The rest model's own rendering error cancels (to first order), which matters when the motion is smaller
+  than that error.
 - The shape vectors are learned in units of a motion scale estimated from the images, and both the image term
   and the neighbour priors are normalised by that scale: doubling the motion doubles the solution.
 
@@ -93,17 +94,6 @@ class ModalMotion:
     scale: float                          # the motion scale the fit was normalised by (scene units)
     losses: list[dict] = field(default_factory=list)
 
-    @property
-    def n_components(self) -> int:
-        return int(self.basis.shape[1])
-
-    def displacement(self, b: torch.Tensor) -> torch.Tensor:
-        """(N, 3) displacement for basis values b (K,)."""
-        return torch.einsum("nkc,k->nc", self.shapes, b)
-
-    def rotation(self, b: torch.Tensor) -> torch.Tensor:
-        return torch.einsum("nkc,k->nc", self.rot_shapes, b)
-
     def trajectory(self, g0: Gaussians) -> Trajectory:
         """Means and unit quaternions at every trained timestep (timestep 0 is g0 at rest)."""
         q0 = quat_normalize(g0.quats.detach())
@@ -130,8 +120,8 @@ class ModalMotion:
         sign[sign == 0] = 1
         basis *= sign
         shapes = (vt * (s / math.sqrt(t) * sign)[:, None]).reshape(k, n, 3).transpose(1, 0, 2)
-        # the rotations follow the same mixing: field = b Phi = basis M^-1... solve basis coefficients exactly
-        mix, *_ = np.linalg.lstsq(basis, b, rcond=None)                    # b = basis @ mix, (K, K)
+        # the rotations follow the same change of basis: b = basis @ mix, so b Psi = basis (mix Psi)
+        mix, *_ = np.linalg.lstsq(basis, b, rcond=None)                    # (K, K)
         rot = np.einsum("jk,nkc->njc", mix, psi)
         energy = s ** 2 / max(float((s ** 2).sum()), 1e-300)
         return basis, shapes, rot, energy
@@ -206,21 +196,18 @@ def fit_modal(g0: Gaussians, views: list[TrainView], s: ModalSettings,
     nb = Neighbours.build(frozen.means, s.k_neighbours, s.neighbour_width)
     offsets = frozen.means[nb.index] - frozen.means[:, None]                # (N, k, 3) at rest
     wsum = nb.weight.sum().clamp_min(1e-12)
-    rot_unit = float(nb.rest_dist.median()) / scale                         # rad per motion-scale shift
+    rot_scale = scale / max(float(nb.rest_dist.median()), 1e-12)            # rad per motion-scale shift
     q0 = quat_normalize(frozen.quats)
     with torch.no_grad():
-        rest = [render(frozen, v.camera, background=background, backend=s.backend).image for v in views]
-        if s.loss == "difference":
-            rest = [_blur(r, s.blur_px) for r in rest]
-            targets = [_blur(v.images - v.rest_image, s.blur_px) for v in views]
-        else:
-            targets = [_blur(v.images, s.blur_px) for v in views]
+        rest = [_blur(render(frozen, v.camera, background=background, backend=s.backend).image, s.blur_px)
+                for v in views]
+        change = [_blur(v.images - v.rest_image, s.blur_px) for v in views]
+        targets = change if s.loss == "difference" else [_blur(v.images, s.blur_px) for v in views]
     # the observed change's energy: the image term's unit
-    energy = float(np.mean([float(((_blur(v.images[1:] - v.rest_image, s.blur_px)) ** 2).mean()) for v in views]))
-    energy = max(energy, 1e-20)
+    energy = max(float(np.mean([float((c[1:] ** 2).mean()) for c in change])), 1e-20)
     basis_free = torch.nn.Parameter(_initial_basis(n_t, k, dt))
     phi = torch.nn.Parameter(torch.zeros(n, k, 3, dtype=dt))               # x scale
-    psi = torch.nn.Parameter(torch.zeros(n, k, 3, dtype=dt))               # x scale / median neighbour distance
+    psi = torch.nn.Parameter(torch.zeros(n, k, 3, dtype=dt))               # x rot_scale
     opt = torch.optim.Adam([basis_free, phi, psi], lr=s.lr, eps=1e-15)
     gamma = s.lr_final_frac ** (1.0 / max(1, s.iters))
     sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma)
@@ -232,30 +219,28 @@ def fit_modal(g0: Gaussians, views: list[TrainView], s: ModalSettings,
     for it in bar:
         opt.zero_grad(set_to_none=True)
         l_img = 0.0
-        for _ in range(s.batch):  # gradients of `batch` random (view, timestep) pairs per step
+        for j in range(s.batch):  # gradients of `batch` random (view, timestep) pairs per step
             vi, t = int(rng.integers(len(views))), int(rng.integers(1, n_t))
             v = views[vi]
             b = torch.cat([zero, basis_free])[t]
             u = scale * torch.einsum("nkc,k->nc", phi, b)
-            theta = (scale / max(float(nb.rest_dist.median()), 1e-12)) * torch.einsum("nkc,k->nc", psi, b)
+            theta = rot_scale * torch.einsum("nkc,k->nc", psi, b)
             quats = quat_multiply(quat_from_rotvec(theta), q0)
             out = render(frozen, v.camera, means=frozen.means + u, quats=quats, background=background,
                          backend=s.backend)
             img = _blur(out.image, s.blur_px)
             if s.loss == "difference":
-                li = (((img - rest[vi]) - targets[vi][t]) ** 2).mean() / energy
-            else:
-                li = ((img - targets[vi][t]) ** 2).mean() / energy
-            (li / s.batch).backward()
+                img = img - rest[vi]
+            li = ((img - targets[vi][t]) ** 2).mean() / energy
+            loss = li / s.batch
             l_img += li.item() / s.batch
-        # the priors at the last pair's timestep
-        u = scale * torch.einsum("nkc,k->nc", phi, b)
-        theta = (scale / max(float(nb.rest_dist.median()), 1e-12)) * torch.einsum("nkc,k->nc", psi, b)
-        resid = (u[nb.index] - u[:, None]) - torch.cross(theta[:, None].expand_as(offsets), offsets, dim=-1)
-        l_rigid = (nb.weight * (resid ** 2).sum(-1)).sum() / wsum / scale ** 2
-        l_rot = (nb.weight * ((theta[nb.index] - theta[:, None]) ** 2).sum(-1)).sum() / wsum * rot_unit ** 2
-        prior = s.rigid_weight * l_rigid + s.rot_weight * l_rot
-        prior.backward()
+            if j == s.batch - 1:  # the priors, at the last pair's timestep
+                resid = (u[nb.index] - u[:, None]) - torch.cross(theta[:, None].expand_as(offsets), offsets, dim=-1)
+                l_rigid = (nb.weight * (resid ** 2).sum(-1)).sum() / wsum / scale ** 2
+                l_rot = (nb.weight * ((theta[nb.index] - theta[:, None]) ** 2).sum(-1)).sum() / wsum / rot_scale ** 2
+                prior = s.rigid_weight * l_rigid + s.rot_weight * l_rot
+                loss = loss + prior
+            loss.backward()
         opt.step()
         sched.step()
         img_l.append(l_img)
@@ -270,7 +255,7 @@ def fit_modal(g0: Gaussians, views: list[TrainView], s: ModalSettings,
     with torch.no_grad():
         basis = torch.cat([zero, basis_free.detach()])
         shapes = scale * phi.detach()
-        rot_shapes = (scale / max(float(nb.rest_dist.median()), 1e-12)) * psi.detach()
+        rot_shapes = rot_scale * psi.detach()
     return ModalMotion(basis, shapes, rot_shapes, scale, records)
 
 
