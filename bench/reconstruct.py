@@ -254,15 +254,12 @@ def main() -> None:
     fit = FitSettings(iters_t0=args.iters_t0, iters_per_step=args.iters_step, seed=args.seed, progress=False)
     modal = ModalSettings(iters=args.iters_modal, seed=args.seed, progress=False)
     print(f"{len(train_names)} training views, held out {holdout}", file=sys.stderr)
-    figures["orders"] = {}
     orders = [o.strip() for o in args.orders.split(",") if o.strip()]
-    for name in orders:
-        source, motion = ORDERS[name]
-        cfg = ReconstructSettings(source=source, width_px=args.width, n_timesteps=args.timesteps, step=args.step,
-                                  use_static=False, motion=motion, fit=fit, modal=modal)
-        figures["orders"][name] = run_config(cap, poses, cfg, holdout, gts, args.alpha)
-    base = ReconstructSettings(source=ORDERS[orders[0]][0], width_px=args.width, n_timesteps=args.timesteps,
-                               step=args.step, use_static=False, motion=ORDERS[orders[0]][1], fit=fit, modal=modal)
+    configs = {name: ReconstructSettings(source=ORDERS[name][0], width_px=args.width, n_timesteps=args.timesteps,
+                                         step=args.step, use_static=False, motion=ORDERS[name][1], fit=fit,
+                                         modal=modal) for name in orders}
+    figures["orders"] = {name: run_config(cap, poses, cfg, holdout, gts, args.alpha) for name, cfg in configs.items()}
+    base = configs[orders[0]]
     if args.sensitivity:
         # Cheaper fits for the sweep (half the timesteps, half the t=0 iterations): compare within the sweep.
         quick = dataclasses.replace(base, n_timesteps=max(4, args.timesteps // 2),
