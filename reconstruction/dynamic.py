@@ -61,6 +61,7 @@ class FitSettings:
     rot_weight: float = 4.0
     iso_weight: float = 2.0
     k_neighbours: int = 20
+    prior_fraction: float = 1.0             # of the neighbourhoods each iteration evaluates (a random subset)
     neighbour_width: float = 2.0            # weight width, x the median neighbour distance
     background: float | None = None         # None: learned at t = 0 (one value per channel), then frozen
     backend: str = "auto"
@@ -68,6 +69,8 @@ class FitSettings:
     progress: bool = True
 
     def __post_init__(self) -> None:
+        if not 0.0 < self.prior_fraction <= 1.0:
+            raise InputError("FitSettings.prior_fraction", f"expected a fraction in (0, 1]; got {self.prior_fraction}")
         for name in ("iters_t0", "iters_per_step", "densify_every", "k_neighbours", "max_gaussians"):
             if getattr(self, name) < 0 or (name in ("densify_every", "k_neighbours") and getattr(self, name) < 1):
                 raise InputError(name, f"expected a positive integer, got {getattr(self, name)}")
@@ -261,6 +264,7 @@ def fit_dynamic(g0: Gaussians, views: list[TrainView], s: FitSettings,
     means = [frozen.means.clone()]
     quats = [quat_normalize(frozen.quats).clone()]
     rng = np.random.default_rng(s.seed + 1)
+    gen = torch.Generator().manual_seed(s.seed + 2)
     records = []
     bar = tqdm(range(1, n_t), desc="gaussians per timestep", unit="step", disable=not s.progress, leave=False)
     for t in bar:
@@ -280,8 +284,9 @@ def fit_dynamic(g0: Gaussians, views: list[TrainView], s: FitSettings,
             v = views[rng.integers(len(views))]
             out = render(frozen, v.camera, means=m, quats=q, background=background, backend=s.backend)
             l_img = image_loss(out.image, v.images[t], s.ssim_weight)
-            l_prior = (s.rigid_weight * nb.rigidity(means[-1], quats[-1], m, q)
-                       + s.rot_weight * nb.rotation(quats[-1], q) + s.iso_weight * nb.isometry(m))
+            sub = nb.sample(s.prior_fraction, gen)
+            l_prior = (s.rigid_weight * sub.rigidity(means[-1], quats[-1], m, q)
+                       + s.rot_weight * sub.rotation(quats[-1], q) + s.iso_weight * sub.isometry(m))
             loss = l_img + l_prior
             opt.zero_grad(set_to_none=True)
             loss.backward()

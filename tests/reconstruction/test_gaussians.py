@@ -96,6 +96,15 @@ def test_priors_vanish_under_rigid_motion_and_grow_with_shear():
     assert float(nb.rigidity(m0, q0, m1, q0)) > 1e-3
     # The weights are unit-free: the same cloud in millimetres gives the same weights.
     assert torch.allclose(Neighbours.build(m0 * 1000, k=10).weight, nb.weight)
+    # A random quarter of the neighbourhoods: rigid motion still costs nothing, and over many draws the
+    # estimate averages to the full prior (the gradient's scale is kept).
+    gen = torch.Generator().manual_seed(0)
+    sub = nb.sample(0.25, gen)
+    assert sub.index.shape[0] == 75 and nb.sample(1.0) is nb
+    assert float(sub.rigidity(m0, q0, m1, q1)) < 1e-12
+    draws = [float(nb.sample(0.25, gen).isometry(shear)) for _ in range(400)]
+    assert np.mean(draws) == pytest.approx(float(nb.isometry(shear)), rel=0.03)
+    assert np.std(draws) > 0
 
 
 def test_ssim_and_image_loss():
