@@ -353,6 +353,62 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
                + (f" (and {paths[-1].name})" if paths and paths[-1].suffix == ".mp4" else ""))
 
 
+@main.command()
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--force", "force_channel", default=None, help="Force channel (default: the capture's one force channel).")
+@click.option("--response", "responses", multiple=True,
+              help="Response channel (repeatable; default: every acceleration channel placed on the structure).")
+@click.option("--all-takes", is_flag=True, help="Use every complete take, not only those QC accepted.")
+@click.option("--fmin", "fmin_hz", type=float, default=None, help="Modal fit band, low end (Hz).")
+@click.option("--fmax", "fmax_hz", type=float, default=None,
+              help="Modal fit band, high end (Hz; default 0.45 x the frame rate, or 0.4 x the DAQ rate).")
+@click.option("--max-order", type=int, default=80, show_default=True, help="Highest LSCF model order.")
+@click.option("--freq", "approx_freq_hz", type=float, multiple=True,
+              help="Pick the pole nearest this frequency (repeatable) instead of automatic selection.")
+@click.option("--ods", "ods_freq_hz", type=float, multiple=True,
+              help="An ODS frequency line (repeatable; default: the modal frequencies).")
+@click.option("--exp-end", type=float, default=0.01, show_default=True,
+              help="Exponential window: its value at the end of the record (0: rectangular).")
+@click.option("--record", "record_s", type=float, default=None, help="Seconds of each hit to use (default: all).")
+@click.option("--no-video", is_flag=True, help="Accelerometers only, even with a reconstruction.")
+@click.option("--report/--no-report", "with_report", default=True, show_default=True,
+              help="Also write derived/analysis/report.html.")
+def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, ...], all_takes: bool,
+            fmin_hz: float | None, fmax_hz: float | None, max_order: int, approx_freq_hz: tuple[float, ...],
+            ods_freq_hz: tuple[float, ...], exp_end: float, record_s: float | None, no_video: bool,
+            with_report: bool) -> None:
+    """FRFs, modes, the video's 3D shapes and their correlation for CAPTURE_DIR, into derived/analysis/
+    (docs/analysis.md)."""
+    from .analysis.frf import FRFSettings
+    from .analysis.run import AnalyzeSettings, analyze_capture
+    from .errors import InputError
+    from .store import Capture
+
+    if not 0 <= exp_end < 1:
+        raise InputError("--exp-end", f"expected 0 (rectangular) up to below 1; got {exp_end}")
+    settings = AnalyzeSettings(force_channel=force_channel, response_channels=responses or None,
+                               takes="all" if all_takes else "accepted",
+                               frf=FRFSettings(exponential_end=exp_end or None), record_s=record_s,
+                               fmin_hz=fmin_hz, fmax_hz=fmax_hz, max_order=max_order,
+                               approx_freq_hz=approx_freq_hz or None, ods_freq_hz=ods_freq_hz or None,
+                               video=not no_video)
+    cap = Capture.open(capture_dir)
+    result = analyze_capture(cap, settings)
+    click.echo(result.text())
+    if with_report:
+        from .analysis.report import write_report
+
+        click.echo(f"report -> {write_report(cap.root)}")
+
+
+@main.command()
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+def report(capture_dir: Path) -> None:
+    """Write derived/analysis/report.html from the last `odsplat analyze` of CAPTURE_DIR."""
+    from .analysis.report import write_report
+
+    click.echo(write_report(capture_dir))
+
 def _plan(settings):
     from .acquisition.plan import plan_views
 

@@ -1,0 +1,196 @@
+"""Quantitative 3D operational deflection shapes from the dynamic Gaussians: physical surface motion, sensor
+points, and modal amplitudes fitted with known poles (the hybrid approach: accelerometer poles, video shapes).
+
+The reconstruction's `derived/reconstruction/trajectories.npz` holds every Gaussian's displacement as trained,
+i.e. multiplied by the magnification of the frames it was trained on (`source_alpha`); `SurfaceMotion` divides
+that out, so everything here is in metres of real motion, on the impact-locked timeline (0 = impact onset).
+
+The free response after a short impulse is x(t) = sum_r A_r F(lambda_r) e^(lambda_r t) + c.c., where A_r is
+the displacement residue of mode r (the receptance is H(w) = sum_r A_r / (iw - lambda_r) + c.c.) and
+F(lambda) = integral f(t) e^(-lambda t) dt the force pulse's Laplace transform at the pole. Fitting the decay
+with the poles held fixed and dividing by F(lambda_r) gives video residues in m/N, directly comparable with
+the residues LSFD fits to the accelerometer FRFs.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from odsplat.errors import InputError
+
+log = logging.getLogger(__name__)
+
+TRAJECTORIES = Path("reconstruction") / "trajectories.npz"  # under the capture's derived/
+
+
+@dataclass(frozen=True)
+class SurfaceMotion:
+    """The physical 3D motion of the reconstruction's opaque Gaussians, world frame, metres."""
+
+    times_s: np.ndarray           # (T,) after the impact onset
+    points_m: np.ndarray          # (N, 3) rest positions
+    displacement_m: np.ndarray    # (T, N, 3) real motion (the frames' magnification divided out)
+    opacity: np.ndarray           # (N,)
+    source_alpha: float
+    source: str = ""
+
+    @classmethod
+    def read(cls, path: str | Path, *, min_opacity: float = 0.5) -> SurfaceMotion:
+        """From a reconstruction's trajectories.npz, keeping Gaussians at least `min_opacity` opaque (the
+        translucent ones fill gaps and carry little of the image, so their motion is weakly observed)."""
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(path, "no reconstruction trajectories (run `odsplat reconstruct` first)")
+        with np.load(path) as z:
+            missing = [k for k in ("times_s", "means_rest_m", "displacement_m", "opacity_logits") if k not in z.files]
+            if missing:
+                raise InputError(path, f"not a reconstruction's trajectories file: no {', '.join(missing)}")
+            times = np.asarray(z["times_s"], float)
+            rest = np.asarray(z["means_rest_m"], float)
+            disp = np.asarray(z["displacement_m"], float)
+            opacity = 1.0 / (1.0 + np.exp(-np.asarray(z["opacity_logits"], float).reshape(-1)))
+            alpha = float(z["source_alpha"]) if "source_alpha" in z.files else 1.0
+        if disp.shape != (len(times), len(rest), 3):
+            raise InputError(f"{path}: displacement_m", f"expected shape {(len(times), len(rest), 3)}; got {disp.shape}")
+        if alpha <= 0:
+            raise InputError(f"{path}: source_alpha", f"expected a positive magnification; got {alpha}")
+        keep = opacity >= min_opacity
+        if not keep.any():
+            raise InputError(path, f"no Gaussian is at least {min_opacity} opaque")
+        log.info("%s: %d of %d Gaussians at least %.2f opaque, %d timesteps, source alpha %g", path, keep.sum(),
+                 len(rest), min_opacity, len(times), alpha)
+        return cls(times, rest[keep], disp[:, keep] / alpha, opacity[keep], alpha, str(path))
+
+    @property
+    def n_points(self) -> int:
+        return len(self.points_m)
+
+    def nearest(self, points_m, k: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Indices (S, k), inverse-distance weights (S, k) summing to 1, and distances (S, k) in metres of the k
+        Gaussians nearest each point."""
+        pts = np.asarray(points_m, float).reshape(-1, 3)
+        k = int(min(k, self.n_points))
+        dist, idx = cKDTree(self.points_m).query(pts, k=k)
+        dist, idx = dist.reshape(len(pts), k), idx.reshape(len(pts), k)
+        w = 1.0 / np.maximum(dist, 1e-6)
+        return idx, w / w.sum(axis=1, keepdims=True), dist
+
+    def at_points(self, points_m, directions=None, *, k: int = 8) -> np.ndarray:
+        """Displacement at points (inverse-distance mean of the k nearest Gaussians): (T, S, 3), or (T, S) along
+        unit `directions` (S, 3) such as the accelerometers' axes."""
+        idx, w, _ = self.nearest(points_m, k)
+        d = np.einsum("tskc,sk->tsc", self.displacement_m[:, idx], w)
+        if directions is None:
+            return d
+        dirs = np.asarray(directions, float).reshape(-1, 3)
+        if dirs.shape[0] != d.shape[1]:
+            raise InputError("at_points: directions", f"expected one direction per point ({d.shape[1]}); got {len(dirs)}")
+        return np.einsum("tsc,sc->ts", d, dirs / np.linalg.norm(dirs, axis=1, keepdims=True))
+
+
+def force_transform(force_n, sample_rate_hz: float, t0_s: float, s) -> np.ndarray:
+    """F(s) = integral f(t) e^(-s t) dt of a force record whose sample 0 is at t0_s on the impact-locked
+    timeline, at the complex values s (rad/s); trapezoidal rule."""
+    f = np.asarray(force_n, float).reshape(-1)
+    t = t0_s + np.arange(len(f)) / float(sample_rate_hz)
+    s = np.atleast_1d(np.asarray(s, complex))
+    return np.trapezoid(f[None] * np.exp(-s[:, None] * t[None]), t, axis=1)
+
+
+@dataclass(frozen=True)
+class DecayFit:
+    """Free-decay amplitudes of known poles in a set of response channels."""
+
+    poles_rad_s: np.ndarray       # (R,)
+    amplitudes: np.ndarray        # (R, M) complex: x_m(t) = sum_r 2 Re(C_rm e^(lambda_r t)) + offset_m
+    offset: np.ndarray            # (M,)
+    t_min_s: float
+    r2: np.ndarray                # (M,) share of each channel's variance the fit explains
+    condition: float              # of the (column-normalised) design matrix
+
+    def synthesize(self, times_s) -> np.ndarray:
+        """(T, M) the fitted response."""
+        e = np.exp(np.outer(np.asarray(times_s, float), self.poles_rad_s))
+        return 2 * np.real(e @ self.amplitudes) + self.offset
+
+    def residues(self, force_at_poles) -> np.ndarray:
+        """(R, M) displacement residues in m/N: the amplitudes divided by the force's transform at each pole."""
+        return self.amplitudes / np.asarray(force_at_poles, complex)[:, None]
+
+
+def fit_decay(times_s, x, poles_rad_s, *, t_min_s: float = 0.0, offset: bool = True) -> DecayFit:
+    """Least-squares amplitudes of damped sinusoids at fixed poles, on samples at t >= t_min_s (after the force
+    pulse, so the response is free decay). x: (T,) or (T, M); one solve for every channel."""
+    t = np.asarray(times_s, float).reshape(-1)
+    x = np.asarray(x, float)
+    x2 = x.reshape(len(t), -1) if x.shape[:1] == t.shape else None
+    if x2 is None:
+        raise InputError("fit_decay: x", f"expected ({len(t)}, ...) samples at the given times; got {x.shape}")
+    poles = np.atleast_1d(np.asarray(poles_rad_s, complex))
+    if np.any(poles.real >= 0) or np.any(poles.imag <= 0):
+        raise InputError("fit_decay: poles_rad_s", "expected stable poles with positive frequency (Re < 0, Im > 0)")
+    use = t >= t_min_s
+    n_cols = 2 * len(poles) + int(offset)
+    if use.sum() < n_cols:
+        raise InputError("fit_decay: times_s", f"{use.sum()} samples after t_min_s={t_min_s:g} s for {n_cols} unknowns")
+    tu = t[use][:, None]
+    env = np.exp(tu * poles.real[None])
+    cols = [env * np.cos(tu * poles.imag[None]), env * np.sin(tu * poles.imag[None])]
+    if offset:
+        cols.append(np.ones((len(tu), 1)))
+    A = np.concatenate(cols, axis=1)
+    norm = np.linalg.norm(A, axis=0)
+    coef, *_ = np.linalg.lstsq(A / norm, x2[use], rcond=None)
+    coef = coef / norm[:, None]
+    sv = np.linalg.svd(A / norm, compute_uv=False)
+    R = len(poles)
+    # e^(st)(a cos wt + b sin wt) = 2 Re(C e^(lambda t)) with C = (a - i b) / 2
+    amps = 0.5 * (coef[:R] - 1j * coef[R:2 * R])
+    off = coef[2 * R] if offset else np.zeros(x2.shape[1])
+    resid = x2[use] - A @ coef
+    var = np.var(x2[use], axis=0)
+    r2 = 1.0 - np.mean(resid**2, axis=0) / np.where(var > 0, var, 1.0)
+    return DecayFit(poles, amps, off, float(t_min_s), r2, float(sv[0] / max(sv[-1], 1e-300)))
+
+
+def receptance(residues, poles_rad_s, freq_hz) -> np.ndarray:
+    """H(w) = sum_r A_r / (iw - lambda_r) + conj(A_r) / (iw - conj(lambda_r)) at freq_hz: (F, ...) for residues
+    (R, ...) — the operational deflection shape per newton at each frequency line."""
+    A = np.asarray(residues, complex)
+    lam = np.asarray(poles_rad_s, complex).reshape(-1)
+    iw = 2j * np.pi * np.atleast_1d(np.asarray(freq_hz, float))
+    g = 1.0 / (iw[:, None] - lam[None])                 # (F, R)
+    gc = 1.0 / (iw[:, None] - np.conj(lam)[None])
+    flat = A.reshape(len(lam), -1)
+    return (g @ flat + gc @ np.conj(flat)).reshape((len(iw),) + A.shape[1:])
+
+
+def lsce_poles(times_s, x, order: int, *, t_min_s: float = 0.0, n_channels: int = 8) -> np.ndarray:
+    """Poles (rad/s, Re < 0 < Im) of a multi-channel free decay by least-squares complex exponentials: one
+    autoregressive polynomial of `order` shared by every channel (Prony, poly-reference form). The channels are
+    first reduced to their n_channels principal components, which keeps the solve small and averages the noise."""
+    t = np.asarray(times_s, float).reshape(-1)
+    x = np.asarray(x, float).reshape(len(t), -1)
+    use = t >= t_min_s
+    dt = np.diff(t)
+    if len(dt) == 0 or np.ptp(dt) > 1e-6 * np.mean(dt):
+        raise InputError("lsce_poles: times_s", "expected uniformly spaced times")
+    y = x[use] - x[use].mean(axis=0)
+    u, s, _ = np.linalg.svd(y, full_matrices=False)
+    y = u[:, :n_channels] * s[:n_channels]
+    T = len(y)
+    if T - order < 2 or y.shape[1] * (T - order) < 2 * order:
+        raise InputError("lsce_poles: order", f"{T} samples cannot fit an order-{order} model; lower it")
+    # y[k + p] = -sum_j a_j y[k + j]
+    rows = np.stack([y[j:T - order + j] for j in range(order)], axis=-1)     # (T-p, C, p)
+    A = rows.reshape(-1, order)
+    b = -y[order:].reshape(-1)
+    a, *_ = np.linalg.lstsq(A, b, rcond=None)
+    z = np.roots(np.concatenate([[1.0], a[::-1]]))
+    lam = np.log(z.astype(complex)) / float(np.mean(dt))
+    keep = (lam.real < 0) & (lam.imag > 0)
+    return np.sort_complex(lam[keep])

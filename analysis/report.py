@@ -1,0 +1,255 @@
+"""A self-contained HTML report of an analysis (derived/analysis/analysis.json and its plots): one file, CSS and
+images inline, that can be mailed."""
+from __future__ import annotations
+
+import base64
+import json
+import logging
+from html import escape
+from pathlib import Path
+
+import numpy as np
+
+from odsplat.errors import InputError
+from odsplat.store import atomic_write_text
+
+log = logging.getLogger(__name__)
+
+ANALYSIS_DIR = Path("derived") / "analysis"
+REPORT = "report.html"
+
+_PAGE = """<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<title>odsplat analysis: {title}</title>
+<style>
+body {{ font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; padding: 0 1em; }}
+h1 {{ font-size: 1.6em; margin-bottom: 0.2em; }} h2 {{ border-bottom: 1px solid #ccc; margin-top: 1.6em; }}
+.meta {{ color: #666; }} .bad {{ color: #b00; }} .ok {{ color: #070; }}
+table {{ border-collapse: collapse; margin: 0.6em 0; font-size: 0.95em; }}
+th, td {{ border: 1px solid #ccc; padding: 0.25em 0.7em; text-align: right; }}
+th {{ background: #f2f2f2; }} td.t {{ text-align: left; }}
+figure {{ margin: 1em 0; }} figure img {{ max-width: 100%; border: 1px solid #ddd; }}
+figcaption {{ color: #555; font-size: 0.9em; }} pre {{ background: #f7f7f7; padding: 0.6em; overflow-x: auto; }}
+</style></head>
+<body>
+<h1>Analysis of {title}</h1>
+<p class="meta">created {created} &middot; {n_sensors} sensors &middot; {n_avg} hits averaged</p>
+{sections}
+</body></html>
+"""
+
+
+# ---------------------------------------------------------------------------------------------- reading
+
+def _field(d: dict, key: str, kind, where: str, default=...):
+    """d[key] checked to be of `kind`; a missing or mistyped field raises InputError naming it."""
+    if key not in d:
+        if default is not ...:
+            return default
+        raise InputError(f"{where}: {key}", "missing")
+    v = d[key]
+    if not isinstance(v, kind) or isinstance(v, bool) and kind is not bool:
+        raise InputError(f"{where}: {key}", f"expected {_kind_name(kind)}; got {type(v).__name__}")
+    return v
+
+
+def _kind_name(kind) -> str:
+    kinds = kind if isinstance(kind, tuple) else (kind,)
+    return " or ".join({int: "a number", float: "a number", list: "a list", dict: "an object",
+                        str: "a string", type(None): "null"}.get(k, k.__name__) for k in kinds)
+
+
+_NUM = (int, float)
+
+
+def _load(path: Path) -> dict:
+    if not path.is_file():
+        raise InputError(path, "no analysis (run `odsplat analyze` first)")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"not valid JSON: {exc}") from None
+    if not isinstance(doc, dict):
+        raise InputError(path, f"expected a JSON object; got {type(doc).__name__}")
+    for k, m in enumerate(_field(doc, "modes", list, str(path))):
+        w = f"{path}: modes[{k}]"
+        if not isinstance(m, dict):
+            raise InputError(w, "expected an object with freq_hz and damping")
+        _field(m, "freq_hz", _NUM, w), _field(m, "damping", _NUM, w)
+    _field(doc, "files", dict, str(path), {})
+    _field(doc, "rejected_hits", list, str(path), [])
+    for key in ("video", "correlation"):
+        _field(doc, key, (dict, type(None)), str(path), None)
+    _field(doc, "ods", list, str(path), [])
+    return doc
+
+
+# ---------------------------------------------------------------------------------------------- formatting
+
+def _num(x, fmt: str = ".3g", scale: float = 1.0) -> str:
+    try:
+        v = float(x) * scale
+    except (TypeError, ValueError):
+        return "&ndash;"
+    if not np.isfinite(v):
+        return "&ndash;"
+    text = format(v, fmt)
+    return format(0.0, fmt) if float(text) == 0 else text      # no "-0.0"
+
+
+def _table(head: list[str], rows: list[list[str]], text_cols: int = 1) -> str:
+    """Cells are HTML already (escape text with `escape` first); the first text_cols columns align left."""
+    h = "".join(f"<th>{c}</th>" for c in head)
+    body = "".join("<tr>" + "".join(f'<td class="t">{c}</td>' if i < text_cols else f"<td>{c}</td>"
+                                    for i, c in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def _mode_name(modes: list[dict], k) -> str:
+    try:
+        return f"{int(k) + 1} ({float(modes[int(k)]['freq_hz']):.2f} Hz)"
+    except (TypeError, ValueError, IndexError):
+        return escape(str(k))
+
+
+# ---------------------------------------------------------------------------------------------- sections
+
+def _reasons(r) -> list[str]:
+    return [r] if isinstance(r, str) else [str(x) for x in r] if isinstance(r, list) else []
+
+
+def _hits(doc: dict) -> str:
+    takes = [str(t) for t in doc.get("takes", [])]
+    rejected = {str(r.get("take")): _reasons(r.get("reasons")) for r in doc["rejected_hits"] if isinstance(r, dict)}
+    used = [t for t in takes if t not in rejected]
+    out = [f"<h2>Hits</h2><p>{len(used)} of {len(takes)} hits used"
+           + (f" (averages: {escape(str(doc['n_averages']))})" if "n_averages" in doc else "") + "."]
+    if doc.get("exp_tau_s"):
+        out.append(f" Exponential window &tau; = {_num(doc['exp_tau_s'], '.3g', 1e3)} ms"
+                   " (its damping is taken out of the modes).")
+    out.append("</p>")
+    rows = [[escape(t), '<span class="ok">used</span>' if t not in rejected else '<span class="bad">rejected</span>',
+             escape("; ".join(rejected.get(t, [])))] for t in takes]
+    rows += [[escape(t), '<span class="bad">rejected</span>', escape("; ".join(r))]
+             for t, r in rejected.items() if t not in takes]
+    if rows:
+        out.append(_table(["take", "hit", "reasons"], rows, text_cols=3))
+    return "".join(out)
+
+
+def _modes(doc: dict) -> str:
+    rows = [[str(k + 1), _num(m["freq_hz"], ".2f"), _num(m["damping"], ".2f", 100)] for k, m in enumerate(doc["modes"])]
+    return "<h2>Modes (accelerometers)</h2>" + _table(["mode", "frequency (Hz)", "damping (%)"], rows)
+
+
+def _video(doc: dict) -> str:
+    v = doc.get("video")
+    if not v:
+        return "<h2>Video</h2><p>No video side in this analysis.</p>"
+    modes = doc["modes"]
+    fitted = v.get("modes_fitted", [])
+    out = ["<h2>Video</h2><p>Modes fitted to the video's motion with the accelerometer poles: "
+           + (", ".join(_mode_name(modes, k) for k in fitted) or "none")]
+    if "n_surface_points" in v:
+        out.append(f"; {int(v['n_surface_points'])} surface points")
+    if "window_s" in v and len(v["window_s"]) == 2:
+        out.append(f"; window {_num(v['window_s'][0], '.1f', 1e3)} to {_num(v['window_s'][1], '.1f', 1e3)} ms")
+    if "condition" in v:
+        out.append(f"; condition number {_num(v['condition'], '.3g')}")
+    out.append(".</p>")
+    sensors = [str(s) for s in doc.get("sensors", [])]
+    r2 = v.get("sensor_r2", [])
+    if r2:
+        out.append("<p>Share of each sensor point's video motion that these modes explain (r&sup2;):</p>")
+        out.append(_table(["sensor", "r&sup2;"], [[escape(sensors[j] if j < len(sensors) else f"sensor {j + 1}"),
+                                                  _num(x, ".3f")] for j, x in enumerate(r2)]))
+    fv, zv = v.get("freq_hz", []), v.get("damping", [])
+    fa = np.array([m["freq_hz"] for m in modes], float)
+    if fv:
+        rows = []
+        for i, f in enumerate(fv):
+            near = int(np.argmin(np.abs(fa - float(f)))) if len(fa) else None
+            rows.append([str(i + 1), _num(f, ".2f"), _num(zv[i] if i < len(zv) else None, ".2f", 100),
+                         _mode_name(modes, near) if near is not None else "&ndash;",
+                         _num((float(f) - fa[near]) / fa[near] if near is not None else None, "+.2f", 100)])
+        out.append("<p>Poles found in the video alone (LSCE, stable over orders), against the nearest "
+                   "accelerometer mode:</p>")
+        out.append(_table(["#", "frequency (Hz)", "damping (%)", "nearest mode", "difference (%)"], rows, 1))
+    else:
+        out.append("<p>No pole was found stable in the video alone.</p>")
+    return "".join(out)
+
+
+def _correlation(doc: dict) -> str:
+    c = doc.get("correlation")
+    out = []
+    modes = doc["modes"]
+    fitted = (doc.get("video") or {}).get("modes_fitted", [])
+    if c:
+        rows = []
+        for p in c.get("pairs", []):
+            a, b = p.get("a"), p.get("b")
+            ma = fitted[a] if isinstance(a, int) and a < len(fitted) else a
+            mb = fitted[b] if isinstance(b, int) and b < len(fitted) else b
+            rows.append([_mode_name(modes, ma), _mode_name(modes, mb), _num(p.get("mac"), ".3f"),
+                         _num(p.get("scale_factor_abs"), ".3g"), _num(p.get("scale_factor_phase_deg"), "+.1f"),
+                         _num(p.get("freq_a_hz"), ".2f"), _num(p.get("freq_b_hz"), ".2f"),
+                         _num(p.get("freq_diff_rel"), "+.2f", 100)])
+        out.append("<h2>Correlation: accelerometers (a) vs video (b)</h2>")
+        out.append(_table(["mode a", "mode b", "MAC", "|scale a/b|", "scale phase (deg)", "f a (Hz)", "f b (Hz)",
+                           "&Delta;f (%)"], rows, 2) if rows else "<p>No pairs.</p>")
+        sensors = [str(s) for s in doc.get("sensors", [])]
+        comac = c.get("comac", [])
+        if comac:
+            out.append("<h3>CoMAC per sensor</h3>")
+            out.append(_table(["sensor", "CoMAC"], [[escape(sensors[j] if j < len(sensors) else f"sensor {j + 1}"),
+                                                      _num(x, ".3f")] for j, x in enumerate(comac)]))
+    ods = doc.get("ods", [])
+    if ods:
+        out.append("<h2>ODS: accelerometers vs video</h2>")
+        out.append(_table(["line", "frequency (Hz)", "MAC"],
+                          [[str(i + 1), _num(o.get("freq_hz"), ".2f"), _num(o.get("mac"), ".3f")]
+                           for i, o in enumerate(ods) if isinstance(o, dict)]))
+    return "".join(out)
+
+
+def _figures(doc: dict, folder: Path) -> str:
+    out = []
+    for key, rel in doc["files"].items():
+        if not (isinstance(rel, str) and rel.lower().endswith(".png")):
+            continue
+        path = folder / rel
+        if not path.is_file():
+            log.warning("report: %s not found; left out", path)
+            out.append(f'<p class="bad">{escape(rel)} not found.</p>')
+            continue
+        data = base64.b64encode(path.read_bytes()).decode("ascii")
+        out.append(f'<figure><img src="data:image/png;base64,{data}" alt="{escape(str(key))}">'
+                   f"<figcaption>{escape(str(key))} ({escape(rel)})</figcaption></figure>")
+    return ("<h2>Figures</h2>" + "".join(out)) if out else ""
+
+
+def _settings(doc: dict) -> str:
+    s = doc.get("settings")
+    if not s:
+        return ""
+    return f"<details><summary>Settings</summary><pre>{escape(json.dumps(s, indent=1))}</pre></details>"
+
+
+def render_report(doc: dict, folder: Path, title: str) -> str:
+    """The report's HTML from a loaded analysis.json (`folder` holds it and its plots)."""
+    sections = [_hits(doc), _modes(doc), _video(doc), _correlation(doc), _figures(doc, folder), _settings(doc)]
+    return _PAGE.format(title=escape(str(doc.get("capture") or title)),
+                        created=escape(str(doc.get("created_utc", "(no date)"))),
+                        n_sensors=len(doc.get("sensors", [])), n_avg=escape(str(doc.get("n_averages", "?"))),
+                        sections="\n".join(s for s in sections if s))
+
+
+def write_report(capture_root: Path) -> Path:
+    """derived/analysis/report.html from derived/analysis/analysis.json and the plots it lists; returns its path."""
+    folder = Path(capture_root) / ANALYSIS_DIR
+    doc = _load(folder / "analysis.json")
+    path = folder / REPORT
+    atomic_write_text(path, render_report(doc, folder, Path(capture_root).name))
+    log.info("report written to %s", path)
+    return path

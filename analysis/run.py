@@ -1,0 +1,349 @@
+"""`analyze_capture`: FRFs and modes from the hammer and accelerometers of every take, the video's 3D shapes
+from the dynamic Gaussians with the accelerometer poles, their correlation, and the exports in derived/analysis/.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from odsplat.errors import InputError
+from odsplat.manifest import utc_now
+from odsplat.store import Capture, atomic_write_text
+
+from .correlation import Correlation, correlate, mac
+from .ema import ModalFit, fit_modes
+from .frf import FRFResult, FRFSettings, check_hit, estimate_frf
+from .ods import TRAJECTORIES, DecayFit, SurfaceMotion, fit_decay, force_transform, lsce_poles, receptance
+
+log = logging.getLogger(__name__)
+
+FORMAT = "odsplat-analysis"
+
+
+def out_dir(capture: Capture) -> Path:
+    return capture.derived_dir / "analysis"
+
+
+@dataclass(frozen=True)
+class AnalyzeSettings:
+    force_channel: str | None = None                 # None: the capture's one force channel
+    response_channels: tuple[str, ...] | None = None  # None: every acceleration channel placed on the structure
+    takes: str = "accepted"                          # or "all"
+    frf: FRFSettings = field(default_factory=FRFSettings)
+    pretrigger_s: float = 0.005                      # kept before each hit's onset
+    record_s: float | None = None                    # each hit's segment; None: as long as every take allows
+    fmin_hz: float | None = None                     # modal fit band; None: 2 % of fmax
+    fmax_hz: float | None = None                     # None: 0.45 x the frame rate with a camera, else 0.4 x the DAQ rate
+    max_order: int = 80
+    approx_freq_hz: tuple[float, ...] | None = None  # pick these poles instead of automatic selection
+    ods_freq_hz: tuple[float, ...] | None = None     # ODS lines; None: the modal frequencies
+    video: bool = True                               # use derived/reconstruction when it is there
+    min_opacity: float = 0.5
+    k_neighbours: int = 8
+    lsce_orders: tuple[int, ...] = (24, 32, 40)
+
+    def __post_init__(self) -> None:
+        if self.takes not in ("accepted", "all"):
+            raise InputError("AnalyzeSettings.takes", f"expected 'accepted' or 'all'; got {self.takes!r}")
+        for name in ("pretrigger_s", "record_s", "fmin_hz", "fmax_hz"):
+            v = getattr(self, name)
+            if v is not None and v < 0:
+                raise InputError(f"AnalyzeSettings.{name}", f"expected a value >= 0; got {v}")
+
+
+@dataclass(frozen=True)
+class Sensor:
+    name: str
+    position_m: np.ndarray   # (3,)
+    direction: np.ndarray    # (3,) unit
+
+
+@dataclass(frozen=True)
+class VideoModes:
+    """The video's modal amplitudes with the accelerometer poles, at the sensors and on the whole surface."""
+
+    poles_rad_s: np.ndarray          # (R,) the accelerometer poles inside the camera's band
+    mode_index: np.ndarray           # (R,) their index in the accelerometer fit
+    sensor_residues: np.ndarray      # (R, S) m/N along the sensor directions
+    surface_points_m: np.ndarray     # (N, 3)
+    surface_residues: np.ndarray     # (R, N, 3) m/N
+    sensor_r2: np.ndarray            # (S,) share of each sensor point's motion the modes explain
+    condition: float
+    freq_hz: np.ndarray              # poles found in the video alone (LSCE, stable over orders)
+    damping: np.ndarray
+    times_s: np.ndarray              # the trained window
+    sensor_displacement_m: np.ndarray  # (T, S) the video's motion at the sensors, along their directions
+
+
+@dataclass(frozen=True)
+class AnalysisResult:
+    frf: FRFResult
+    modes: ModalFit
+    sensors: tuple[Sensor, ...]
+    takes: tuple[str, ...]
+    video: VideoModes | None = None
+    correlation: Correlation | None = None
+    ods_freq_hz: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    ods_accel: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), complex))   # (L, S) m/N, measured H1
+    ods_video: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), complex))   # (L, S) m/N, synthesised
+    files: dict[str, str] = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """The key numbers, as plain JSON values."""
+        m = self.modes
+        out = {
+            "takes": list(self.takes), "n_averages": self.frf.n_averages,
+            "rejected_hits": [{"take": t, "reasons": list(h.reasons)} for t, h in zip(self.takes, self.frf.hits)
+                              if not h.accepted],
+            "sensors": [s.name for s in self.sensors],
+            "exp_tau_s": self.frf.exp_tau_s,
+            "modes": [{"freq_hz": float(f), "damping": float(z)} for f, z in zip(m.freq_hz, m.damping)],
+        }
+        if self.video is not None:
+            v = self.video
+            out["video"] = {"modes_fitted": [int(i) for i in v.mode_index], "sensor_r2": v.sensor_r2.tolist(),
+                            "condition": v.condition, "freq_hz": v.freq_hz.tolist(), "damping": v.damping.tolist(),
+                            "window_s": [float(v.times_s[0]), float(v.times_s[-1])],
+                            "n_surface_points": int(len(v.surface_points_m))}
+        if self.correlation is not None:
+            out["correlation"] = {"pairs": self.correlation.summary(), "comac": self.correlation.comac.tolist()}
+        if len(self.ods_freq_hz) and self.ods_video.size:
+            out["ods"] = [{"freq_hz": float(f), "mac": float(mac(a, b)[0, 0])}
+                          for f, a, b in zip(self.ods_freq_hz, self.ods_accel, self.ods_video)]
+        return out
+
+    def text(self) -> str:
+        """A few lines for the terminal."""
+        m = self.modes
+        lines = [f"FRFs: {self.frf.n_averages} of {len(self.takes)} hits averaged, outputs "
+                 f"{', '.join(s.name for s in self.sensors)}",
+                 "modes (accelerometers): " + ", ".join(f"{f:.2f} Hz ({100 * z:.2f} %)"
+                                                        for f, z in zip(m.freq_hz, m.damping))]
+        if self.video is not None:
+            v = self.video
+            lines.append(f"video: {len(v.surface_points_m)} surface points, {len(v.times_s)} timesteps; modes "
+                         f"{', '.join(str(int(k) + 1) for k in v.mode_index)} fitted (sensor r2 "
+                         f"{', '.join(f'{r:.2f}' for r in v.sensor_r2)}); video-only poles "
+                         + (", ".join(f"{f:.1f}" for f in v.freq_hz) or "none") + " Hz")
+        if self.correlation is not None:
+            c = self.correlation
+            lines.append("MAC video/accelerometers: " + ", ".join(
+                f"mode {i + 1} {c.pair_mac[k]:.3f} (scale {abs(c.scale_factor[k]):.2f})"
+                for k, (i, _) in enumerate(c.pairs)))
+        lines.append(f"-> {', '.join(self.files.values())}")
+        return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------- accelerometers
+
+def _channels(capture: Capture, s: AnalyzeSettings) -> tuple[str, tuple[Sensor, ...]]:
+    chans = capture.manifest.channels
+    where = f"{capture.root / 'capture.json'}: channels"
+    if s.force_channel is None:
+        forces = [c.name for c in chans if c.kind == "force"]
+        if len(forces) != 1:
+            raise InputError(where, f"expected exactly one force channel (or name one); found {forces}")
+        force = forces[0]
+    else:
+        force = s.force_channel
+        if force not in [c.name for c in chans]:
+            raise InputError(where, f"no force channel {force!r}; channels are {[c.name for c in chans]}")
+    names = s.response_channels or tuple(c.name for c in chans if c.kind == "acceleration"
+                                         and c.position_m is not None and c.direction is not None)
+    if not names:
+        raise InputError(where, "no acceleration channel with position_m and direction to analyse")
+    sensors = []
+    for n in names:
+        try:
+            c = capture.manifest.channel(n)
+        except KeyError:
+            raise InputError(where, f"no response channel {n!r}; channels are {[c.name for c in chans]}") from None
+        if c.position_m is None or c.direction is None:
+            raise InputError(f"{where}: {n}", "a response channel needs position_m and direction for the shapes")
+        d = np.asarray(c.direction, float)
+        sensors.append(Sensor(n, np.asarray(c.position_m, float), d / np.linalg.norm(d)))
+    return force, tuple(sensors)
+
+
+def _take_names(capture: Capture, s: AnalyzeSettings) -> list[str]:
+    takes = [t.name for t in capture.manifest.takes if t.status in ("complete", "recovered")
+             and (s.takes == "all" or t.qc == "accepted") and t.n_samples > 0]
+    if not takes:
+        raise InputError(capture.root / "capture.json", f"no {s.takes} take with DAQ samples to analyse")
+    return takes
+
+
+def _hit_segments(capture: Capture, takes: list[str], force: str, sensors, s: AnalyzeSettings):
+    """Every take's hit, cut from pretrigger_s before its onset, all to one length: (H, n), (H, S, n), rate."""
+    records, rate = [], None
+    for name in takes:
+        with capture.open_take(name) as r:
+            fs = r.sample_rate_hz
+            if rate is not None and abs(fs - rate) > 1e-9 * rate:
+                raise InputError(f"takes/{name}.h5", f"DAQ rate {fs} Hz differs from the first take's {rate} Hz")
+            rate = fs
+            f = r.channel(force).astype(float)
+            x = np.stack([r.channel(sn.name).astype(float) for sn in sensors])
+        onset = check_hit(f, fs).onset_index
+        if not np.isfinite(onset):
+            raise InputError(f"takes/{name}.h5: {force}", "no hammer impact found in the force channel")
+        records.append((name, f, x, int(np.floor(onset))))
+    pre = int(round(s.pretrigger_s * rate))
+    avail = min(len(f) - max(o - pre, 0) for _, f, _, o in records)
+    n = avail if s.record_s is None else min(avail, int(round(s.record_s * rate)))
+    if n < 64:
+        raise InputError("AnalyzeSettings.record_s", f"only {n} samples per hit; the takes are too short")
+    F = np.stack([f[max(o - pre, 0):max(o - pre, 0) + n] for _, f, _, o in records])
+    X = np.stack([x[:, max(o - pre, 0):max(o - pre, 0) + n] for _, _, x, o in records])
+    return F, X, float(rate)
+
+
+def _band(capture: Capture, frf: FRFResult, s: AnalyzeSettings) -> tuple[float, float]:
+    fps = capture.manifest.camera.fps
+    fmax = s.fmax_hz or (0.45 * fps if fps else 0.4 * frf.sample_rate_hz)
+    fmax = min(fmax, float(frf.freq_hz[-1]))
+    fmin = s.fmin_hz if s.fmin_hz is not None else 0.02 * fmax
+    if fmin >= fmax:
+        raise InputError("AnalyzeSettings.fmin_hz", f"expected below fmax_hz={fmax:g}; got {fmin:g}")
+    return fmin, fmax
+
+
+# -------------------------------------------------------------------------------------------------- video
+
+def _sync_force(capture: Capture, force: str, poles: np.ndarray) -> np.ndarray:
+    """F(lambda_r) of the hammer pulse on the impact-locked timeline, averaged over the synced takes (scaled as
+    sync scaled each take's motion when it normalised the impulses)."""
+    from odsplat.sync import load_sync
+
+    sync = load_sync(capture)
+    vals = []
+    for t in sync.ok:
+        with capture.open_take(t.name) as r:
+            f = r.channel(force).astype(float)
+            t0 = r.daq_t0_s - t.hit_daq_time_s
+            fs = r.sample_rate_hz
+        k0 = max(int((-t0 - 0.005) * fs), 0)                # the pulse and a little either side
+        k1 = min(int((-t0 + 0.02) * fs), len(f))
+        seg = f[k0:k1] - np.median(f[:max(k0, 1)])
+        vals.append(force_transform(seg, fs, t0 + k0 / fs, poles) * (t.impulse_scale or 1.0))
+    if not vals:
+        raise InputError(capture.derived_dir / "sync.json", "no synced take to take the force pulse from")
+    return np.mean(vals, axis=0)
+
+
+def _stable_video_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """Poles of the video's motion alone: found by LSCE at every order within 1 % in frequency, damped less than
+    20 %, and carrying at least `min_share` of the motion's energy in a decay fit (which drops the stable
+    but empty poles a high order fits to the noise). Returns (freq_hz, damping)."""
+    sets = []
+    for order in orders:
+        try:
+            lam = lsce_poles(times_s, x, order)
+        except InputError:          # too few timesteps for this order
+            continue
+        sets.append(lam[(np.abs(lam) / (2 * np.pi) < fmax_hz) & (-lam.real / np.abs(lam) < 0.2)])
+    if not sets:
+        return np.zeros(0), np.zeros(0)
+    keep = [lam for lam in sets[-1]
+            if all(len(o) and np.min(np.abs(np.abs(o) - abs(lam))) < 0.01 * abs(lam) for o in sets[:-1])]
+    lam = np.array(sorted(keep, key=abs), complex)
+    if len(lam):
+        fit = fit_decay(times_s, x, lam)
+        env = np.exp(2 * np.outer(times_s - times_s[0], lam.real)).sum(axis=0)     # (R,)
+        energy = np.sum(np.abs(fit.amplitudes) ** 2, axis=1) * env
+        lam = lam[energy >= min_share * energy.sum()]
+    return np.abs(lam) / (2 * np.pi), -lam.real / np.maximum(np.abs(lam), 1e-300)
+
+
+def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: AnalyzeSettings) -> VideoModes | None:
+    path = capture.derived_dir / TRAJECTORIES
+    if not s.video or not path.is_file():
+        log.info("no video side: %s", "disabled" if not s.video else f"{path} not found")
+        return None
+    motion = SurfaceMotion.read(path, min_opacity=s.min_opacity)
+    t = motion.times_s
+    if len(t) < 8:
+        log.warning("%s: %d timesteps are too few for a decay fit; no video side", path, len(t))
+        return None
+    dt = float(np.median(np.diff(t)))
+    nyq = 0.5 / dt
+    use = modes.freq_hz < 0.8 * nyq
+    if not use.any():
+        log.warning("no accelerometer mode below the trained timesteps' band (%.0f Hz)", 0.8 * nyq)
+        return None
+    poles = modes.poles_rad_s[use]
+    pos = np.stack([sn.position_m for sn in sensors])
+    dirs = np.stack([sn.direction for sn in sensors])
+    at_sensors = motion.at_points(pos, dirs, k=s.k_neighbours)                      # (T, S)
+    surface = motion.displacement_m.reshape(len(t), -1)                             # (T, N*3)
+    t_min = 1.5e-3                                                                   # after a ~1 ms pulse
+    fit_s: DecayFit = fit_decay(t, at_sensors, poles, t_min_s=t_min)
+    fit_all = fit_decay(t, surface, poles, t_min_s=t_min)
+    F = _sync_force(capture, force, poles)
+    f_hz, zeta = _stable_video_poles(t[t >= t_min], surface[t >= t_min], s.lsce_orders, nyq * 0.8)
+    return VideoModes(poles, np.flatnonzero(use), fit_s.residues(F), motion.points_m,
+                      fit_all.residues(F).reshape(len(poles), -1, 3), fit_s.r2, fit_s.condition, f_hz, zeta, t,
+                      at_sensors)
+
+
+# ---------------------------------------------------------------------------------------------- the stage
+
+def _nearest(f_ref: np.ndarray, f: np.ndarray, tol: float) -> np.ndarray:
+    """Per reference frequency, the nearest of f within tol (relative), else NaN."""
+    out = np.full(len(f_ref), np.nan)
+    for i, fr in enumerate(f_ref):
+        if len(f):
+            j = int(np.argmin(np.abs(f - fr)))
+            if abs(f[j] - fr) <= tol * fr:
+                out[i] = f[j]
+    return out
+
+
+def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | None = None) -> AnalysisResult:
+    """The whole analysis, written to derived/analysis/ (results.h5, analysis.uff, analysis.json, plots)."""
+    capture = capture if isinstance(capture, Capture) else Capture.open(capture)
+    s = settings or AnalyzeSettings()
+    force, sensors = _channels(capture, s)
+    takes = _take_names(capture, s)
+    F, X, rate = _hit_segments(capture, takes, force, sensors, s)
+    frf = estimate_frf(F, X, rate, s.frf, input_name=force, output_names=[sn.name for sn in sensors],
+                       output_unit="m/s^2")
+    log.info("FRFs from %d of %d hits, %d lines", frf.n_averages, len(takes), len(frf.freq_hz))
+    fmin, fmax = _band(capture, frf, s)
+    modes = fit_modes(frf.freq_hz, frf.h1, frf_kind="accelerance", fmin_hz=fmin, fmax_hz=fmax,
+                      max_order=s.max_order, approx_freq_hz=s.approx_freq_hz,
+                      output_names=[sn.name for sn in sensors])
+    if frf.exp_tau_s:
+        modes = modes.with_corrected_damping(frf.exp_tau_s)
+    log.info("modes: %s Hz", ", ".join(f"{f:.2f}" for f in modes.freq_hz))
+    video = video_modes(capture, modes, sensors, force, s)
+    corr = None
+    ods_f = np.asarray(s.ods_freq_hz if s.ods_freq_hz is not None else modes.freq_hz, float)
+    rec = frf.to_receptance()
+    lines = np.clip(np.searchsorted(rec.freq_hz, ods_f), 0, len(rec.freq_hz) - 1)
+    ods_accel = rec.h1[lines]                                                       # (L, S)
+    ods_video = np.zeros((0, 0), complex)
+    if video is not None:
+        f_acc = modes.freq_hz[video.mode_index]
+        corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc,
+                         freq_b_hz=_nearest(f_acc, video.freq_hz, 0.05))
+        ods_video = receptance(video.sensor_residues, video.poles_rad_s, ods_f)
+    result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video)
+    return _write(capture, result, s)
+
+
+def _write(capture: Capture, result: AnalysisResult, s: AnalyzeSettings) -> AnalysisResult:
+    from .outputs import write_outputs
+
+    dest = out_dir(capture)
+    dest.mkdir(parents=True, exist_ok=True)
+    files = write_outputs(dest, result)
+    summary = {"format": FORMAT, "version": 1, "capture": capture.root.name, "created_utc": utc_now(),
+               "settings": dataclasses.asdict(s), **result.summary(), "files": files}
+    atomic_write_text(dest / "analysis.json", json.dumps(summary, indent=1, default=float))
+    return dataclasses.replace(result, files={**files, "summary": "analysis.json"})

@@ -1,0 +1,120 @@
+"""Video-side ODS: decay fits with known poles, residues in m/N, sensor points, LSCE poles, correlation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from odsplat.analysis.correlation import comac, correlate, mac, modal_scale_factor
+from odsplat.analysis.ods import SurfaceMotion, fit_decay, force_transform, lsce_poles, receptance
+from odsplat.errors import InputError
+from odsplat.hil_sim.structure import Impact, ModalStructure
+
+IMPACT_POINT = (0.46, 0.03, 0.6)
+IMPACT_DIR = (0.0, 0.0, -1.0)
+
+
+def _poles(s: ModalStructure) -> np.ndarray:
+    wn = 2 * np.pi * s.freqs_hz
+    z = s.dampings
+    return -z * wn + 1j * wn * np.sqrt(1 - z**2)
+
+
+def _true_residues(s: ModalStructure, points, dirs) -> np.ndarray:
+    """(R, S) displacement residues phi_out phi_in / (2 i w_d) of the analytic receptance."""
+    phi = s.mode_shapes(np.asarray(points))                     # (S, R, 3)
+    po = np.einsum("src,sc->rs", phi, np.asarray(dirs, float))
+    pi = s.participation(IMPACT_POINT, IMPACT_DIR)              # (R,)
+    return po * pi[:, None] / (2j * _poles(s).imag[:, None])
+
+
+def _surface(s: ModalStructure, fps: float = 2000.0, n: int = 64):
+    """Points on the column and arm, their exact response to one half-sine hit at t = 0 (the onset)."""
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([np.c_[rng.uniform(-0.04, 0.04, 40), rng.uniform(-0.04, 0.04, 40), rng.uniform(0.1, 0.6, 40)],
+                          np.c_[rng.uniform(0.05, 0.45, 40), rng.uniform(-0.02, 0.02, 40), rng.uniform(0.57, 0.63, 40)]])
+    t = np.arange(-2, n - 2) / fps
+    hit = Impact(0.0, IMPACT_POINT, IMPACT_DIR, peak_n=200.0, duration_s=1e-3)
+    disp = s.response(pts, [hit], t)                             # (T, P, 3)
+    return t, pts, disp, hit
+
+
+def test_decay_fit_with_true_poles_recovers_the_residues_in_metres_per_newton():
+    s = ModalStructure()
+    t, pts, disp, hit = _surface(s)
+    sensors = pts[[5, 50, 70]]
+    dirs = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, 1.0, 0]])
+    x = np.einsum("tsc,sc->ts", disp[:, [5, 50, 70]], dirs)
+    fit = fit_decay(t, x, _poles(s), t_min_s=1.5e-3)
+    fs = 200_000.0
+    tf = np.arange(0, 1.2e-3, 1 / fs)
+    F = force_transform(hit.force(tf), fs, 0.0, _poles(s))
+    got = fit.residues(F)
+    true = _true_residues(s, sensors, dirs)
+    # 32 ms of free decay determine every mode that moves these points: compare where a mode matters
+    big = np.abs(true) > 0.05 * np.abs(true).max()
+    assert np.allclose(got[big], true[big], rtol=0.02)
+    assert np.all(fit.r2 > 0.999999)
+    # the receptance synthesised from them matches the analytic FRF
+    f = np.array([10.0, 23.5, 60.0, 142.0])
+    h = receptance(got, _poles(s), f)
+    for j, (p, d) in enumerate(zip(sensors, dirs)):
+        ref = s.frf(p, d, IMPACT_POINT, IMPACT_DIR, f)
+        assert np.allclose(h[:, j], ref, rtol=0.03, atol=0.01 * np.abs(ref).max())
+
+
+def test_lsce_finds_the_poles_from_a_short_noisy_window():
+    s = ModalStructure()
+    t, pts, disp, _ = _surface(s, n=120)
+    rng = np.random.default_rng(1)
+    x = disp.reshape(len(t), -1)
+    x = x + rng.normal(0, 1e-3 * np.abs(x).max(), x.shape)
+    lam = lsce_poles(t, x, order=24, t_min_s=1.5e-3)
+    f = np.abs(lam) / (2 * np.pi)
+    excited = np.abs(s.participation(IMPACT_POINT, IMPACT_DIR)) > 0.1 * np.abs(s.participation(IMPACT_POINT, IMPACT_DIR)).max()
+    assert excited.sum() == 4                   # a vertical hit leaves the lateral modes (31, 142 Hz) quiet
+    for f0 in s.freqs_hz[excited]:
+        assert np.min(np.abs(f - f0)) / f0 < 0.005
+
+
+def test_surface_motion_reads_a_trajectories_file_and_divides_out_the_magnification(tmp_path):
+    s = ModalStructure()
+    t, pts, disp, _ = _surface(s, n=20)
+    path = tmp_path / "trajectories.npz"
+    opacity = np.full(len(pts), 3.0)
+    opacity[0] = -3.0                                   # translucent: dropped
+    np.savez(path, times_s=t, means_rest_m=pts, displacement_m=(30 * disp).astype(np.float32),
+             opacity_logits=opacity, source_alpha=30.0)
+    m = SurfaceMotion.read(path)
+    assert m.n_points == len(pts) - 1
+    assert np.allclose(m.displacement_m, disp[:, 1:], rtol=1e-5, atol=1e-12)
+    # a point exactly on a Gaussian takes its motion; a direction projects it
+    d = m.at_points(pts[[3]], [[0, 0, 1.0]], k=4)
+    assert np.allclose(d[:, 0], disp[:, 3, 2], rtol=1e-4, atol=1e-12)
+    with pytest.raises(InputError, match="directions"):
+        m.at_points(pts[[3, 4]], [[0, 0, 1.0]])
+    np.savez(tmp_path / "bad.npz", times_s=t)
+    with pytest.raises(InputError, match="displacement_m"):
+        SurfaceMotion.read(tmp_path / "bad.npz")
+
+
+def test_mac_comac_and_scale_factor_on_known_shapes():
+    s = ModalStructure()
+    pts = np.array([[0.0, 0, 0.3], [0.0, 0, 0.6], [0.2, 0, 0.6], [0.43, 0, 0.6], [0.3, 0.0, 0.6]])
+    phi = s.mode_shapes(pts)                                  # (S, R, 3)
+    a = phi.transpose(1, 0, 2).reshape(s.n_modes, -1)
+    assert np.allclose(np.diag(mac(a, a)), 1.0)
+    b = -2.5j * a[::-1]                                       # reversed, scaled, rotated
+    c = correlate(a, b, freq_a_hz=s.freqs_hz, freq_b_hz=1.01 * s.freqs_hz[::-1])
+    assert c.pairs == tuple((i, s.n_modes - 1 - i) for i in range(s.n_modes))
+    assert np.allclose(c.pair_mac, 1.0)
+    assert np.allclose(c.scale_factor, 1 / (-2.5j))
+    assert np.allclose(c.comac[np.abs(a).sum(axis=0) > 0], 1.0)
+    assert np.allclose(c.freq_diff_rel, 0.01)
+    # one corrupted coordinate shows in CoMAC, not much in MAC
+    b2 = a.copy()
+    b2[:, 4] = np.random.default_rng(2).normal(0, np.abs(a[:, 4]).max(), s.n_modes)   # a bad sensor
+    cm = comac(a, b2)
+    assert cm[4] < 0.5 and np.all(np.delete(cm, 4)[np.abs(np.delete(a, 4, axis=1)).sum(axis=0) > 0] > 0.85)
+    assert np.allclose(modal_scale_factor(a[:2], 3 * a[:2]), 1 / 3)
+    with pytest.raises(InputError, match="degrees of freedom"):
+        mac(a, a[:, :3])

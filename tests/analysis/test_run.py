@@ -1,0 +1,164 @@
+"""The analysis stage on a simulated capture: FRFs and modes from the takes' hammer and accelerometers, the
+video side from a reconstruction file holding hil_sim's exact surface motion, their correlation, the exports,
+the report and the command line. Ground truth: the rig's modes and each take's truth file."""
+from __future__ import annotations
+
+import json
+
+import h5py
+import numpy as np
+import pytest
+import pyuff
+from click.testing import CliRunner
+
+from odsplat.analysis.correlation import mac
+from odsplat.analysis.run import AnalyzeSettings, analyze_capture
+from odsplat.cli import main
+from odsplat.errors import InputError
+from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
+from odsplat.hil_sim.rig import TakeTruth, truth_path
+from odsplat.hil_sim.structure import ModalStructure
+from odsplat.store import Capture
+from odsplat.sync import SyncSettings, load_sync, sync_capture
+
+ALPHA = 25.0
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Capture:
+    """Three views, 40 frames each, with 1 s of DAQ record per take (1 Hz lines), forces varying 20 % take to
+    take, one double hit (redone); synced (no aligned frames: the analysis needs only the onsets)."""
+    out = tmp_path_factory.mktemp("analysis") / "cap"
+    report = simulate_capture(out, n_views=3, n_frames=40, pretrigger_frames=6, record_s=1.0,
+                              settings=SimBenchSettings(force_scatter=0.2, seed=7), faults={1: "double_hit"})
+    assert report.complete
+    cap = Capture.open(out)
+    sync_capture(cap, SyncSettings(write_frames=False))
+    return cap
+
+
+def _truth(cap: Capture, name: str | None = None) -> TakeTruth:
+    name = name or load_sync(cap).ok[0].name
+    return TakeTruth.load(truth_path(cap.takes_dir / f"{name}.h5"))
+
+
+def _write_trajectories(cap: Capture, n_steps: int = 64, dt_s: float = 5e-4) -> TakeTruth:
+    """derived/reconstruction/trajectories.npz as a perfect reconstruction would leave it: hil_sim's surface
+    points moving as the structure did, averaged over the synced takes (each hit a little different), on the
+    impact-locked timeline, magnified ALPHA times."""
+    times = -1e-3 + dt_s * np.arange(n_steps)
+    qs = []
+    for take in load_sync(cap).ok:
+        tr = _truth(cap, take.name)
+        x = float(np.ravel(tr.impact_daq_sample)[0]) + times * tr.daq_rate_hz
+        n = tr.modal_q_daq.shape[1]
+        qs.append(np.stack([np.interp(x, np.arange(n), row) for row in tr.modal_q_daq]))   # (R, T)
+    points = _surface_points()
+    disp = np.einsum("prc,rt->tpc", ModalStructure().mode_shapes(points), np.mean(qs, axis=0))
+    dest = cap.derived_dir / "reconstruction"
+    dest.mkdir(parents=True, exist_ok=True)
+    np.savez(dest / "trajectories.npz", times_s=times, means_rest_m=points,
+             displacement_m=(ALPHA * disp).astype(np.float32), opacity_logits=np.full(len(disp[0]), 4.0),
+             source_alpha=ALPHA)
+    return tr
+
+
+def _surface_points(n_per_face: int = 600) -> np.ndarray:
+    """Points spread over the faces of the column and arm, as densely as a reconstruction's Gaussians (a few mm
+    apart), so that the 8 nearest to a sensor are close to it."""
+    rng = np.random.default_rng(0)
+    out = []
+    for part in ("column", "arm"):
+        lo, hi = ModalStructure().geometry.boxes()[part]
+        for axis in range(3):
+            for side in (lo, hi):
+                p = rng.uniform(lo, hi, (n_per_face, 3))
+                p[:, axis] = side[axis]
+                out.append(p)
+    return np.concatenate(out)
+
+
+def _truth_shapes(tr: TakeTruth, points, dirs) -> np.ndarray:
+    """(R, S) mass-normalised mode shapes at the sensors along their directions."""
+    phi = ModalStructure().mode_shapes(np.asarray(points))            # (S, R, 3)
+    return np.einsum("src,sc->rs", phi, np.asarray(dirs))
+
+
+def test_accelerometer_modes_match_the_rig_and_the_video_shapes_match_the_accelerometers(capture):
+    tr = _write_trajectories(capture)
+    res = analyze_capture(capture, AnalyzeSettings())
+    # hits: the double hit was redone in the session; every accepted take is averaged
+    assert res.frf.n_averages == len(res.takes) == 3
+    # frequencies within 0.5 % of the rig's, damping within 25 % (after the exponential window's correction)
+    f_true, z_true = np.asarray(tr.freqs_hz), np.asarray(tr.dampings)
+    assert len(res.modes.freq_hz) >= 5
+    for f, z in zip(res.modes.freq_hz, res.modes.damping):
+        k = int(np.argmin(np.abs(f_true - f)))
+        assert abs(f - f_true[k]) / f_true[k] < 0.005, (f, f_true[k])
+        assert abs(z - z_true[k]) / z_true[k] < 0.25, (f, z, z_true[k])
+    # accelerometer shapes against the truth at the sensors
+    pos = np.stack([s.position_m for s in res.sensors])
+    dirs = np.stack([s.direction for s in res.sensors])
+    truth = _truth_shapes(tr, pos, dirs)
+    v = res.video
+    assert v is not None and len(v.mode_index) >= 5
+    for r, k in enumerate(v.mode_index):
+        kt = int(np.argmin(np.abs(f_true - res.modes.freq_hz[k])))
+        assert mac(res.modes.shapes[k], truth[kt])[0, 0] > 0.95
+        # the video's shape at the sensors, from the Gaussians nearest each accelerometer
+        assert mac(v.sensor_residues[r], truth[kt])[0, 0] > 0.95
+    # metres and newtons: the video's residues are the accelerometers' (magnification divided out)
+    c = res.correlation
+    assert np.all(c.pair_mac > 0.95)
+    assert np.all(np.abs(np.abs(c.scale_factor) - 1) < 0.1), np.abs(c.scale_factor)
+    assert np.all(v.sensor_r2 > 0.99)
+    # the video alone finds the excited modes' frequencies (32 ms window, exact motion)
+    found = [f for f in f_true if len(v.freq_hz) and np.min(np.abs(v.freq_hz - f)) < 0.01 * f]
+    assert len(found) >= 4, v.freq_hz
+    # ODS at the modal lines: the video's synthesised receptance and the measured H1 agree in shape
+    for a, b in zip(res.ods_accel, res.ods_video):
+        assert mac(a, b)[0, 0] > 0.9
+
+
+def test_outputs_read_back(capture):
+    _write_trajectories(capture)
+    res = analyze_capture(capture, AnalyzeSettings(ods_freq_hz=(23.5, 86.0)))
+    dest = capture.derived_dir / "analysis"
+    summary = json.loads((dest / "analysis.json").read_text())
+    assert summary["format"] == "odsplat-analysis"
+    assert [round(m["freq_hz"], 3) for m in summary["modes"]] == [round(f, 3) for f in res.modes.freq_hz]
+    with h5py.File(dest / "results.h5") as h:
+        assert h.attrs["format"] == "odsplat-results"
+        names = list(h["shapes"])
+    assert "video ODS 23.50 Hz" in names and any(n.startswith("accelerometer mode") for n in names)
+    sets = pyuff.UFF(str(dest / "analysis.uff")).read_sets()
+    types = [d["type"] for d in sets]
+    assert 2411 in types and types.count(58) == len(res.sensors) and types.count(55) >= len(res.modes.freq_hz)
+    frf58 = [d for d in sets if d["type"] == 58][0]
+    assert np.allclose(frf58["data"], res.frf.h1[:, 0], rtol=1e-6, atol=1e-9 * np.abs(res.frf.h1[:, 0]).max())
+    for key, rel in summary["files"].items():
+        assert (dest / rel).is_file(), key
+
+
+def test_accelerometers_only_and_bad_channels(capture):
+    res = analyze_capture(capture, AnalyzeSettings(video=False, response_channels=("acc_tip_z",)))
+    assert res.video is None and res.correlation is None and len(res.sensors) == 1
+    with pytest.raises(InputError, match="no response channel 'nope'"):
+        analyze_capture(capture, AnalyzeSettings(response_channels=("nope",)))
+    with pytest.raises(InputError, match="cam_ttl.*position_m"):
+        analyze_capture(capture, AnalyzeSettings(response_channels=("cam_ttl",)))
+    with pytest.raises(InputError, match="takes"):
+        AnalyzeSettings(takes="some")
+
+
+def test_cli_analyze_and_report(capture):
+    _write_trajectories(capture)
+    r = CliRunner().invoke(main, ["analyze", str(capture.root), "--fmax", "450"])
+    assert r.exit_code == 0, r.output
+    assert "modes (accelerometers)" in r.output and "report.html" in r.output
+    html = (capture.derived_dir / "analysis" / "report.html").read_text()
+    assert "data:image/png;base64," in html
+    r = CliRunner().invoke(main, ["report", str(capture.root)])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["analyze", str(capture.root), "--exp-end", "2"])
+    assert r.exit_code == 2 and "--exp-end" in r.output
