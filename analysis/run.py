@@ -16,6 +16,7 @@ from odsplat.manifest import utc_now
 from odsplat.store import Capture, atomic_write_text
 
 from .correlation import Correlation, correlate, mac
+from .crosscheck import ViewCheck, crosscheck_views
 from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_hit, estimate_frf
 from .ods import TRAJECTORIES, DecayFit, SurfaceMotion, fit_decay, force_transform, lsce_poles, receptance
@@ -46,6 +47,8 @@ class AnalyzeSettings:
     min_opacity: float = 0.5
     k_neighbours: int = 8
     lsce_orders: tuple[int, ...] = (24, 32, 40)
+    crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
+    crosscheck_points: int = 30
 
     def __post_init__(self) -> None:
         if self.takes not in ("accepted", "all"):
@@ -78,6 +81,7 @@ class VideoModes:
     damping: np.ndarray
     times_s: np.ndarray              # the trained window
     sensor_displacement_m: np.ndarray  # (T, S) the video's motion at the sensors, along their directions
+    crosscheck: tuple[ViewCheck, ...] = ()   # the 3D motion against 2D tracks in single views
 
 
 @dataclass(frozen=True)
@@ -109,7 +113,12 @@ class AnalysisResult:
             out["video"] = {"modes_fitted": [int(i) for i in v.mode_index], "sensor_r2": v.sensor_r2.tolist(),
                             "condition": v.condition, "freq_hz": v.freq_hz.tolist(), "damping": v.damping.tolist(),
                             "window_s": [float(v.times_s[0]), float(v.times_s[-1])],
-                            "n_surface_points": int(len(v.surface_points_m))}
+                            "n_surface_points": int(len(v.surface_points_m)),
+                            "crosscheck": [dataclasses.asdict(c) for c in v.crosscheck]}
+            if v.crosscheck:
+                out["video"]["crosscheck_gain_median"] = float(np.median([c.gain for c in v.crosscheck]))
+                out["video"]["crosscheck_correlation_median"] = float(np.median([c.correlation
+                                                                                 for c in v.crosscheck]))
         if self.correlation is not None:
             out["correlation"] = {"pairs": self.correlation.summary(), "comac": self.correlation.comac.tolist()}
         if len(self.ods_freq_hz) and self.ods_video.size:
@@ -130,6 +139,10 @@ class AnalysisResult:
                          f"{', '.join(str(int(k) + 1) for k in v.mode_index)} fitted (sensor r2 "
                          f"{', '.join(f'{r:.2f}' for r in v.sensor_r2)}); video-only poles "
                          + (", ".join(f"{f:.1f}" for f in v.freq_hz) or "none") + " Hz")
+            if v.crosscheck:
+                lines.append(f"2D cross-check ({len(v.crosscheck)} views): gain tracked/3D median "
+                             f"{np.median([c.gain for c in v.crosscheck]):.2f}, correlation median "
+                             f"{np.median([c.correlation for c in v.crosscheck]):.2f}")
         if self.correlation is not None:
             c = self.correlation
             lines.append("MAC video/accelerometers: " + ", ".join(
@@ -286,9 +299,11 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     fit_all = fit_decay(t, surface, poles, t_min_s=t_min)
     F = _sync_force(capture, force, poles)
     f_hz, zeta = _stable_video_poles(t[t >= t_min], surface[t >= t_min], s.lsce_orders, nyq * 0.8)
+    checks = crosscheck_views(capture, motion, max_views=s.crosscheck_views, n_points=s.crosscheck_points) \
+        if s.crosscheck_views > 0 else []
     return VideoModes(poles, np.flatnonzero(use), fit_s.residues(F), motion.points_m,
                       fit_all.residues(F).reshape(len(poles), -1, 3), fit_s.r2, fit_s.condition, f_hz, zeta, t,
-                      at_sensors)
+                      at_sensors, tuple(checks))
 
 
 # ---------------------------------------------------------------------------------------------- the stage

@@ -26,14 +26,20 @@ ALPHA = 25.0
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory) -> Capture:
-    """Three views, 40 frames each, with 1 s of DAQ record per take (1 Hz lines), forces varying 20 % take to
-    take, one double hit (redone); synced (no aligned frames: the analysis needs only the onsets)."""
+    """Three views, 80 frames each, with 1 s of DAQ record per take (1 Hz lines), forces varying 20 % take to
+    take, one double hit (redone); synced, with each take's true camera as its pose (derived/poses.json)."""
     out = tmp_path_factory.mktemp("analysis") / "cap"
-    report = simulate_capture(out, n_views=3, n_frames=40, pretrigger_frames=6, record_s=1.0,
+    report = simulate_capture(out, n_views=3, n_frames=80, pretrigger_frames=6, record_s=1.0,
                               settings=SimBenchSettings(force_scatter=0.2, seed=7), faults={1: "double_hit"})
     assert report.complete
     cap = Capture.open(out)
-    sync_capture(cap, SyncSettings(write_frames=False))
+    sync_capture(cap, SyncSettings())
+    views = []
+    for take in load_sync(cap).ok:
+        tr = _truth(cap, take.name)
+        views.append({"name": take.name, "K": tr.camera_K.tolist(), "R": tr.camera_R.tolist(),
+                      "t": tr.camera_t.tolist()})
+    (cap.derived_dir / "poses.json").write_text(json.dumps({"views": views}))
     return cap
 
 
@@ -42,11 +48,14 @@ def _truth(cap: Capture, name: str | None = None) -> TakeTruth:
     return TakeTruth.load(truth_path(cap.takes_dir / f"{name}.h5"))
 
 
-def _write_trajectories(cap: Capture, n_steps: int = 64, dt_s: float = 5e-4) -> TakeTruth:
+def _write_trajectories(cap: Capture, n_steps: int = 64) -> TakeTruth:
     """derived/reconstruction/trajectories.npz as a perfect reconstruction would leave it: hil_sim's surface
     points moving as the structure did, averaged over the synced takes (each hit a little different), on the
     impact-locked timeline, magnified ALPHA times."""
-    times = -1e-3 + dt_s * np.arange(n_steps)
+    grid = load_sync(cap).times_s                  # the reconstruction trains on the sync grid's frames
+    k0 = int(np.searchsorted(grid, 0.0)) - 1        # from the last frame before the impact
+    times = grid[k0:k0 + n_steps]
+    assert len(times) == n_steps
     qs = []
     for take in load_sync(cap).ok:
         tr = _truth(cap, take.name)
@@ -118,6 +127,13 @@ def test_accelerometer_modes_match_the_rig_and_the_video_shapes_match_the_accele
     # ODS at the modal lines: the video's synthesised receptance and the measured H1 agree in shape
     for a, b in zip(res.ods_accel, res.ods_video):
         assert mac(a, b)[0, 0] > 0.9
+    # the 3D motion projected into each take's camera against 2D tracks in its synced, unmagnified frames: the
+    # motion is 0.02-0.03 px rms, near the trackers' noise (0.012 px), and they read it low (docs/analysis.md);
+    # asserted loosely: that it is seen, in phase, at about the right size
+    assert len(v.crosscheck) == 3
+    for check in v.crosscheck:
+        assert check.n_points >= 10
+        assert 0.4 < check.gain < 1.2 and check.correlation > 0.6, check
 
 
 def test_outputs_read_back(capture):

@@ -1,0 +1,139 @@
+"""The 3D motion checked against single views: the video's surface motion projected into a take's camera, and
+the same points tracked in 2D in that take's synced (unmagnified) frames. Gain 1 means the 3D reconstruction
+moves as much as the images show; it is independent of the 2D magnifier and of the Gaussians' fit."""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from odsplat.errors import InputError
+from odsplat.manifest import load_json
+from odsplat.store import Capture
+
+from .ods import SurfaceMotion
+from .tracking import project_displacement, track_points
+
+log = logging.getLogger(__name__)
+
+POSES = "poses.json"   # under derived/: each view's K, R, t (world to camera, OpenCV axes)
+DEPTH_TOL_M = 0.01     # a point is visible when within this of the nearest surface point on its pixel
+
+
+@dataclass(frozen=True)
+class ViewCheck:
+    take: str
+    n_points: int
+    gain: float            # tracked / projected 3D motion, least squares over every point and time, divided by
+                           # force_ratio (the 3D motion is the takes' mean; this take was hit a little harder or softer)
+    correlation: float     # between the two, every point and time
+    motion_rms_px: float   # rms of the projected 3D motion: how much there was to see
+    residual_rms_px: float  # rms of tracked - gain x projected
+    force_ratio: float = 1.0  # this take's impulse (as synced) / the synced takes' mean
+
+
+def _poses(capture: Capture) -> dict[str, dict]:
+    path = capture.derived_dir / POSES
+    data = load_json(path, missing="no camera poses (run `odsplat poses` first)")
+    views = data.get("views") if isinstance(data, dict) else None
+    if not isinstance(views, list):
+        raise InputError(path, "expected a 'views' list of cameras")
+    return {v["name"]: v for v in views if isinstance(v, dict) and "name" in v}
+
+
+def _visible(points_cam: np.ndarray, uv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Points nearest the camera on their pixel (a z-buffer over the surface points, 3x3 neighbourhood)."""
+    h, w = shape
+    px = np.round(uv).astype(int)
+    inside = (points_cam[:, 2] > 0) & (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    zbuf = np.full((h + 2, w + 2), np.inf)
+    z = points_cam[:, 2]
+    np.minimum.at(zbuf, (px[inside, 1] + 1, px[inside, 0] + 1), z[inside])
+    near = np.min(np.stack([zbuf[1 + dy:h + 1 + dy, 1 + dx:w + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)]),
+                  axis=0)
+    vis = np.zeros(len(z), bool)
+    vis[inside] = z[inside] <= near[px[inside, 1], px[inside, 0]] + DEPTH_TOL_M
+    return vis
+
+
+def _spread(order: np.ndarray, uv: np.ndarray, n: int, min_dist_px: float) -> np.ndarray:
+    """Up to n of the indices in `order` (best first), at least min_dist_px apart in the image."""
+    chosen: list[int] = []
+    for i in order:
+        if all(np.hypot(*(uv[i] - uv[j])) >= min_dist_px for j in chosen):
+            chosen.append(int(i))
+            if len(chosen) == n:
+                break
+    return np.array(chosen, int)
+
+
+def check_view(frames: np.ndarray, frame_times_s: np.ndarray, motion: SurfaceMotion, K, R, t, *, take: str = "",
+               n_points: int = 30, window_px: int = 15, method: str = "gradient",
+               force_ratio: float = 1.0) -> ViewCheck | None:
+    """Compare one take's synced frames (T', H, W) at frame_times_s with the motion projected into its camera."""
+    K, R, t = (np.asarray(a, float) for a in (K, R, t))
+    pick = np.array([int(np.argmin(np.abs(frame_times_s - ti))) for ti in motion.times_s])
+    if np.max(np.abs(frame_times_s[pick] - motion.times_s)) > 1e-6 + 0.01 * np.median(np.diff(frame_times_s)):
+        raise InputError(f"{take}: times_s", "the synced frames do not hold the reconstruction's timesteps")
+    cam = motion.points_m @ R.T + t
+    uv = (cam @ K.T)[:, :2] / cam[:, 2:3]
+    h, w = frames.shape[1:3]
+    margin = window_px // 2 + 3
+    ok = _visible(cam, uv, (h, w)) & (uv[:, 0] >= margin) & (uv[:, 0] < w - margin) & (uv[:, 1] >= margin) \
+        & (uv[:, 1] < h - margin)
+    if ok.sum() < 3:
+        log.warning("%s: fewer than 3 visible surface points; no cross-check", take)
+        return None
+    idx = np.flatnonzero(ok)
+    proj = project_displacement(motion.displacement_m[:, idx], motion.points_m[idx], K, R, t)     # (T, n, 2)
+    proj = proj - proj[:1]
+    strongest = np.argsort(-np.sqrt(np.mean(proj ** 2, axis=(0, 2))))
+    sel = _spread(strongest, uv[idx], n_points, window_px)
+    tracks = track_points(frames[pick], uv[idx][sel], method=method, window_px=window_px)
+    d_tr, d_pr = tracks.displacement_px, proj[:, sel]
+    good = np.all(np.isfinite(d_tr), axis=(0, 2))
+    if good.sum() < 3:
+        log.warning("%s: fewer than 3 trackable points; no cross-check", take)
+        return None
+    a, b = d_tr[:, good].ravel(), d_pr[:, good].ravel()
+    b = b * force_ratio
+    gain = float(a @ b / max(b @ b, 1e-300))
+    corr = float(np.corrcoef(a, b)[0, 1]) if np.std(a) > 0 and np.std(b) > 0 else float("nan")
+    return ViewCheck(take, int(good.sum()), gain, corr, float(np.sqrt(np.mean(b ** 2))),
+                     float(np.sqrt(np.mean((a - gain * b) ** 2))), float(force_ratio))
+
+
+def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int = 6, n_points: int = 30,
+                     method: str = "gradient") -> list[ViewCheck]:
+    """check_view on up to max_views synced takes spread over the capture (those with aligned frames and a
+    pose); none when the capture has no aligned frames or poses."""
+    from odsplat.sync import AlignedTake, load_sync
+
+    try:
+        poses = _poses(capture)
+    except InputError as e:
+        log.info("no 2D cross-check: %s", e)
+        return []
+    takes = [tk for tk in load_sync(capture).ok if tk.aligned_file and tk.name in poses
+             and (capture.root / tk.aligned_file).is_file()]
+    if not takes:
+        log.info("no 2D cross-check: no synced take has aligned frames and a pose")
+        return []
+    impulse = {tk.name: (tk.impulse_n_s or np.nan) * (tk.impulse_scale or 1.0) for tk in load_sync(capture).ok}
+    mean_impulse = float(np.nanmean(list(impulse.values())))
+    chosen = [takes[int(i)] for i in np.unique(np.linspace(0, len(takes) - 1, min(max_views, len(takes))).round())]
+    out = []
+    for tk in chosen:
+        with AlignedTake(capture.root / tk.aligned_file) as ff:
+            frames, times = ff.read_frames(), ff.times_s
+        if frames.ndim == 4:
+            frames = frames.mean(axis=-1)
+        p = poses[tk.name]
+        check = check_view(frames, times, motion, p["K"], p["R"], p["t"], take=tk.name, n_points=n_points,
+                           method=method, force_ratio=float(np.nan_to_num(impulse[tk.name] / mean_impulse, nan=1.0)))
+        if check is not None:
+            log.info("%s: gain %.3f, correlation %.3f over %d points (%.3f px rms)", tk.name, check.gain,
+                     check.correlation, check.n_points, check.motion_rms_px)
+            out.append(check)
+    return out
