@@ -25,7 +25,8 @@ test: $(STAMP)
 # The demo runs what works end to end: a guided 27-view capture on the simulated rig (with two
 # injected faults that QC catches and the session redoes), sync of its takes onto one impact-locked
 # timeline, phase-based magnification of every view, camera poses (pycolmap + tags), dynamic 3D
-# Gaussians on the magnified views (demo-sized: 16 timesteps at 128 px) and an orbit render, then real
+# Gaussians on the magnified views (demo-sized: 16 timesteps at 128 px), an orbit render and the analysis
+# (modes from the accelerometers, the video's 3D shapes, MAC, UFF/HDF5, report), then real
 # recordings imported from $(SHARED_DATA) when that folder exists. Later stages add their steps here.
 demo: $(STAMP)
 	rm -rf $(DEMO_OUT)/sim-rig
@@ -36,6 +37,7 @@ demo: $(STAMP)
 	$(BIN)/odsplat poses $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat reconstruct $(DEMO_OUT)/sim-rig --timesteps 16 --step 2 --iters-t0 800 --iters-step 50
 	$(BIN)/odsplat render $(DEMO_OUT)/sim-rig --camera orbit:16:30 --times -0.0005:0.0145:16
+	$(BIN)/odsplat analyze $(DEMO_OUT)/sim-rig
 	@if test -d $(SHARED_DATA); then \
 	  rm -rf $(DEMO_OUT)/ladisk-beam && \
 	  $(BIN)/odsplat import examples/ladisk-beam.toml --data $(SHARED_DATA) -o $(DEMO_OUT)/ladisk-beam && \
