@@ -177,6 +177,14 @@ def _video(doc: dict) -> str:
         out.append(_table(["#", "frequency (Hz)", "damping (%)", "nearest mode", "difference (%)"], rows, 1))
     else:
         out.append("<p>No pole was found stable in the video alone.</p>")
+    checks = v.get("crosscheck") or []
+    if checks:
+        out.append("<p>The 3D motion projected into single views against 2D tracks of their raw frames "
+                   "(gain 1: the reconstruction moves as much as the images show):</p>")
+        out.append(_table(["take", "points", "gain", "correlation", "motion rms (px)", "impulse ratio"],
+                          [[escape(str(c.get("take", ""))), str(c.get("n_points", "")), _num(c.get("gain"), ".2f"),
+                            _num(c.get("correlation"), ".2f"), _num(c.get("motion_rms_px"), ".3f"),
+                            _num(c.get("force_ratio"), ".2f")] for c in checks]))
     return "".join(out)
 
 

@@ -174,6 +174,7 @@ def test_cli_analyze_and_report(capture):
     assert "modes (accelerometers)" in r.output and "report.html" in r.output
     html = (capture.derived_dir / "analysis" / "report.html").read_text()
     assert "data:image/png;base64," in html
+    assert "2D tracks" in html and "v00_000" in html          # the cross-check table
     r = CliRunner().invoke(main, ["report", str(capture.root)])
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(main, ["analyze", str(capture.root), "--exp-end", "2"])
