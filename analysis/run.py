@@ -40,7 +40,7 @@ class AnalyzeSettings:
     record_s: float | None = None                    # each hit's segment; None: as long as every take allows
     fmin_hz: float | None = None                     # modal fit band; None: 2 % of fmax
     fmax_hz: float | None = None                     # None: 0.45 x the frame rate with a camera, else 0.4 x the DAQ rate
-    max_order: int = 80
+    max_order: int = 120                             # a low, lightly damped mode settles late (23.5 Hz: from ~42)
     approx_freq_hz: tuple[float, ...] | None = None  # pick these poles instead of automatic selection
     ods_freq_hz: tuple[float, ...] | None = None     # ODS lines; None: the modal frequencies
     video: bool = True                               # use derived/reconstruction when it is there

@@ -362,7 +362,7 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
 @click.option("--fmin", "fmin_hz", type=float, default=None, help="Modal fit band, low end (Hz).")
 @click.option("--fmax", "fmax_hz", type=float, default=None,
               help="Modal fit band, high end (Hz; default 0.45 x the frame rate, or 0.4 x the DAQ rate).")
-@click.option("--max-order", type=int, default=80, show_default=True, help="Highest LSCF model order.")
+@click.option("--max-order", type=int, default=120, show_default=True, help="Highest LSCF model order.")
 @click.option("--freq", "approx_freq_hz", type=float, multiple=True,
               help="Pick the pole nearest this frequency (repeatable) instead of automatic selection.")
 @click.option("--ods", "ods_freq_hz", type=float, multiple=True,
