@@ -115,12 +115,13 @@ def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int 
     except InputError as e:
         log.info("no 2D cross-check: %s", e)
         return []
-    takes = [tk for tk in load_sync(capture).ok if tk.aligned_file and tk.name in poses
+    synced = load_sync(capture).ok
+    takes = [tk for tk in synced if tk.aligned_file and tk.name in poses
              and (capture.root / tk.aligned_file).is_file()]
     if not takes:
         log.info("no 2D cross-check: no synced take has aligned frames and a pose")
         return []
-    impulse = {tk.name: (tk.impulse_n_s or np.nan) * (tk.impulse_scale or 1.0) for tk in load_sync(capture).ok}
+    impulse = {tk.name: (tk.impulse_n_s or np.nan) * (tk.impulse_scale or 1.0) for tk in synced}
     mean_impulse = float(np.nanmean(list(impulse.values())))
     chosen = [takes[int(i)] for i in np.unique(np.linspace(0, len(takes) - 1, min(max_views, len(takes))).round())]
     out = []

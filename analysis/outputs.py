@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .export import FRFRecord, Geometry, ShapeRecord, write_results_h5, write_uff
+from .ods import receptance
 
 if TYPE_CHECKING:
     from .run import AnalysisResult
@@ -58,7 +59,6 @@ def records(result: AnalysisResult) -> dict:
             shapes.append(ShapeRecord(f"video mode {k + 1}", float(m.freq_hz[k]), float(m.damping[k]), sid,
                                       v.surface_residues[r][sub], "mode", "m/N"))
         if len(result.ods_freq_hz):
-            from .ods import receptance
             ods = receptance(v.surface_residues[:, sub], v.poles_rad_s, result.ods_freq_hz)     # (L, n, 3)
             for li, f in enumerate(result.ods_freq_hz):
                 shapes.append(ShapeRecord(f"video ODS {f:.2f} Hz", float(f), 0.0, sid, ods[li], "ods", "m/N"))

@@ -17,9 +17,9 @@ from odsplat.store import Capture, atomic_write_text
 
 from .correlation import Correlation, correlate, mac
 from .crosscheck import ViewCheck, crosscheck_views
-from .ema import ModalFit, fit_modes
+from .ema import ModalFit, fit_modes, pole_damping, pole_freq_hz
 from .frf import FRFResult, FRFSettings, check_hit, estimate_frf
-from .ods import TRAJECTORIES, DecayFit, SurfaceMotion, fit_decay, force_transform, lsce_poles, receptance
+from .ods import TRAJECTORIES, SurfaceMotion, fit_decay, force_transform, lsce_poles, receptance
 
 log = logging.getLogger(__name__)
 
@@ -259,7 +259,7 @@ def _stable_video_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1
             lam = lsce_poles(times_s, x, order)
         except InputError:          # too few timesteps for this order
             continue
-        sets.append(lam[(np.abs(lam) / (2 * np.pi) < fmax_hz) & (-lam.real / np.abs(lam) < 0.2)])
+        sets.append(lam[(pole_freq_hz(lam) < fmax_hz) & (pole_damping(lam) < 0.2)])
     if not sets:
         return np.zeros(0), np.zeros(0)
     keep = [lam for lam in sets[-1]
@@ -270,7 +270,7 @@ def _stable_video_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1
         env = np.exp(2 * np.outer(times_s - times_s[0], lam.real)).sum(axis=0)     # (R,)
         energy = np.sum(np.abs(fit.amplitudes) ** 2, axis=1) * env
         lam = lam[energy >= min_share * energy.sum()]
-    return np.abs(lam) / (2 * np.pi), -lam.real / np.maximum(np.abs(lam), 1e-300)
+    return pole_freq_hz(lam), pole_damping(lam)
 
 
 def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: AnalyzeSettings) -> VideoModes | None:
@@ -295,14 +295,15 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     at_sensors = motion.at_points(pos, dirs, k=s.k_neighbours)                      # (T, S)
     surface = motion.displacement_m.reshape(len(t), -1)                             # (T, N*3)
     t_min = 1.5e-3                                                                   # after a ~1 ms pulse
-    fit_s: DecayFit = fit_decay(t, at_sensors, poles, t_min_s=t_min)
-    fit_all = fit_decay(t, surface, poles, t_min_s=t_min)
+    n_s = at_sensors.shape[1]
+    fit = fit_decay(t, np.concatenate([at_sensors, surface], axis=1), poles, t_min_s=t_min)  # one design matrix
     F = _sync_force(capture, force, poles)
     f_hz, zeta = _stable_video_poles(t[t >= t_min], surface[t >= t_min], s.lsce_orders, nyq * 0.8)
     checks = crosscheck_views(capture, motion, max_views=s.crosscheck_views, n_points=s.crosscheck_points) \
         if s.crosscheck_views > 0 else []
-    return VideoModes(poles, np.flatnonzero(use), fit_s.residues(F), motion.points_m,
-                      fit_all.residues(F).reshape(len(poles), -1, 3), fit_s.r2, fit_s.condition, f_hz, zeta, t,
+    residues = fit.residues(F)
+    return VideoModes(poles, np.flatnonzero(use), residues[:, :n_s], motion.points_m,
+                      residues[:, n_s:].reshape(len(poles), -1, 3), fit.r2[:n_s], fit.condition, f_hz, zeta, t,
                       at_sensors, tuple(checks))
 
 

@@ -3,6 +3,7 @@ or local phase, and the first-order image motion of 3D displacements, so the 3D 
 from __future__ import annotations
 
 import logging
+from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
@@ -246,7 +247,7 @@ def _gabor_responses(a: np.ndarray, g: np.ndarray, gc: np.ndarray) -> np.ndarray
 
 # ------------------------------------------------------------------------------------------- trackers
 
-class _TemplateLK:
+class _TemplateLK(ABC):
     """Inverse-additive Lucas-Kanade on a window of the reference: the Gauss-Newton matrix is fixed, and each step
     resamples the current frame (cubic B-spline) on the window placed at the current estimate."""
 
@@ -260,9 +261,9 @@ class _TemplateLK:
         corner = np.floor(pos).astype(np.int64)
         return _sample(_coefficients(_patches(frame, corner, self.n + 2 + _PAD)), pos - corner, self.n)
 
+    @abstractmethod
     def _step(self, frame: np.ndarray, pos: np.ndarray, sl: slice) -> np.ndarray:
         """The correction (p, 2) to subtract from the windows of points sl placed at pos (p, 2)."""
-        raise NotImplementedError
 
     def __call__(self, frame: np.ndarray, guess: np.ndarray) -> np.ndarray:
         d = guess.copy()
