@@ -208,6 +208,8 @@ def main() -> None:
     ap.add_argument("--iters-t0", type=int, default=1500)
     ap.add_argument("--iters-step", type=int, default=60, help="per timestep (paper order)")
     ap.add_argument("--iters-modal", type=int, default=2000)
+    ap.add_argument("--prior-fraction", type=float, default=FitSettings.prior_fraction,
+                    help="of the neighbourhoods each per-timestep iteration evaluates (FitSettings.prior_fraction)")
     ap.add_argument("--orders", default=",".join(ORDERS), help=f"comma-separated, of {', '.join(ORDERS)}")
     ap.add_argument("--sensitivity", action="store_true",
                     help="also vary views, pose noise and rgb noise (for the first of --orders)")
@@ -251,7 +253,8 @@ def main() -> None:
     holdout = names[1::max(1, len(names) // 3)][:3]
     train_names = [n for n in names if n not in holdout]
     gts = {n: GroundTruth(rig, truth[n], args.width, camera) for n in holdout}
-    fit = FitSettings(iters_t0=args.iters_t0, iters_per_step=args.iters_step, seed=args.seed, progress=False)
+    fit = FitSettings(iters_t0=args.iters_t0, iters_per_step=args.iters_step, prior_fraction=args.prior_fraction,
+                      seed=args.seed, progress=False)
     modal = ModalSettings(iters=args.iters_modal, seed=args.seed, progress=False)
     print(f"{len(train_names)} training views, held out {holdout}", file=sys.stderr)
     orders = [o.strip() for o in args.orders.split(",") if o.strip()]
@@ -278,7 +281,8 @@ def main() -> None:
         figures["sensitivity"] = sens
     figures.update(settings=dict(views=args.views, frames=args.frames, timesteps=args.timesteps, step=args.step,
                                  alpha=args.alpha, width_px=args.width, iters_t0=args.iters_t0,
-                                 iters_step=args.iters_step, iters_modal=args.iters_modal, threads=args.threads))
+                                 iters_step=args.iters_step, iters_modal=args.iters_modal,
+                                 prior_fraction=args.prior_fraction, threads=args.threads))
     print(json.dumps(figures, default=float))
 
 
