@@ -7,7 +7,7 @@ import logging
 import struct
 import zlib
 from dataclasses import dataclass, field
-from typing import ClassVar, Union
+from typing import ClassVar, Mapping, Union
 
 import numpy as np
 
@@ -416,16 +416,20 @@ def check_packet(packet: bytes) -> RawPacket:
     return RawPacket(version, type_, seq, bytes(packet[_HEADER.size:-4]))
 
 
-def parse_packet(raw: RawPacket) -> Packet:
-    """Parse a CRC-checked packet's body; raises DAQProtocolError with the NakReason as `reason`."""
+def parse_packet(raw: RawPacket, messages: Mapping[int, type] | None = None,
+                 error: type[DAQProtocolError] | None = None) -> Packet:
+    """Parse a CRC-checked packet's body; raises DAQProtocolError (or `error`) with the NakReason as `reason`.
+
+    `messages` maps type codes to message classes: the DAQ's by default. Another protocol framed the same
+    way (the automatic hammer's, odsplat.hammerproto) passes its own, and its error class."""
     def fail(reason: NakReason, problem: str) -> DAQProtocolError:
-        err = DAQProtocolError(f"packet seq {raw.seq}", problem)
+        err = (error or DAQProtocolError)(f"packet seq {raw.seq}", problem)
         err.reason = reason
         return err
 
     if raw.version != PROTOCOL_VERSION:
         raise fail(NakReason.UNSUPPORTED_VERSION, f"protocol version {raw.version}, expected {PROTOCOL_VERSION}")
-    cls = _MESSAGES.get(raw.type)
+    cls = (_MESSAGES if messages is None else messages).get(raw.type)
     if cls is None:
         raise fail(NakReason.UNKNOWN_TYPE, f"unknown message type 0x{raw.type:02x}")
     try:
@@ -451,8 +455,11 @@ class FrameDecoder:
     """Splits a byte stream into packets. Garbage, partial frames and corrupted frames are counted and skipped,
     so one bad frame costs one packet and the next delimiter resynchronises."""
 
-    def __init__(self, device: str = "daq"):
+    def __init__(self, device: str = "daq", messages: Mapping[int, type] | None = None,
+                 error: type[DAQProtocolError] | None = None):
         self.device = device
+        self._messages = messages  # see parse_packet
+        self._error = error or DAQProtocolError
         self.stats = DecoderStats()
         self._buf = bytearray()
         self._skipping = False  # inside an oversize run: drop bytes until the next delimiter
@@ -488,7 +495,7 @@ class FrameDecoder:
         out = []
         for raw in self.feed_raw(data):
             try:
-                out.append(parse_packet(raw))
+                out.append(parse_packet(raw, self._messages, self._error))
             except DAQProtocolError as e:
                 self.stats.malformed += 1
                 log.warning("%s: %s", self.device, e)
