@@ -17,6 +17,7 @@ A take is scripted before the DAQ starts: mount and arm the camera, schedule the
 """
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import threading
@@ -187,6 +188,13 @@ class SimRig:
         with self._lock:
             t = self.now_s() + delay_s if time_s is None else time_s
             return self.add_impacts(self.hammer.hit(t, double=double))
+
+    def strike(self, impacts: Sequence[Impact], *, delay_s: float = 0.0) -> list[Impact]:
+        """Schedule impacts whose `time_s` counts from the strike: shifted to now_s() + delay_s under the rig's lock,
+        so no DAQ sample can be produced between reading the time and scheduling (the automatic hammer's way)."""
+        with self._lock:
+            t0 = self.now_s() + delay_s
+            return self.add_impacts([dataclasses.replace(i, time_s=t0 + i.time_s) for i in impacts])
 
     def add_impacts(self, impacts: Sequence[Impact]) -> list[Impact]:
         """Schedule exact impacts; a camera waiting for its external trigger fires on the first level crossing."""
