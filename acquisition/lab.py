@@ -15,6 +15,13 @@ driver = "opencv"               # "opencv" (source = device index or video file)
 source = 0
 intrinsics = { fx_px = 1000.0, fy_px = 1000.0, cx_px = 639.5, cy_px = 399.5 }   # optional: enables the pose check
 
+[hammer]                        # optional: an automatic hammer (docs/hammer-protocol.md), fired on every take
+url = "/dev/ttyUSB1"            # a pyserial URL (simhammer://rig for the simulated one), or instead:
+# can = { interface = "socketcan", channel = "can0", bitrate = 1000000 }
+force_n = 200.0                 # the set level; QC accepts the DAQ's peak within force_n * (1 +- tolerance)
+tolerance = 0.03
+fire_timeout_s = 1.0
+
 [tags]                          # optional: the AprilTag layout, as in capture.json
 family = "tag36h11"
 size_m = 0.12
@@ -32,6 +39,8 @@ from odsplat.manifest import Intrinsics, TagLayout, from_plain, load_toml
 
 from .camera import CameraDriver
 from .daq import DAQChannel
+from .hammer import AutoHammer, CANHammerLink
+from .session import AutoHammerSettings
 
 
 @dataclass(frozen=True)
@@ -52,12 +61,37 @@ class _Camera:
 
 
 @dataclass(frozen=True)
+class _Hammer:
+    url: str | None = None
+    can: dict | None = None
+    force_n: float = 200.0
+    tolerance: float = 0.03
+    fire_timeout_s: float = 1.0
+
+
+@dataclass(frozen=True)
 class LabConfig:
     daq_url: str
     sample_rate_hz: float
     channels: tuple[DAQChannel, ...]
     camera: _Camera
     tags: TagLayout | None
+    hammer: _Hammer | None = None
+
+    def hammer_settings(self) -> AutoHammerSettings | None:
+        h = self.hammer
+        return None if h is None else AutoHammerSettings(h.force_n, h.tolerance, h.fire_timeout_s)
+
+    def open_hammer(self) -> AutoHammer | None:
+        """The automatic hammer of [hammer], connected (None without the section)."""
+        h = self.hammer
+        if h is None:
+            return None
+        if h.url is not None:
+            return AutoHammer.open_serial(h.url)
+        from odsplat.canproto import open_bus
+
+        return AutoHammer(CANHammerLink(open_bus(config=h.can), close_bus=True))
 
     def open_camera(self) -> CameraDriver:
         c = self.camera
@@ -91,4 +125,7 @@ def load_lab_config(path: str | Path) -> LabConfig:
     channels = tuple(from_plain(DAQChannel, c, f"{path}: daq.channels[{i}]") for i, c in enumerate(daq.channels))
     camera = from_plain(_Camera, data["camera"], f"{path}: camera")
     tags = from_plain(TagLayout, data["tags"], f"{path}: tags") if "tags" in data else None
-    return LabConfig(daq.url, daq.sample_rate_hz, channels, camera, tags)
+    hammer = from_plain(_Hammer, data["hammer"], f"{path}: hammer") if "hammer" in data else None
+    if hammer is not None and (hammer.url is None) == (hammer.can is None):
+        raise InputError(f"{path}: hammer", "give exactly one of url (serial) or can = { interface, channel, ... }")
+    return LabConfig(daq.url, daq.sample_rate_hz, channels, camera, tags, hammer)

@@ -26,6 +26,7 @@ from odsplat.tags import camera_pose_from_tags, detect_tags
 
 from .camera import CameraDriver, CameraTimeout, TriggerSettings
 from .daq import DAQChannel, DAQError, SerialDAQ
+from .hammer import AutoHammer, FireRecord, HammerError, InterlockError
 from .plan import PlanSettings, PoseCheck, check_pose, coverage, describe_view, plan_views, top_view_map
 from .qc import HitQC, QCLimits, check_hit
 from .trigger import HammerTrigger, TriggeredRecord, wait_for_hit
@@ -39,6 +40,7 @@ class Bench(Protocol):
     camera: CameraDriver
     channels: Sequence[DAQChannel]  # what open_daq() records
     tags: TagLayout | None
+    hammer: AutoHammer | None       # an automatic hammer, fired by the session when its settings say so
 
     def open_daq(self) -> SerialDAQ:
         """The DAQ for one take, configured on start (opened per take, closed by the session)."""
@@ -55,6 +57,30 @@ class Bench(Protocol):
     def take_written(self, take_path: Path, record: TriggeredRecord | None) -> None:
         """Called just before a take is finalised (the simulated rig saves its ground truth here)."""
 
+    def retry_view(self, view: Viewpoint, outcomes: Sequence[TakeOutcome]) -> bool:
+        """Every try at this view failed (`outcomes`): try again (True) or move on and leave it missing (False)."""
+
+
+@dataclass(frozen=True)
+class AutoHammerSettings:
+    """Fire an automatic hammer (the bench's `hammer`) at a set force for every take."""
+
+    force_n: float = 200.0
+    tolerance: float = 0.03        # QC accepts a DAQ peak force within force_n * (1 +- tolerance)
+    fire_timeout_s: float = 1.0    # the hammer gives up when it cannot fire within this
+    correct_level: bool = True     # scale the commanded level by what the load cell measured on earlier shots
+    history: int = 5               # shots the correction uses (their median)
+
+    def __post_init__(self) -> None:
+        if not self.force_n > 0:
+            raise InputError("AutoHammerSettings.force_n", f"must be positive, got {self.force_n}")
+        if not 0 < self.tolerance < 1:
+            raise InputError("AutoHammerSettings.tolerance", f"expected a fraction in (0, 1), got {self.tolerance}")
+
+    @property
+    def band_n(self) -> tuple[float, float]:
+        return self.force_n * (1 - self.tolerance), self.force_n * (1 + self.tolerance)
+
 
 @dataclass(frozen=True)
 class SessionSettings:
@@ -69,6 +95,7 @@ class SessionSettings:
     hit_timeout_s: float = 60.0
     camera_timeout_s: float = 10.0
     static_photos: bool = False  # one still photo per view into static/, for the reconstruction's poses
+    hammer: AutoHammerSettings | None = None  # None: the engineer hits (manual hammer)
 
     def __post_init__(self) -> None:
         if not 0 <= self.pretrigger_frames < self.n_frames:
@@ -85,6 +112,7 @@ class TakeOutcome:
     qc: HitQC | None
     pose: PoseCheck | None
     error: str | None = None
+    fire: FireRecord | None = None  # the automatic hammer's shot
 
 
 @dataclass
@@ -105,7 +133,8 @@ class SessionReport:
         rejected = [o for o in self.outcomes if not o.accepted]
         reasons: dict[str, int] = {}
         for o in rejected:
-            for r in (o.qc.reasons if o.qc else ()) or ("daq_error",):
+            for r in (o.qc.reasons if o.qc else ()) or ((f"hammer_{o.fire.outcome}",) if o.fire and not o.fire.fired else
+                                                       ("daq_error",)):
                 reasons[r] = reasons.get(r, 0) + 1
         why = ", ".join(f"{k} x{v}" for k, v in sorted(reasons.items())) or "none"
         return (f"{self.root}: {len(self.done_views)}/{self.n_views} views accepted, coverage {self.coverage:.0%}; "
@@ -130,6 +159,14 @@ class CaptureSession:
         self.feedback = feedback
         self.views = plan_views(settings.plan)
         self.outcomes: list[TakeOutcome] = []
+        self.hammer: AutoHammer | None = None
+        if settings.hammer is not None:
+            self.hammer = getattr(bench, "hammer", None)
+            if self.hammer is None:
+                raise InputError("odsplat capture", "the session is set to fire an automatic hammer, but the bench has none")
+            self.settings = replace(settings, limits=replace(settings.limits, force_band_n=settings.hammer.band_n))
+        self._gains: list[float] = []      # DAQ peak / commanded level, of recent clean shots
+        self._hammer_reset_due = False     # the session itself faulted or e-stopped the hammer: reset before firing
 
     # ------------------------------------------------------------------------------ the store
 
@@ -161,6 +198,20 @@ class CaptureSession:
 
     def run(self) -> SessionReport:
         cap, recovered = self._open_capture()
+        if self.hammer is not None:
+            if self.hammer.fire_log is None:
+                self.hammer.fire_log = cap.root / "hammer_fires.jsonl"
+            self.hammer.hello()
+        try:
+            return self._run(cap, recovered)
+        finally:
+            if self.hammer is not None and self.hammer.armed:
+                try:
+                    self.hammer.disarm()
+                except HammerError as e:
+                    log.error("could not disarm the hammer: %s", e)
+
+    def _run(self, cap: Capture, recovered: list[str]) -> SessionReport:
         n = len(self.views)
         todo = [v for v in self.views if v.index not in self._done(cap)]
         for view in tqdm(todo, desc="views", unit="view", disable=None):
@@ -171,8 +222,18 @@ class CaptureSession:
             self.bench.place_camera(view, instructions)
             if self.settings.static_photos:
                 self._static_photo(cap, view)
-            for attempt in range(self.settings.max_attempts):
+            tries: list[TakeOutcome] = []
+            attempt = 0
+            while True:
+                if attempt == self.settings.max_attempts:
+                    log.error("view %d: no accepted take after %d attempts", view.index, attempt)
+                    if not self.bench.retry_view(view, tries):
+                        log.error("view %d: moving on; it stays missing", view.index)
+                        break
+                    attempt = 0
+                attempt += 1
                 outcome, record = self._take(cap, view)
+                tries.append(outcome)
                 accepted = outcome.accepted and self.bench.decide(outcome.qc, outcome.pose)
                 if outcome.accepted and not accepted:  # the engineer redoes a take QC passed: mark it so
                     outcome = TakeOutcome(outcome.name, view.index, False, outcome.qc, outcome.pose, "redone by the engineer")
@@ -184,10 +245,8 @@ class CaptureSession:
                                             top_view_map(self.views, self.settings.plan, done=done, current=view.index))
                 if accepted:
                     break
-                log.warning("view %d: take %s rejected (%s); redo %d/%d", view.index, outcome.name,
-                            outcome.error or "; ".join(outcome.qc.details), attempt + 1, self.settings.max_attempts)
-            else:
-                log.error("view %d: no accepted take after %d attempts; moving on", view.index, self.settings.max_attempts)
+                log.warning("view %d: take %s rejected (%s); redo %d/%d", view.index, outcome.name or "(none)",
+                            outcome.error or "; ".join(outcome.qc.details), attempt, self.settings.max_attempts)
         done = self._done(cap)
         return SessionReport(self.root, n, sorted(done), [v.index for v in self.views if v.index not in done],
                              self.outcomes, recovered, coverage([self.views[i] for i in sorted(done)], self.settings.plan))
@@ -232,6 +291,7 @@ class CaptureSession:
         camera.configure(TriggerSettings(n_frames=s.n_frames, mode="external", pretrigger=s.pretrigger_frames, fps=s.fps))
         daq = self.bench.open_daq()
         record: TriggeredRecord | None = None
+        fire: FireRecord | None = None
         error: str | None = None
         clipped: set[str] = set()
         try:
@@ -240,7 +300,18 @@ class CaptureSession:
                 cap.manifest.daq_sample_rate_hz = daq.sample_rate_hz
                 cap.save_manifest()
             camera.arm()
-            self.bench.hit()
+            if self.hammer is None:
+                self.bench.hit()
+            else:
+                # The pretrigger must be in the buffers before the hammer strikes.
+                fps = camera.describe().fps
+                pre_s = max(s.trigger.pretrigger_s, s.pretrigger_frames / fps if fps else 0.0)
+                daq.wait_for(int(1.2 * pre_s * daq.sample_rate_hz) + 1, timeout_s=max(2.0, 5 * pre_s))
+                fire = self._fire(daq)
+                if fire is None or not fire.fired:  # nothing struck: no take, the redo loop tries again
+                    daq.stop()
+                    camera.stop()
+                    return self._no_hit(name, view, fire), None
             soft = getattr(camera, "software_trigger", None)
             record = wait_for_hit(daq, s.trigger, s.hit_timeout_s, on_trigger=(lambda _: soft()) if soft else None)
             daq.stop()
@@ -259,8 +330,51 @@ class CaptureSession:
             camera_error = str(e)
             log.error("view %d: %s", view.index, camera_error)
             camera.stop()
-        outcome = self._write(cap, name, view, record, status, clipped, error, daq.channels, camera_error)
+        outcome = self._write(cap, name, view, record, status, clipped, error, daq.channels, camera_error, fire)
+        if self.hammer is not None and fire is not None and outcome.qc is not None:
+            self._learn_gain(fire, outcome.qc)
         return outcome, record
+
+    # ------------------------------------------------------------------------------ the automatic hammer
+
+    def commanded_force_n(self) -> float:
+        """The level to command: the set force divided by the hammer's gain on this structure, as measured by
+        the DAQ's load cell on recent clean shots (a hammer calibrated on another structure is off)."""
+        h = self.settings.hammer
+        if not h.correct_level or not self._gains:
+            return h.force_n
+        return h.force_n / float(np.median(self._gains[-h.history:]))
+
+    def _learn_gain(self, fire: FireRecord, qc: HitQC) -> None:
+        if set(qc.reasons) & {"double_hit", "force_overload", "dropped_samples", "daq_error"} or not qc.peak_force_n > 0:
+            return
+        self._gains.append(qc.peak_force_n / fire.level)
+
+    def _fire(self, daq: SerialDAQ) -> FireRecord | None:
+        """Arm and fire the hammer for this take; None or a record that did not fire when nothing struck."""
+        hammer, h = self.hammer, self.settings.hammer
+        hammer.recording_armed = lambda: daq.error is None and daq.next_sample > 0  # the camera was armed before this
+        try:
+            if self._hammer_reset_due:
+                hammer.reset()
+                self._hammer_reset_due = False
+            hammer.arm()
+            return hammer.fire(force_n=self.commanded_force_n(), timeout_s=h.fire_timeout_s)
+        except InterlockError:
+            raise  # the e-stop is latched, or the recording is not armed: never work around an interlock
+        except HammerError as e:
+            log.error("hammer: %s", e)
+            if e.record is not None and e.record.outcome in ("fault", "no_response"):
+                self._hammer_reset_due = True
+            return e.record
+        finally:
+            hammer.recording_armed = lambda: False
+
+    def _no_hit(self, name: str, view: Viewpoint, fire: FireRecord | None) -> TakeOutcome:
+        """The hammer did not strike: nothing was recorded worth keeping; the fire log has the attempt."""
+        why = f"hammer: {fire.outcome}" + (f" ({fire.detail})" if fire and fire.detail else "") if fire else "hammer: no shot"
+        log.warning("view %d: no take (%s)", view.index, why)
+        return TakeOutcome("", view.index, False, None, None, why, fire)
 
     def _salvage(self, daq: SerialDAQ) -> TriggeredRecord | None:
         """What the DAQ delivered before it failed: kept, never thrown away."""
@@ -272,7 +386,8 @@ class CaptureSession:
                                daq.read(first, stop), daq.gaps_in(first, stop))
 
     def _write(self, cap: Capture, name: str, view: Viewpoint, record: TriggeredRecord | None, status, clipped: set[str],
-               error: str | None, channels: Sequence[DAQChannel], camera_error: str | None = None) -> TakeOutcome:
+               error: str | None, channels: Sequence[DAQChannel], camera_error: str | None = None,
+               fire: FireRecord | None = None) -> TakeOutcome:
         camera = self.bench.camera
         info = camera.describe()
         frames = camera.frames() if status is not None else iter(())
@@ -281,6 +396,10 @@ class CaptureSession:
         attrs = {"session": self.settings.name, "camera_model": info.model}
         if pose is not None:
             attrs.update(pose_angular_error_deg=pose.angular_error_deg, pose_distance_error_m=pose.distance_error_m)
+        if fire is not None:
+            attrs.update(hammer_set_force_n=self.settings.hammer.force_n, hammer_command_n=fire.level,
+                         hammer_peak_force_n=fire.peak_force_n, hammer_delay_s=fire.delay_s,
+                         hammer_shot_count=fire.shot_count, hammer_rebound=fire.rebound, hammer_fire_time_s=fire.time_s)
         writer = cap.new_take(name, view=view.index, frame_shape=camera.frame_shape if first is not None else None,
                               dtype=camera.dtype, bit_depth=info.bit_depth, fps=info.fps, attrs=attrs,
                               daq_t0_s=record.t0_s if record is not None else 0.0,
@@ -313,7 +432,7 @@ class CaptureSession:
             writer.finalize()
         accepted = qc is not None and qc.accepted
         log.info("take %s (view %d): %s", name, view.index, qc.summary() if qc else f"REJECTED ({error})")
-        return TakeOutcome(name, view.index, accepted, qc, pose, error)
+        return TakeOutcome(name, view.index, accepted, qc, pose, error, fire)
 
     def _pose(self, image: np.ndarray | None, info: CameraInfo, view: Viewpoint) -> tuple[PoseCheck | None, tuple[int, ...] | None]:
         """Floor tags seen in the first frame, and the pose they give checked against the plan."""
@@ -343,8 +462,10 @@ class LabBench:
     """A person at the rig: prompts on the terminal. The camera and the DAQ are real devices."""
 
     def __init__(self, camera: CameraDriver, daq_url: str, channels: Sequence[DAQChannel], sample_rate_hz: float,
-                 tags: TagLayout | None, *, ask: Callable[[str], str] = input, tell: Callable[[str], None] = print):
+                 tags: TagLayout | None, *, ask: Callable[[str], str] = input, tell: Callable[[str], None] = print,
+                 hammer: AutoHammer | None = None):
         self.camera = camera
+        self.hammer = hammer
         self.tags = tags
         self.channels = tuple(channels)
         self.daq_url = daq_url
@@ -369,3 +490,8 @@ class LabBench:
 
     def take_written(self, take_path: Path, record: TriggeredRecord | None) -> None:
         pass
+
+    def retry_view(self, view: Viewpoint, outcomes: Sequence[TakeOutcome]) -> bool:
+        why = "; ".join(o.error or "; ".join(o.qc.details if o.qc else ()) for o in outcomes[-3:])
+        answer = self._ask(f"View {view.index}: {len(outcomes)} tries failed (last: {why}). Try again? [y/N] ")
+        return answer.strip().lower() in ("y", "yes")

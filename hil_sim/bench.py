@@ -3,21 +3,26 @@
 It carries the camera to each planned view (with a placement error, as a person would), hits the
 structure, accepts what QC accepts, and saves each take's ground truth beside it. Faults are injected
 by take number (0 = the first take of this run): a double hit, an overload, a dropped packet, a
-disconnect mid-record, dropped camera frames, or no hit at all.
+disconnect mid-record, or dropped camera frames.
+
+With `hammer="serial"` or `"can"` the bench has an automatic hammer instead (`hil_sim.hammer`), which the
+session fires through the real driver; its faults are a rebound, not ready, stuck and no response.
 """
 from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
+import can
 import numpy as np
 
 from odsplat.acquisition.daq import SerialDAQ
+from odsplat.acquisition.hammer import AutoHammer, CANHammerLink, SerialHammerLink
 from odsplat.acquisition.plan import view_eye_m
 from odsplat.acquisition.qc import HitQC
-from odsplat.acquisition.session import SessionReport
+from odsplat.acquisition.session import AutoHammerSettings, SessionReport
 from odsplat.acquisition.trigger import TriggeredRecord
 from odsplat.errors import InputError
 from odsplat.geometry import spherical_eye, viewing_angle_deg
@@ -25,12 +30,16 @@ from odsplat.manifest import Viewpoint
 
 from .camera import SimCamera, SimCameraConfig
 from .daq import register_url_handler
+from .hammer import HammerFaults, SimAutoHammer, SimHammerCAN, SimHammerSerial, SimHammerSettings
 from .render import PinholeCamera
 from .rig import SimRig, truth_path
 
 log = logging.getLogger(__name__)
 
-FAULTS = ("double_hit", "overload", "dropped_packet", "disconnect", "dropped_frames")
+# The automatic hammer's faults (hil_sim.hammer) by the session's name for them.
+HAMMER_FAULTS = {"rebound": "rebound", "hammer_not_ready": "not_ready", "hammer_stuck": "stuck",
+                 "hammer_no_response": "no_response"}
+FAULTS = ("double_hit", "overload", "dropped_packet", "disconnect", "dropped_frames", *HAMMER_FAULTS)
 
 
 def parse_faults(spec: str) -> dict[int, str]:
@@ -56,6 +65,7 @@ class SimBenchSettings:
     overload_factor: float = 12.0
     random_clock_phase: bool = True   # camera and DAQ clocks are independent: each take's frames fall anywhere
     force_scatter: float | None = None  # relative rms of the hit force, take to take (None: the rig hammer's own)
+    auto_hammer: SimHammerSettings = SimHammerSettings()  # the automatic hammer, when the bench has one
     seed: int = 0
 
 
@@ -63,7 +73,9 @@ class SimBench:
     """Implements the session's `Bench` on a `SimRig`."""
 
     def __init__(self, rig: SimRig | None = None, settings: SimBenchSettings | None = None,
-                 faults: Mapping[int, str] | None = None):
+                 faults: Mapping[int, str] | None = None, *, hammer: str | None = None):
+        """`hammer`: None for the engineer's manual hammer, or "serial" / "can": an automatic hammer on the rig,
+        reached by the real driver over a PTY or a python-can virtual bus (close() the bench when done)."""
         register_url_handler()
         self.rig = rig or SimRig()
         self.settings = settings or SimBenchSettings()
@@ -85,6 +97,50 @@ class SimBench:
         self._daq: SerialDAQ | None = None
         self._fault: str | None = None
         self.true_offsets_deg: dict[int, float] = {}  # view -> how far the camera really was from the plan
+        self.hammer: AutoHammer | None = None
+        self.hammer_model: SimAutoHammer | None = None  # the simulated device behind it: its ground truth
+        self._hammer_device: SimHammerSerial | SimHammerCAN | None = None
+        if hammer is not None:
+            if "overload" in self.faults.values():
+                raise InputError("SimBench.faults", "'overload' is the engineer's hit; the automatic hammer fires its set level")
+            # the automatic hammer's double hit is its rebound
+            self.faults = {k: "rebound" if v == "double_hit" else v for k, v in self.faults.items()}
+            self._open_hammer(hammer)
+        elif any(k in HAMMER_FAULTS for k in self.faults.values()):
+            raise InputError("SimBench.faults", f"{sorted(HAMMER_FAULTS)} need the automatic hammer (hammer='serial' or 'can')")
+
+    def _open_hammer(self, link: str) -> None:
+        # An injected "not ready" lasts a little longer than one fire timeout: that fire expires, the redo fires.
+        model = SimAutoHammer(self.rig, replace(self.settings.auto_hammer, seed=self.settings.auto_hammer.seed
+                                                + 1000 * self.settings.seed), HammerFaults(not_ready_s=1.5))
+        if link == "serial":
+            device = SimHammerSerial(model)
+            self.hammer = AutoHammer(SerialHammerLink.from_url(device.serve_pty()))
+        elif link == "can":
+            channel = f"simhammer-{self.rig.name}-{id(self)}"
+            device = SimHammerCAN(can.Bus(interface="virtual", channel=channel), model)
+            device.start()
+            self.hammer = AutoHammer(CANHammerLink(can.Bus(interface="virtual", channel=channel), close_bus=True))
+        else:
+            raise InputError("SimBench.hammer", f"expected None, 'serial' or 'can'; got {link!r}")
+        self.hammer_model, self._hammer_device = model, device
+
+    def close(self) -> None:
+        """Close the automatic hammer's driver and device, if any."""
+        if self.hammer is not None:
+            self.hammer.close()
+            self.hammer = None
+        if isinstance(self._hammer_device, SimHammerSerial):
+            self._hammer_device.close()
+        elif self._hammer_device is not None:
+            self._hammer_device.stop()
+        self._hammer_device = None  # hammer_model stays: its ground truth (fires)
+
+    def __enter__(self) -> SimBench:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     # ------------------------------------------------------------------------------ Bench
 
@@ -98,6 +154,8 @@ class SimBench:
         options = {"drop_every": 20} if self._fault == "dropped_packet" else {}
         if self._fault:
             log.warning("sim: injecting %s into take %d", self._fault, self.takes - 1)
+        if self._fault in HAMMER_FAULTS:
+            self.hammer_model.inject_next(HAMMER_FAULTS[self._fault])
         self._daq = SerialDAQ.from_url(self.rig.daq_url(fs_max_hz=51_200.0, **options), self.channels,
                                        self.settings.daq_rate_hz)
         return self._daq
@@ -134,6 +192,9 @@ class SimBench:
     def decide(self, qc: HitQC, pose) -> bool:
         return qc.accepted
 
+    def retry_view(self, view: Viewpoint, outcomes) -> bool:
+        return False  # the simulated engineer moves on; the view is reported missing
+
     def take_written(self, take_path: Path, record: TriggeredRecord | None) -> None:
         n = record.stop_sample if record is not None else 0
         if n and self.rig.impacts:
@@ -143,15 +204,18 @@ class SimBench:
 def simulate_capture(out: str | Path, *, n_views: int = 27, n_frames: int = 100, pretrigger_frames: int = 10,
                      record_s: float = 0.3, pretrigger_s: float = 0.02, settings: SimBenchSettings | None = None,
                      rig: SimRig | None = None, faults: Mapping[int, str] | None = None,
-                     max_attempts: int = 5) -> SessionReport:
+                     max_attempts: int = 5, hammer: AutoHammerSettings | None = None,
+                     hammer_link: str = "serial") -> SessionReport:
     """Record a whole capture on the simulated rig in this process: the guided session with the simulated
-    engineer (`odsplat capture --sim --auto` without the command line). For tests, benches and the demo."""
+    engineer (`odsplat capture --sim --auto` without the command line). For tests, benches and the demo.
+
+    `hammer`: fire the simulated automatic hammer over `hammer_link` at these settings; None: the engineer hits."""
     from odsplat.acquisition.plan import PlanSettings
     from odsplat.acquisition.session import CaptureSession, SessionSettings
     from odsplat.acquisition.trigger import HammerTrigger
 
-    bench = SimBench(rig, settings, faults=faults)
-    session = SessionSettings(name=Path(out).name, plan=PlanSettings(n_views=n_views), n_frames=n_frames,
-                              pretrigger_frames=pretrigger_frames, max_attempts=max_attempts,
-                              trigger=HammerTrigger(pretrigger_s=pretrigger_s, record_s=record_s))
-    return CaptureSession(out, session, bench).run()
+    with SimBench(rig, settings, faults=faults, hammer=hammer_link if hammer is not None else None) as bench:
+        session = SessionSettings(name=Path(out).name, plan=PlanSettings(n_views=n_views), n_frames=n_frames,
+                                  pretrigger_frames=pretrigger_frames, max_attempts=max_attempts,
+                                  trigger=HammerTrigger(pretrigger_s=pretrigger_s, record_s=record_s), hammer=hammer)
+        return CaptureSession(out, session, bench).run()

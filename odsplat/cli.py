@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import logging
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -94,14 +95,25 @@ def recover(capture: Path) -> None:
 @click.option("--static-photos", is_flag=True, help="Also take one still photo per view into OUT/static/.")
 @click.option("--max-attempts", type=int, default=5, show_default=True, help="Takes per view before moving on.")
 @click.option("--size", default="400x300", show_default=True, help="With --sim: image size WxH in px.")
+@click.option("--hammer", type=click.Choice(["auto", "manual"]), default=None,
+              help="Fire an automatic hammer on every take, or let the engineer hit. Default: auto with --sim --auto "
+                   "or a [hammer] section in the lab file, else manual.")
+@click.option("--hammer-force-n", type=float, default=None,
+              help="Automatic hammer: the set force (N; default 200, or the lab file's). Its band replaces --force-band.")
+@click.option("--hammer-tolerance", type=float, default=None,
+              help="Automatic hammer: QC accepts a peak within force * (1 +- this) (default 0.03).")
+@click.option("--hammer-link", type=click.Choice(["serial", "can"]), default="serial", show_default=True,
+              help="With --sim: the simulated automatic hammer's link.")
 @click.option("--sim-faults", default="", help="With --sim: faults on takes of this run, e.g. '2:double_hit,5:disconnect' "
-              "(double_hit, overload, dropped_packet, disconnect, dropped_frames).")
+              "(double_hit, overload, dropped_packet, disconnect, dropped_frames; with the automatic hammer also "
+              "rebound, hammer_not_ready, hammer_stuck, hammer_no_response).")
 @click.option("--seed", type=int, default=0, show_default=True, help="With --sim: random seed of the rig and engineer.")
 @click.option("--window/--no-window", default=None, help="Live plots in a window (default: when a display exists).")
 def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: int, radius_m: float,
             elevation_deg: tuple[float, float], target_m: tuple[float, float, float], n_frames: int,
             pretrigger_frames: int, fps: float | None, record_s: float, pretrigger_s: float, trigger_n: float,
-            force_band: tuple[float, float], static_photos: bool, max_attempts: int, size: str, sim_faults: str, seed: int,
+            force_band: tuple[float, float], static_photos: bool, max_attempts: int, size: str, hammer: str | None,
+            hammer_force_n: float | None, hammer_tolerance: float | None, hammer_link: str, sim_faults: str, seed: int,
             window: bool | None) -> None:
     """Guided multi-view capture into OUT: place the camera at each planned view, hit, QC, accept or redo.
 
@@ -117,11 +129,28 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
         raise InputError("odsplat capture", "give exactly one of --sim or --config LAB.toml")
     if auto and not sim:
         raise InputError("odsplat capture", "--auto needs --sim: in the lab a person places the camera and hits")
+    from .acquisition.session import AutoHammerSettings
+
+    lab = None
+    if config_path is not None:
+        from .acquisition.lab import load_lab_config
+
+        lab = load_lab_config(config_path)
+    if hammer is None:
+        hammer = "auto" if (sim and auto) or (lab is not None and lab.hammer is not None) else "manual"
+    hammer_settings = None
+    if hammer == "auto":
+        base = (lab.hammer_settings() if lab is not None else None) or AutoHammerSettings()
+        hammer_settings = replace(base, **{k: v for k, v in (("force_n", hammer_force_n), ("tolerance", hammer_tolerance))
+                                           if v is not None})
+        if lab is not None and lab.hammer is None:
+            raise InputError(str(config_path), "--hammer auto needs a [hammer] section (url or can) in the lab file")
     settings = SessionSettings(
         name=out.name, plan=PlanSettings(views, radius_m, elevation_deg, target_m), n_frames=n_frames,
         pretrigger_frames=pretrigger_frames, fps=fps,
         trigger=HammerTrigger(level_n=trigger_n, pretrigger_s=pretrigger_s, record_s=record_s),
-        limits=QCLimits(force_band_n=force_band), max_attempts=max_attempts, static_photos=static_photos)
+        limits=QCLimits(force_band_n=force_band), max_attempts=max_attempts, static_photos=static_photos,
+        hammer=hammer_settings)
     if sim:
         from .hil_sim.bench import SimBench, SimBenchSettings, parse_faults
         from .hil_sim.rig import RigConfig, SimRig
@@ -131,20 +160,22 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
         except ValueError:
             raise InputError("--size", f"expected WxH in pixels, e.g. 400x300; got {size!r}") from None
         bench = SimBench(SimRig(config=RigConfig(seed=seed)), SimBenchSettings(width_px=w, height_px=h, seed=seed),
-                         faults=parse_faults(sim_faults))
+                         faults=parse_faults(sim_faults), hammer=hammer_link if hammer == "auto" else None)
         if not auto:
             bench.place_camera = _asking_place(bench.place_camera)
             bench.decide = _asking_decide
     else:
-        from .acquisition.lab import load_lab_config
-
-        lab = load_lab_config(config_path)
         bench = LabBench(lab.open_camera(), lab.daq_url, lab.channels, lab.sample_rate_hz, lab.tags,
-                         ask=lambda q: click.prompt(q, default="", show_default=False), tell=click.echo)
+                         ask=lambda q: click.prompt(q, default="", show_default=False), tell=click.echo,
+                         hammer=lab.open_hammer() if hammer == "auto" else None)
     if window is None:
         window = display_available() and not auto
     feedback = PlotFeedback(click.echo, settings and _plan(settings)) if window else TextFeedback(click.echo)
-    report = CaptureSession(out, settings, bench, feedback=feedback).run()
+    try:
+        report = CaptureSession(out, settings, bench, feedback=feedback).run()
+    finally:
+        if getattr(bench, "hammer", None) is not None:
+            bench.hammer.close()
     click.echo(report.summary())
     if not report.complete:
         sys.exit(1)

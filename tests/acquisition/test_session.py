@@ -41,11 +41,11 @@ def _env() -> dict[str, str]:
 
 
 @pytest.mark.timeout(300)
-def test_sim_auto_records_27_accepted_views_and_redoes_every_fault(tmp_path):
+def test_sim_manual_hammer_records_27_accepted_views_and_redoes_every_fault(tmp_path):
     out = tmp_path / "cap"
     spec = ",".join(f"{k}:{v}" for k, v in FAULTS.items())
-    run = subprocess.run(_capture_cmd(out, "--sim-faults", spec), capture_output=True, text=True, env=_env(), cwd=REPO,
-                         timeout=280)
+    run = subprocess.run(_capture_cmd(out, "--hammer", "manual", "--sim-faults", spec), capture_output=True, text=True,
+                         env=_env(), cwd=REPO, timeout=280)
     assert run.returncode == 0, run.stderr[-3000:]
     assert "27/27 views accepted" in run.stdout
     cap = Capture.open(out)
