@@ -387,7 +387,7 @@ class AutoHammer:
         detail = ""
         if shot.outcome is hp.Outcome.FAULT:
             try:
-                detail = f"fault {self.status().fault.name}"
+                detail = self.status().fault.name
             except HammerError as e:
                 detail = f"fault (status unavailable: {e})"
         record = self._record(FireRecord(

@@ -173,7 +173,7 @@ def test_stuck_hammer_reports_a_fault_and_reset_clears_it(rig, tmp_path):
     try:
         hammer.hello()
         hammer.arm()
-        with pytest.raises(ShotFailed, match="fault STUCK"):
+        with pytest.raises(ShotFailed, match=r"fault \(STUCK\)"):
             hammer.fire(force_n=100.0)
         with pytest.raises(HammerRefused, match="FAULTED"):
             hammer.arm()
@@ -239,7 +239,7 @@ def test_27_view_session_with_the_automatic_hammer(tmp_path):
     assert not first.accepted and "force_low" in first.qc.reasons
     assert report.outcomes[1].fire.level == pytest.approx(200 / 0.94, rel=0.01)
     # Each injected fault was caught for its reason and the view redone.
-    want = {2: "double_hit", 6: "hammer: fault (fault STUCK)", 11: "hammer: no_response", 17: "hammer: expired"}
+    want = {2: "double_hit", 6: "hammer: fault (STUCK)", 11: "hammer: no_response", 17: "hammer: expired"}
     for k, why in want.items():
         o, redo = report.outcomes[k], report.outcomes[k + 1]
         assert not o.accepted and redo.view == o.view, (k, o)
@@ -294,3 +294,30 @@ driver = "opencv"
     lab.write_text(base + '[hammer]\nurl = "x"\nforce_n = "hard"\n')
     with pytest.raises(InputError, match="hammer.force_n: expected a number"):
         load_lab_config(lab)
+
+
+def test_after_n_failed_tries_the_engineer_is_asked(tmp_path):
+    """A hammer that sticks on every shot: the session redoes max_attempts times, asks, and on 'try again'
+    (after the engineer freed the plunger) gets the view."""
+    from odsplat.acquisition.plan import PlanSettings
+    from odsplat.acquisition.session import CaptureSession, SessionSettings
+    from odsplat.acquisition.trigger import HammerTrigger
+    from odsplat.hil_sim.bench import SimBench
+
+    class Engineer(SimBench):
+        asked: list = []
+
+        def retry_view(self, view, outcomes):
+            self.asked.append([o.error for o in outcomes])
+            self.hammer_model.faults.stuck_fires = ()  # freed it
+            return len(self.asked) == 1
+
+    with Engineer(settings=SimBenchSettings(width_px=320, height_px=240), hammer="serial") as bench:
+        bench.hammer_model.faults.stuck_fires = range(100)
+        settings = SessionSettings(name="cap", plan=PlanSettings(n_views=1), n_frames=12, pretrigger_frames=3,
+                                   trigger=HammerTrigger(pretrigger_s=0.02, record_s=0.1), max_attempts=2,
+                                   hammer=AutoHammerSettings(force_n=150.0))
+        report = CaptureSession(tmp_path / "cap", settings, bench).run()
+    assert report.complete and len(report.outcomes) == 3
+    assert bench.asked == [["hammer: fault (STUCK)"] * 2]
+    assert [o.accepted for o in report.outcomes] == [False, False, True]
