@@ -369,7 +369,8 @@ class AutoHammer:
         try:
             self._request(message)
         except HammerRefused as e:
-            self._armed = False if e.reason == hp.NakReason.NOT_ARMED else self._armed
+            if e.reason == hp.NakReason.NOT_ARMED:
+                self._armed = False
             record = self._record(FireRecord(time_s=t_sent, outcome="nak", detail=str(e), **base))
             raise HammerRefused(str(e), record, e.reason) from None
         except HammerNoResponse as e:
