@@ -2,14 +2,10 @@
 clipping, disconnect), and the `simdaq://` URL registry."""
 from __future__ import annotations
 
-import errno
-import fcntl
 import logging
 import os
 import select
-import threading
 import time
-import tty
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol, Sequence, Union
 from urllib.parse import parse_qsl, urlsplit
@@ -19,6 +15,8 @@ import serial
 
 from odsplat import daqproto as dp
 from odsplat.errors import InputError
+
+from .pty import PtyDevice
 
 log = logging.getLogger(__name__)
 
@@ -84,7 +82,7 @@ class DAQFaults:
         return bool(k and (index + 1) % k == 0)
 
 
-class SimDAQDevice:
+class SimDAQDevice(PtyDevice):
     """Serves one PTY; acquires from `source` on the inputs the host configures, one thread, non-blocking I/O."""
 
     def __init__(
@@ -100,6 +98,7 @@ class SimDAQDevice:
     ):
         if block_samples < 1:
             raise InputError(device_id, f"block_samples must be >= 1, got {block_samples}")
+        super().__init__(device_id)
         self.source = source
         self.max_rate_hz = float(max_rate_hz)
         self.block_samples = int(block_samples)
@@ -111,10 +110,8 @@ class SimDAQDevice:
         self.n_inputs = len(source.channel_names)
         self.disconnected = False  # set when the disconnect fault fired
         self.sample_counter = 0
-        self.slave_path: str | None = None
         self._rng = np.random.default_rng(self.faults.seed)
         self._decoder = dp.FrameDecoder(f"{device_id} (device side)")
-        self._out = bytearray()
         self._tx_seq = 0
         self._config: dp.ConfigAck | None = None
         self._running = False
@@ -123,49 +120,6 @@ class SimDAQDevice:
         self._clipped = 0
         self._t0 = 0.0
         self._disconnect_deadline: float | None = None
-        self._master = self._slave = self._wake_r = self._wake_w = -1
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    # ------------------------------------------------------------------------------ lifecycle
-
-    def serve_pty(self) -> str:
-        """Open a PTY pair, speak the protocol on the master in a daemon thread; returns the slave's path."""
-        if self._thread is not None:
-            raise InputError(self.device_id, "already serving")
-        self._wake_r, self._wake_w = os.pipe()  # close() wakes the thread through this
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)  # no echo, no newline translation: bytes pass unchanged
-        # The device keeps the slave open so the master never reads EIO when the host closes and reopens.
-        fcntl.fcntl(self._master, fcntl.F_SETFL, fcntl.fcntl(self._master, fcntl.F_GETFL) | os.O_NONBLOCK)
-        self.slave_path = os.ttyname(self._slave)
-        self._thread = threading.Thread(target=self._run, name=f"simdaq {self.slave_path}", daemon=True)
-        self._thread.start()
-        log.info("%s serving on %s", self.device_id, self.slave_path)
-        return self.slave_path
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._wake_w >= 0:
-            os.write(self._wake_w, b"x")
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5)
-            if self._thread.is_alive():
-                log.error("%s: device thread did not stop", self.device_id)
-        for name in ("_master", "_slave", "_wake_r", "_wake_w"):
-            fd = getattr(self, name)
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-                setattr(self, name, -1)
-
-    def __enter__(self) -> SimDAQDevice:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     # ------------------------------------------------------------------------------ event loop
 
@@ -201,17 +155,6 @@ class SimDAQDevice:
                 self._queue(dp.Nak(raw.seq, raw.type, e.reason, e.problem))
                 continue
             self._handle(packet)
-
-    def _send(self) -> None:
-        try:
-            n = os.write(self._master, self._out[:65536])
-        except BlockingIOError:
-            return
-        except OSError as e:
-            if e.errno != errno.EIO:  # EIO: no slave open right now; keep the data for the next reader
-                raise
-            return
-        del self._out[:n]
 
     def _queue(self, message: dp.Message, *, lose: bool = False, corrupt: bool = False) -> None:
         packet = dp.encode_packet(message, self._tx_seq)

@@ -4,15 +4,12 @@ PTY or a CAN bus and strikes a `SimRig`, with injectable faults and the ground t
 from __future__ import annotations
 
 import dataclasses
-import errno
-import fcntl
 import logging
 import math
 import os
 import select
 import threading
 import time
-import tty
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 from urllib.parse import parse_qsl, urlsplit
@@ -24,6 +21,7 @@ from odsplat import hammerproto as hp
 from odsplat.errors import InputError
 
 from .daq import _parse_bool, register_url_handler
+from .pty import PtyDevice
 from .structure import Impact, check_unit_vector
 
 if TYPE_CHECKING:
@@ -447,57 +445,14 @@ class SimAutoHammer:
 
 # ---------------------------------------------------------------------------------- serial transport
 
-class SimHammerSerial:
+class SimHammerSerial(PtyDevice):
     """Serves the hammer on one PTY: a daemon thread decodes packets on the master and sends the model's replies."""
 
     def __init__(self, model: SimAutoHammer):
+        super().__init__(model.settings.device_id)
         self.model = model
-        self.slave_path: str | None = None
-        self._name = model.settings.device_id
-        self._decoder = hp.frame_decoder(f"{self._name} (device side)")
-        self._out = bytearray()
+        self._decoder = hp.frame_decoder(f"{self.pty_name} (device side)")
         self._tx_seq = 0
-        self._master = self._slave = self._wake_r = self._wake_w = -1
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-
-    def serve_pty(self) -> str:
-        """Open a PTY pair, speak the protocol on the master in a daemon thread; returns the slave's path."""
-        if self._thread is not None:
-            raise InputError(self._name, "already serving")
-        self._wake_r, self._wake_w = os.pipe()  # close() wakes the thread through this
-        self._master, self._slave = os.openpty()
-        tty.setraw(self._slave)  # no echo, no newline translation: bytes pass unchanged
-        # The device keeps the slave open so the master never reads EIO when the host closes and reopens.
-        fcntl.fcntl(self._master, fcntl.F_SETFL, fcntl.fcntl(self._master, fcntl.F_GETFL) | os.O_NONBLOCK)
-        self.slave_path = os.ttyname(self._slave)
-        self._thread = threading.Thread(target=self._run, name=f"simhammer {self.slave_path}", daemon=True)
-        self._thread.start()
-        log.info("%s serving on %s", self._name, self.slave_path)
-        return self.slave_path
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._wake_w >= 0:
-            os.write(self._wake_w, b"x")
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=5)
-            if self._thread.is_alive():
-                log.error("%s: device thread did not stop", self._name)
-        for name in ("_master", "_slave", "_wake_r", "_wake_w"):
-            fd = getattr(self, name)
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
-                setattr(self, name, -1)
-
-    def __enter__(self) -> SimHammerSerial:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
     def _run(self) -> None:
         try:
@@ -515,7 +470,7 @@ class SimHammerSerial:
                 if self._master in writable and self._out:
                     self._send()
         except Exception:
-            log.exception("%s: device thread failed", self._name)
+            log.exception("%s: device thread failed", self.pty_name)
             if self._master >= 0:  # the host then sees a disconnect instead of silence
                 os.close(self._master)
                 self._master = -1
@@ -536,7 +491,7 @@ class SimHammerSerial:
                 self._queue(self.model.handle(packet.seq, packet.message, now))  # nothing once it went silent
         if self.model.is_silent(now):
             # Rebooting: bytes are lost, and so is a partial frame, as in a real UART's buffer.
-            self._decoder = hp.frame_decoder(f"{self._name} (device side)")
+            self._decoder = hp.frame_decoder(f"{self.pty_name} (device side)")
 
     def _queue(self, replies: Sequence[hp.Reply]) -> None:
         for reply in replies:
@@ -544,18 +499,6 @@ class SimHammerSerial:
             self._tx_seq = (self._tx_seq + 1) & 0xFFFF
         if replies and self._master >= 0:
             self._send()  # replies are small: write now rather than after the next select
-
-    def _send(self) -> None:
-        try:
-            n = os.write(self._master, self._out[:65536])
-        except BlockingIOError:
-            return
-        except OSError as e:
-            if e.errno != errno.EIO:  # EIO: no slave open right now; keep the data for the next reader
-                raise
-            return
-        del self._out[:n]
-
 
 # ---------------------------------------------------------------------------------- CAN transport
 

@@ -1,0 +1,121 @@
+"""What every simulated serial device shares: serving a PTY from a daemon thread (`PtyDevice`), and the pyserial
+URL handler that opens one on a fresh PTY (`PtySerial`). The DAQ (`simdaq://`) and the automatic hammer
+(`simhammer://`) are built on them."""
+from __future__ import annotations
+
+import abc
+import errno
+import fcntl
+import logging
+import os
+import threading
+import tty
+
+import serial
+from serial.serialutil import SerialException
+
+from odsplat.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+class PtyDevice(abc.ABC):
+    """A device on the master side of a PTY pair. Subclasses write `_run`, the event loop of the device's thread:
+    select on `_master` and `_wake_r` (close() writes to the latter), queue bytes in `_out`, send them with `_send`."""
+
+    def __init__(self, name: str):
+        self.pty_name = name
+        self.slave_path: str | None = None
+        self._out = bytearray()
+        self._master = self._slave = self._wake_r = self._wake_w = -1
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def serve_pty(self) -> str:
+        """Open a PTY pair, speak the protocol on the master in a daemon thread; returns the slave's path."""
+        if self._thread is not None:
+            raise InputError(self.pty_name, "already serving")
+        self._wake_r, self._wake_w = os.pipe()  # close() wakes the thread through this
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)  # no echo, no newline translation: bytes pass unchanged
+        # The device keeps the slave open so the master never reads EIO when the host closes and reopens.
+        fcntl.fcntl(self._master, fcntl.F_SETFL, fcntl.fcntl(self._master, fcntl.F_GETFL) | os.O_NONBLOCK)
+        self.slave_path = os.ttyname(self._slave)
+        self._thread = threading.Thread(target=self._run, name=f"{self.pty_name} {self.slave_path}", daemon=True)
+        self._thread.start()
+        log.info("%s serving on %s", self.pty_name, self.slave_path)
+        return self.slave_path
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._wake_w >= 0:
+            os.write(self._wake_w, b"x")
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=5)
+            if self._thread.is_alive():
+                log.error("%s: device thread did not stop", self.pty_name)
+        for name in ("_master", "_slave", "_wake_r", "_wake_w"):
+            fd = getattr(self, name)
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+                setattr(self, name, -1)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @abc.abstractmethod
+    def _run(self) -> None:
+        """The device thread's event loop, until `_stop` is set or `_master` closed."""
+
+    def _send(self) -> None:
+        try:
+            n = os.write(self._master, self._out[:65536])
+        except BlockingIOError:
+            return
+        except OSError as e:
+            if e.errno != errno.EIO:  # EIO: no slave open right now; keep the data for the next reader
+                raise
+            return
+        del self._out[:n]
+
+
+class PtySerial(serial.Serial):
+    """A real POSIX serial port on the PTY slave of a device built from the URL; the device runs until close().
+    Subclasses (each module's `Serial`, found through `serial.protocol_handler_packages`) set `device_from_url`."""
+
+    device_from_url = None  # staticmethod: url -> PtyDevice, not yet serving
+
+    def __init__(self, *args, **kwargs):
+        self.device: PtyDevice | None = None
+        super().__init__(*args, **kwargs)
+
+    def open(self) -> None:
+        if self._port is None:
+            raise SerialException("Port must be configured before it can be used.")
+        if self.is_open:
+            raise SerialException("Port is already open.")
+        url = self._port
+        self.device = type(self).device_from_url(url)
+        slave = self.device.serve_pty()
+        self.portstr = slave  # PosixSerial.open() opens portstr; name and messages keep the URL
+        try:
+            super().open()
+        except Exception:
+            self.device.close()
+            self.device = None
+            raise
+        finally:
+            self.portstr = url
+        log.info("%s open on %s", url, slave)
+
+    def close(self) -> None:
+        super().close()
+        if self.device is not None:
+            self.device.close()
+            self.device = None
