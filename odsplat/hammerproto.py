@@ -93,13 +93,7 @@ class ShotFlag(enum.IntFlag):
 
 # ---------------------------------------------------------------------------------- messages
 
-class _Empty:
-    def _body(self) -> bytes:
-        return b""
-
-    @classmethod
-    def _parse(cls, r: dp._Reader):
-        return cls()
+_Empty = dp._EmptyBody  # commands without a body encode as the DAQ's do
 
 
 @dataclass(frozen=True)
@@ -183,34 +177,15 @@ class Info:
 
 
 @dataclass(frozen=True)
-class Ack:
+class Ack(dp.Ack):
+    """The DAQ protocol's ACK body (ref_seq u16, ref_type u8) under the hammer's type code."""
     TYPE: ClassVar[MsgType] = MsgType.ACK
-    ref_seq: int
-    ref_type: int
-
-    def _body(self) -> bytes:
-        return struct.pack("<HB", self.ref_seq, self.ref_type)
-
-    @classmethod
-    def _parse(cls, r: dp._Reader) -> Ack:
-        return cls(*r.take("HB"))
 
 
 @dataclass(frozen=True)
-class Nak:
+class Nak(dp.Nak):
+    """The DAQ protocol's NAK body (ref_seq, ref_type, reason, text) under the hammer's type code and reasons."""
     TYPE: ClassVar[MsgType] = MsgType.NAK
-    ref_seq: int
-    ref_type: int
-    reason: int
-    text: str = ""
-
-    def _body(self) -> bytes:
-        return struct.pack("<HBB", self.ref_seq, self.ref_type, self.reason) + dp._text(self.text[:255], "NAK text")
-
-    @classmethod
-    def _parse(cls, r: dp._Reader) -> Nak:
-        ref_seq, ref_type, reason = r.take("HBB")
-        return cls(ref_seq, ref_type, reason, r.text())
 
     @property
     def reason_name(self) -> str:
