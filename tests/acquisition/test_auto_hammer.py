@@ -36,20 +36,29 @@ def rig():
     return SimRig()
 
 
-def _serial(rig, tmp_path, faults: HammerFaults | None = None, **settings):
-    model = SimAutoHammer(rig, SimHammerSettings(**settings), faults)
-    device = SimHammerSerial(model)
-    hammer = AutoHammer(SerialHammerLink.from_url(device.serve_pty()), fire_log=tmp_path / "fires.jsonl",
-                        recording_armed=lambda: True)
-    return model, device, hammer
+@pytest.fixture
+def open_hammer(rig, tmp_path):
+    """open_hammer(faults, **settings) -> (model, driver): a simulated hammer on a PTY and the driver on it,
+    both closed after the test."""
+    opened = []
+
+    def open_(faults: HammerFaults | None = None, **settings):
+        model = SimAutoHammer(rig, SimHammerSettings(**settings), faults)
+        device = SimHammerSerial(model)
+        hammer = AutoHammer(SerialHammerLink.from_url(device.serve_pty()), fire_log=tmp_path / "fires.jsonl",
+                            recording_armed=lambda: True)
+        opened.append((device, hammer))
+        return model, hammer
+
+    yield open_
+    for device, hammer in opened:
+        hammer.close()
+        device.close()
 
 
 @pytest.fixture
-def serial_hammer(rig, tmp_path):
-    model, device, hammer = _serial(rig, tmp_path)
-    yield model, hammer
-    hammer.close()
-    device.close()
+def serial_hammer(open_hammer):
+    return open_hammer()
 
 
 def test_fire_over_serial_reports_what_the_hammer_struck(rig, serial_hammer, tmp_path):
@@ -108,81 +117,65 @@ def test_no_fire_unless_the_hammer_and_the_recording_are_armed(rig, serial_hamme
     assert outcomes == ["refused", "refused", "refused", "nak"]
 
 
-def test_a_fire_that_cannot_execute_expires_and_nothing_strikes(rig, tmp_path):
-    model, device, hammer = _serial(rig, tmp_path, HammerFaults(not_ready_fires=(0,), not_ready_s=2.0))
-    try:
-        hammer.hello()
-        hammer.arm()
-        t = time.monotonic()
-        with pytest.raises(ShotFailed, match="expired") as e:
-            hammer.fire(force_n=100.0, timeout_s=0.3)
-        assert 0.25 < time.monotonic() - t < 0.8
-        assert e.value.record.outcome == "expired" and rig.impacts == []
-        assert model.fires[0].outcome is hp.Outcome.EXPIRED
-        assert hammer.status().state is hp.State.DISARMED
-    finally:
-        hammer.close()
-        device.close()
+def test_a_fire_that_cannot_execute_expires_and_nothing_strikes(rig, open_hammer):
+    model, hammer = open_hammer(HammerFaults(not_ready_fires=(0,), not_ready_s=2.0))
+    hammer.hello()
+    hammer.arm()
+    t = time.monotonic()
+    with pytest.raises(ShotFailed, match="expired") as e:
+        hammer.fire(force_n=100.0, timeout_s=0.3)
+    assert 0.25 < time.monotonic() - t < 0.8
+    assert e.value.record.outcome == "expired" and rig.impacts == []
+    assert model.fires[0].outcome is hp.Outcome.EXPIRED
+    assert hammer.status().state is hp.State.DISARMED
 
 
-def test_emergency_stop_aborts_a_pending_fire_at_once_and_latches(rig, tmp_path):
-    model, device, hammer = _serial(rig, tmp_path, HammerFaults(not_ready_fires=(0,), not_ready_s=0.5))
-    try:
-        hammer.hello()
+def test_emergency_stop_aborts_a_pending_fire_at_once_and_latches(rig, open_hammer):
+    model, hammer = open_hammer(HammerFaults(not_ready_fires=(0,), not_ready_s=0.5))
+    hammer.hello()
+    hammer.arm()
+    threading.Timer(0.1, hammer.estop).start()  # the engineer hits the stop while the fire waits
+    t = time.monotonic()
+    with pytest.raises(ShotFailed, match="aborted"):
+        hammer.fire(force_n=100.0, timeout_s=5.0)
+    assert time.monotonic() - t < 1.0  # not the 5 s timeout
+    assert hammer.status().state is hp.State.ESTOP and rig.impacts == []
+    with pytest.raises(InterlockError, match="emergency stop"):
         hammer.arm()
-        threading.Timer(0.1, hammer.estop).start()  # the engineer hits the stop while the fire waits
-        t = time.monotonic()
-        with pytest.raises(ShotFailed, match="aborted"):
-            hammer.fire(force_n=100.0, timeout_s=5.0)
-        assert time.monotonic() - t < 1.0  # not the 5 s timeout
-        assert hammer.status().state is hp.State.ESTOP and rig.impacts == []
-        with pytest.raises(InterlockError, match="emergency stop"):
-            hammer.arm()
-        with pytest.raises(InterlockError, match="emergency stop"):
-            hammer.fire(force_n=100.0)
-        time.sleep(0.5)  # the drive is ready again
-        hammer.reset()
-        hammer.arm()
-        assert hammer.fire(force_n=100.0).fired and len(rig.impacts) == 1
-    finally:
-        hammer.close()
-        device.close()
+    with pytest.raises(InterlockError, match="emergency stop"):
+        hammer.fire(force_n=100.0)
+    time.sleep(0.5)  # the drive is ready again
+    hammer.reset()
+    hammer.arm()
+    assert hammer.fire(force_n=100.0).fired and len(rig.impacts) == 1
 
 
-def test_a_silent_hammer_times_out_and_the_driver_sends_estop(rig, tmp_path):
-    model, device, hammer = _serial(rig, tmp_path, HammerFaults(no_response_fires=(0,), silent_s=0.4))
-    try:
-        hammer.hello()
-        hammer.arm()
-        with pytest.raises(HammerNoResponse, match="no reply to FIRE") as e:
-            hammer.fire(force_n=100.0)
-        assert e.value.record.outcome == "no_response" and rig.impacts == []
-        with pytest.raises(InterlockError, match="emergency stop"):  # latched on the host: never fire blind
-            hammer.fire(force_n=100.0)
-        time.sleep(0.3)  # the hammer is back (watchdog reboot)
-        hammer.reset()
-        hammer.arm()
-        assert hammer.fire(force_n=100.0).fired
-    finally:
-        hammer.close()
-        device.close()
+def test_a_silent_hammer_times_out_and_the_driver_sends_estop(rig, open_hammer):
+    model, hammer = open_hammer(HammerFaults(no_response_fires=(0,), silent_s=0.4))
+    hammer.hello()
+    hammer.arm()
+    with pytest.raises(HammerNoResponse, match="no reply to FIRE") as e:
+        hammer.fire(force_n=100.0)
+    assert e.value.record.outcome == "no_response" and rig.impacts == []
+    with pytest.raises(InterlockError, match="emergency stop"):  # latched on the host: never fire blind
+        hammer.fire(force_n=100.0)
+    time.sleep(0.3)  # the hammer is back (watchdog reboot)
+    hammer.reset()
+    hammer.arm()
+    assert hammer.fire(force_n=100.0).fired
 
 
-def test_stuck_hammer_reports_a_fault_and_reset_clears_it(rig, tmp_path):
-    model, device, hammer = _serial(rig, tmp_path, HammerFaults(stuck_fires=(0,)))
-    try:
-        hammer.hello()
+def test_stuck_hammer_reports_a_fault_and_reset_clears_it(rig, open_hammer):
+    model, hammer = open_hammer(HammerFaults(stuck_fires=(0,)))
+    hammer.hello()
+    hammer.arm()
+    with pytest.raises(ShotFailed, match=r"fault \(STUCK\)"):
+        hammer.fire(force_n=100.0)
+    with pytest.raises(HammerRefused, match="FAULTED"):
         hammer.arm()
-        with pytest.raises(ShotFailed, match=r"fault \(STUCK\)"):
-            hammer.fire(force_n=100.0)
-        with pytest.raises(HammerRefused, match="FAULTED"):
-            hammer.arm()
-        hammer.reset()
-        hammer.arm()
-        assert hammer.fire(force_n=100.0).fired
-    finally:
-        hammer.close()
-        device.close()
+    hammer.reset()
+    hammer.arm()
+    assert hammer.fire(force_n=100.0).fired
 
 
 def test_fire_over_can_in_energy_mode(rig, tmp_path):
