@@ -235,10 +235,6 @@ class AutoHammer:
     def open_serial(cls, url: str, **kw) -> AutoHammer:
         return cls(SerialHammerLink.from_url(url), **kw)
 
-    @classmethod
-    def open_can(cls, bus: can.BusABC, **kw) -> AutoHammer:
-        return cls(CANHammerLink(bus), **kw)
-
     # ------------------------------------------------------------------------------ the reader thread
 
     def _run(self) -> None:
@@ -336,10 +332,9 @@ class AutoHammer:
         """Emergency stop: sent at once, from any thread; the hammer disarms and latches until `reset()`."""
         self._armed = False
         self._estopped = True
-        seq = self._send(hp.EStop())
-        log.warning("%s: EMERGENCY STOP sent", self.name)
+        log.warning("%s: EMERGENCY STOP", self.name)
         try:
-            self._wait("ACK of ESTOP", lambda: self._replies.pop(seq, None), self.reply_timeout_s)
+            self._request(hp.EStop())
         except HammerNoResponse:
             log.error("%s: the hammer did not acknowledge the emergency stop: cut its power", self.name)
             raise

@@ -346,7 +346,7 @@ class CaptureSession:
         return h.force_n / float(np.median(self._gains[-h.history:]))
 
     def _learn_gain(self, fire: FireRecord, qc: HitQC) -> None:
-        if set(qc.reasons) & {"double_hit", "force_overload", "dropped_samples", "daq_error"} or not qc.peak_force_n > 0:
+        if set(qc.reasons) & {"double_hit", "force_overload", "dropped_samples"} or not qc.peak_force_n > 0:
             return
         self._gains.append(qc.peak_force_n / fire.level)
 
@@ -372,7 +372,10 @@ class CaptureSession:
 
     def _no_hit(self, name: str, view: Viewpoint, fire: FireRecord | None) -> TakeOutcome:
         """The hammer did not strike: nothing was recorded worth keeping; the fire log has the attempt."""
-        why = f"hammer: {fire.outcome}" + (f" ({fire.detail})" if fire and fire.detail else "") if fire else "hammer: no shot"
+        if fire is None:  # refused before any FIRE was sent (arm or reset failed)
+            why = "hammer: no shot"
+        else:
+            why = f"hammer: {fire.outcome}" + (f" ({fire.detail})" if fire.detail else "")
         log.warning("view %d: no take (%s)", view.index, why)
         return TakeOutcome("", view.index, False, None, None, why, fire)
 
