@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import os
-import select
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol, Sequence, Union
@@ -123,31 +122,14 @@ class SimDAQDevice(PtyDevice):
 
     # ------------------------------------------------------------------------------ event loop
 
-    def _run(self) -> None:
-        try:
-            while not self._stop.is_set() and self._master >= 0:
-                timeout = self._produce()
-                want_write = [self._master] if self._out else []
-                readable, writable, _ = select.select([self._master, self._wake_r], want_write, [], timeout)
-                if self._wake_r in readable:
-                    break
-                if self._master in readable:
-                    self._receive()
-                if self._master in writable and self._out:
-                    self._send()
-                if self._disconnect_deadline is not None and (not self._out or time.monotonic() > self._disconnect_deadline):
-                    self._disconnect()
-        except Exception:
-            log.exception("%s: device thread failed", self.device_id)
-            if self._master >= 0:  # the host then sees a disconnect instead of silence
-                os.close(self._master)
-                self._master = -1
+    def _tick(self) -> float | None:
+        return self._produce()
 
-    def _receive(self) -> None:
-        try:
-            data = os.read(self._master, 65536)
-        except BlockingIOError:
-            return
+    def _after_io(self) -> None:
+        if self._disconnect_deadline is not None and (not self._out or time.monotonic() > self._disconnect_deadline):
+            self._disconnect()
+
+    def _on_bytes(self, data: bytes) -> None:
         for raw in self._decoder.feed_raw(data):
             try:
                 packet = dp.parse_packet(raw)

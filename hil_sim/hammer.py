@@ -6,8 +6,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import os
-import select
 import threading
 import time
 from dataclasses import dataclass
@@ -454,32 +452,13 @@ class SimHammerSerial(PtyDevice):
         self._decoder = hp.frame_decoder(f"{self.pty_name} (device side)")
         self._tx_seq = 0
 
-    def _run(self) -> None:
-        try:
-            while not self._stop.is_set() and self._master >= 0:
-                now = time.monotonic()
-                self._queue(self.model.poll(now))
-                wait = self.model.next_event_s(now)
-                timeout = _IDLE_S if wait is None else min(wait, _IDLE_S)
-                want_write = [self._master] if self._out else []
-                readable, writable, _ = select.select([self._master, self._wake_r], want_write, [], timeout)
-                if self._wake_r in readable:
-                    break
-                if self._master in readable:
-                    self._receive()
-                if self._master in writable and self._out:
-                    self._send()
-        except Exception:
-            log.exception("%s: device thread failed", self.pty_name)
-            if self._master >= 0:  # the host then sees a disconnect instead of silence
-                os.close(self._master)
-                self._master = -1
+    def _tick(self) -> float:
+        now = time.monotonic()
+        self._queue(self.model.poll(now))
+        wait = self.model.next_event_s(now)
+        return _IDLE_S if wait is None else min(wait, _IDLE_S)
 
-    def _receive(self) -> None:
-        try:
-            data = os.read(self._master, 65536)
-        except BlockingIOError:
-            return
+    def _on_bytes(self, data: bytes) -> None:
         now = time.monotonic()
         if not self.model.is_silent(now):
             for raw in self._decoder.feed_raw(data):

@@ -8,6 +8,7 @@ import errno
 import fcntl
 import logging
 import os
+import select
 import threading
 import tty
 
@@ -20,8 +21,10 @@ log = logging.getLogger(__name__)
 
 
 class PtyDevice(abc.ABC):
-    """A device on the master side of a PTY pair. Subclasses write `_run`, the event loop of the device's thread:
-    select on `_master` and `_wake_r` (close() writes to the latter), queue bytes in `_out`, send them with `_send`."""
+    """A device on the master side of a PTY pair, served by one daemon thread (`_run`): it selects on the master and
+    on a wake-up pipe (close() writes to it), hands what the host wrote to `_on_bytes`, and writes what the device
+    queued in `_out`. Subclasses say what happens between selects (`_tick`, returning how long the select may
+    sleep, and `_after_io`) and what the host's bytes mean (`_on_bytes`)."""
 
     def __init__(self, name: str):
         self.pty_name = name
@@ -70,8 +73,41 @@ class PtyDevice(abc.ABC):
         self.close()
 
     @abc.abstractmethod
+    def _tick(self) -> float | None:
+        """The device's own work before each select (produce data, fire due events); returns the longest the
+        select may then sleep, in seconds (None: until the host writes or close() wakes it)."""
+
+    @abc.abstractmethod
+    def _on_bytes(self, data: bytes) -> None:
+        """What the host wrote (raw bytes, any chunking)."""
+
+    def _after_io(self) -> None:
+        """After each select's reads and writes (default: nothing)."""
+
     def _run(self) -> None:
-        """The device thread's event loop, until `_stop` is set or `_master` closed."""
+        """The device thread's event loop, until `_stop` is set, close() wakes it or `_master` is closed."""
+        try:
+            while not self._stop.is_set() and self._master >= 0:
+                timeout = self._tick()
+                want_write = [self._master] if self._out else []
+                readable, writable, _ = select.select([self._master, self._wake_r], want_write, [], timeout)
+                if self._wake_r in readable:
+                    break
+                if self._master in readable:
+                    try:
+                        data = os.read(self._master, 65536)
+                    except BlockingIOError:
+                        data = None
+                    if data is not None:
+                        self._on_bytes(data)
+                if self._master in writable and self._out:
+                    self._send()
+                self._after_io()
+        except Exception:
+            log.exception("%s: device thread failed", self.pty_name)
+            if self._master >= 0:  # the host then sees a disconnect instead of silence
+                os.close(self._master)
+                self._master = -1
 
     def _send(self) -> None:
         try:
