@@ -1,6 +1,8 @@
-"""Shared fixtures: the real recordings in ../shared/data, skipped with a reason when absent."""
+"""Shared fixtures: the real recordings in ../shared/data, skipped with a reason when absent; the bench scripts
+as modules."""
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
 
@@ -71,3 +73,14 @@ def sim_capture(tmp_path_factory) -> Capture:
                               faults={1: "double_hit", 3: "dropped_frames"})
     assert report.complete
     return Capture.open(out)
+
+
+@pytest.fixture(scope="session")
+def bench_script():
+    """Load bench/NAME.py as a module (the bench is scripts, not a package): bench_script("analysis")."""
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(f"bench_{name}", REPO / "bench" / f"{name}.py")
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+    return load

@@ -2,26 +2,16 @@
 every figure, and the analysis meets the issue's targets against hil_sim's modes."""
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
 
 
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench_analysis", REPO / "bench" / "analysis.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_bench_analysis_perfect_small(tmp_path, capsys):
+def test_bench_analysis_perfect_small(tmp_path, capsys, bench_script):
     # 72 frames: 64 timesteps of 0.5 ms (a 32 ms window), the fewest LSCE's orders 24-40 need to fit at all.
     # max_order 120 (the default since this bench found that at 80 the 23.5 Hz mode, stable from order ~42, is in
     # under half the chart and automatic selection dropped it; the video's 31 Hz residue then absorbed its motion).
-    figures = _bench().main(["--perfect", "--views", "3", "--frames", "72", "--timesteps", "64", "--step", "1",
-                             "--max-order", "120", "--threads", "1", "--keep", str(tmp_path / "cap")])
+    figures = bench_script("analysis").main(["--perfect", "--views", "3", "--frames", "72", "--timesteps", "64",
+                                             "--step", "1", "--max-order", "120", "--threads", "1",
+                                             "--keep", str(tmp_path / "cap")])
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1 and json.loads(lines[0])["bench"] == "analysis"
     assert json.loads(lines[0])["targets"] == figures["targets"]

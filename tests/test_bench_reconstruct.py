@@ -1,8 +1,6 @@
 """bench/reconstruct.py's displacement figures on exact motion: they must read 1 for the truth and scale with it."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -11,15 +9,6 @@ import torch
 
 from odsplat.hil_sim.camera import SimCameraConfig
 from odsplat.hil_sim.rig import SimRig, TakeTruth, truth_path
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench_reconstruct", REPO / "bench" / "reconstruct.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _exact_scene(rig: SimRig, gt, times_s: np.ndarray, gain: float):
@@ -32,8 +21,8 @@ def _exact_scene(rig: SimRig, gt, times_s: np.ndarray, gain: float):
 
 
 @pytest.mark.parametrize("gain", [1.0, 0.5])
-def test_displacement_scores_read_the_truth(sim_capture, gain):
-    bench = _bench()
+def test_displacement_scores_read_the_truth(sim_capture, gain, bench_script):
+    bench = bench_script("reconstruct")
     take = sorted(sim_capture.takes_dir.glob("*.h5"))[0]
     truth = TakeTruth.load(truth_path(take))
     rig = SimRig()
