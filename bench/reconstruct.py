@@ -39,6 +39,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from odsplat.analysis.ods import SurfaceMotion  # noqa: E402
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
 from odsplat.hil_sim.camera import SimCameraConfig  # noqa: E402
 from odsplat.hil_sim.render import PinholeCamera, render, to_mono  # noqa: E402
@@ -97,16 +98,13 @@ def scores(img: np.ndarray, ref: np.ndarray, crop) -> tuple[float, float, float]
 
 
 def sensor_displacement(scene, points_m: np.ndarray, k: int = 8) -> np.ndarray:
-    """(T, S, 3) physical displacement at points_m: inverse-distance mean over the k nearest opaque Gaussians."""
-    from scipy.spatial import cKDTree
-
-    opaque = scene.rest.opacities.numpy() > 0.3
-    rest = scene.means_rest_m[opaque]
-    dist, idx = cKDTree(rest).query(points_m, k=k)
-    w = 1.0 / np.maximum(dist, 1e-4)
-    w /= w.sum(axis=1, keepdims=True)
-    disp = scene.physical_displacement_m()[:, opaque]
-    return np.einsum("sk,tskc->tsc", w, disp[:, idx])
+    """(T, S, 3) physical displacement at points_m, read as the analysis reads it (`SurfaceMotion.at_points`: the
+    inverse-distance mean of the k nearest Gaussians), over the Gaussians more than 30 % opaque."""
+    opacity = scene.rest.opacities.numpy().reshape(-1)
+    opaque = opacity > 0.3
+    motion = SurfaceMotion(np.asarray(scene.times_s, float), scene.means_rest_m[opaque],
+                           scene.physical_displacement_m()[:, opaque], opacity[opaque], 1.0)
+    return motion.at_points(points_m, k=k)
 
 
 def displacement_scores(scene, truth: TakeTruth, gt: GroundTruth) -> dict:
