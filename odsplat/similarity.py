@@ -19,11 +19,15 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, windo
     r = torch.arange(window, dtype=x.dtype, device=x.device) - (window - 1) / 2
     g = torch.exp(-r ** 2 / (2 * sigma ** 2))
     g = g / g.sum()
-    k = (g[:, None] * g[None, :]).expand(c, 1, window, window).contiguous()
     padding = window // 2 if pad else 0
-    blur = lambda z: F.conv2d(z, k, padding=padding, groups=c)  # noqa: E731
-    mx, my = blur(x), blur(y)
-    sxx, syy, sxy = blur(x * x) - mx * mx, blur(y * y) - my * my, blur(x * y) - mx * my
+    # The Gaussian window is separable: one row pass and one column pass over the five maps at once (22 taps a
+    # pixel instead of 121, in two convolution calls instead of five).
+    z = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+    n = z.shape[1]
+    z = F.conv2d(z, g.view(1, 1, 1, window).expand(n, 1, 1, window), padding=(0, padding), groups=n)
+    z = F.conv2d(z, g.view(1, 1, window, 1).expand(n, 1, window, 1), padding=(padding, 0), groups=n)
+    mx, my, bxx, byy, bxy = z.split(c, dim=1)
+    sxx, syy, sxy = bxx - mx * mx, byy - my * my, bxy - mx * my
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
     return ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
 
