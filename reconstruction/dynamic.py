@@ -285,8 +285,8 @@ def fit_dynamic(g0: Gaussians, views: list[TrainView], s: FitSettings,
             out = render(frozen, v.camera, means=m, quats=q, background=background, backend=s.backend)
             l_img = image_loss(out.image, v.images[t], s.ssim_weight)
             sub = nb.sample(s.prior_fraction, gen)
-            l_prior = (s.rigid_weight * sub.rigidity(means[-1], quats[-1], m, q)
-                       + s.rot_weight * sub.rotation(quats[-1], q) + s.iso_weight * sub.isometry(m))
+            l_rig, l_rot, l_iso = sub.priors(means[-1], quats[-1], m, q)
+            l_prior = s.rigid_weight * l_rig + s.rot_weight * l_rot + s.iso_weight * l_iso
             loss = l_img + l_prior
             opt.zero_grad(set_to_none=True)
             loss.backward()

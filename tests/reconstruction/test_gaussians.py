@@ -107,6 +107,53 @@ def test_priors_vanish_under_rigid_motion_and_grow_with_shear():
     assert np.std(draws) > 0
 
 
+def _moved_cloud(n, seed, dtype=torch.float64):
+    pts, _ = _cloud(n, seed=seed)
+    gen = torch.Generator().manual_seed(seed)
+    m0 = torch.as_tensor(pts, dtype=dtype)
+    q0 = torch.nn.functional.normalize(torch.randn(n, 4, generator=gen, dtype=dtype), dim=1)
+    m = (m0 + 0.05 * torch.randn(n, 3, generator=gen, dtype=dtype)).requires_grad_(True)
+    q = (q0 + 0.1 * torch.randn(n, 4, generator=gen, dtype=dtype)).requires_grad_(True)
+    return m0, q0, m, q
+
+
+@pytest.mark.parametrize("fraction", [1.0, 0.3])
+def test_numba_priors_equal_the_torch_definitions(fraction):
+    m0, q0, m, q = _moved_cloud(400, seed=3)
+    sub = Neighbours.build(m0, k=12).sample(fraction, torch.Generator().manual_seed(1))
+    got = {}
+    for backend in ("torch", "numba"):
+        terms = sub.priors(m0, q0, m, q, backend=backend)
+        loss = 4 * terms[0] + 3 * terms[1] + 2 * terms[2]
+        got[backend] = (torch.stack(terms).detach(), *torch.autograd.grad(loss, (m, q)))
+    for a, b in zip(got["torch"], got["numba"]):
+        assert torch.allclose(a, b, rtol=1e-10, atol=1e-14)
+    assert float(got["numba"][0].min()) > 1e-3  # every term is exercised
+    # The same gradients on one thread as on two (a fixed order of summation).
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = torch.autograd.grad(sum(sub.priors(m0, q0, m, q, backend="numba")), (m, q))
+        torch.set_num_threads(2)
+        two = torch.autograd.grad(sum(sub.priors(m0, q0, m, q, backend="numba")), (m, q))
+    finally:
+        torch.set_num_threads(threads)
+    assert all(torch.equal(a, b) for a, b in zip(one, two))
+
+
+def test_numba_priors_gradcheck_and_float32():
+    m0, q0, m, q = _moved_cloud(40, seed=4)
+    sub = Neighbours.build(m0, k=5)
+    assert torch.autograd.gradcheck(lambda mm, qq: torch.stack(sub.priors(m0, q0, mm, qq, backend="numba")), (m, q))
+    # float32 (training's dtype) follows float64 to float32 rounding; a rigid motion still costs nothing.
+    m32, q32, m0_32, q0_32 = (t.detach().float() for t in (m, q, m0, q0))
+    t32 = torch.stack(Neighbours.build(m0_32, k=5).priors(m0_32, q0_32, m32, q32, backend="numba"))
+    assert torch.allclose(t32.double(), torch.stack(sub.priors(m0, q0, m, q)).detach(), rtol=1e-5)
+    assert sub.priors(m0, q0, m0, q0, backend="numba")[0].item() == pytest.approx(0.0, abs=1e-12)
+    with pytest.raises(ValueError, match="backend"):
+        sub.priors(m0, q0, m, q, backend="cuda")
+
+
 def test_ssim_and_image_loss():
     rng = np.random.default_rng(0)
     a = torch.as_tensor(rng.uniform(0, 1, (40, 50, 1)))
