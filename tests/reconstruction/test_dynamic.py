@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from odsplat.errors import InputError
 from odsplat.geometry import spherical_eye
 from odsplat.hil_sim.render import PinholeCamera, render
 from odsplat.hil_sim.scene import build_scene
@@ -78,11 +79,13 @@ def test_rest_fit_improves_and_is_unit_free(rig):
     assert a_mm == pytest.approx(a_m, abs=0.05) and n_mm == n_m, out
 
 
-def test_per_timestep_fit_recovers_the_true_displacement(rig, tmp_path):
+@pytest.mark.parametrize("average_last", [0.0, 0.5])
+def test_per_timestep_fit_recovers_the_true_displacement(rig, tmp_path, average_last):
     scene, views, pts, amp = rig
     frame, tv = _train_views(views)
     # 15 mm per timestep at the tip is fast for the default rate (0.27 mm per iteration here): a larger one.
-    s = FitSettings(iters_t0=250, iters_per_step=50, lr_means_dynamic=8e-4, progress=False)
+    s = FitSettings(iters_t0=250, iters_per_step=50, lr_means_dynamic=8e-4, average_last=average_last,
+                    progress=False)
     g = Gaussians.from_points(frame.to_scene(pts), np.full((len(pts), 1), 0.5))
     g0, stats = fit_static(g, [(v.camera, v.images[0]) for v in tv], s)
     traj = fit_dynamic(g0, tv, s, torch.tensor(stats["background"]))
@@ -99,7 +102,8 @@ def test_per_timestep_fit_recovers_the_true_displacement(rig, tmp_path):
     gain = float((disp[sel] * truth[sel]).sum() / (truth[sel] ** 2).sum())
     err = np.linalg.norm(disp[sel] - truth[sel], axis=1) / np.linalg.norm(truth[sel], axis=1)
     assert 0.75 < gain < 1.15, gain
-    assert np.median(err) < 0.35, np.median(err)
+    # Averaging the last half of the iterates lags a fit that is still converging (50 iterations for 15 mm here).
+    assert np.median(err) < (0.35 if average_last == 0 else 0.4), np.median(err)
     # The floor the cameras see around the structure does not move.
     floor = (rest[:, 2] < 0.005) & ~inside & (np.linalg.norm(rest[:, :2], axis=1) < 0.5)
     assert floor.sum() >= 20
@@ -146,3 +150,10 @@ def test_densify_clones_splits_prunes_and_keeps_adam_moments():
     loss = sum((p ** 2).sum() for p in fit.params.values())
     loss.backward()
     fit.opt.step()
+
+
+@pytest.mark.parametrize("field, value", [("average_last", 1.5), ("average_last", -0.1), ("prior_fraction", 0.0),
+                                          ("iters_per_step", -1), ("ssim_weight", 2.0)])
+def test_fit_settings_reject_bad_values_by_name(field, value):
+    with pytest.raises(InputError, match=field):
+        FitSettings(**{field: value})
