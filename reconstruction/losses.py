@@ -104,7 +104,9 @@ class Neighbours:
         from .priors_cpu import pair_priors_numba
 
         anchor = self.anchor if self.anchor is not None else torch.arange(self.index.shape[0], device=means.device)
-        rel = quat_to_matrix(quats_prev[anchor]) @ quat_to_matrix(quats[anchor]).transpose(-1, -2)
+        # index_select, not [anchor]: its backward is index_add, where advanced indexing's is a slow index_put.
+        rel = (quat_to_matrix(quats_prev.index_select(0, anchor))
+               @ quat_to_matrix(quats.index_select(0, anchor)).transpose(-1, -2))
         delta = quat_multiply(quat_normalize(quats), quat_conjugate(quat_normalize(quats_prev)))
         terms = pair_priors_numba(means, rel, delta, means_prev, anchor, self.index, self.weight, self.rest_dist)
         return terms[0], terms[1], terms[2]

@@ -24,6 +24,28 @@ from torch.autograd.function import once_differentiable
 from .raster_cpu import _use_torch_threads
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _offsets(means_prev, means, rel, a, i, j):
+    """o = m_j - m_i and the rigidity residual e = (mp_j - mp_i) - rel_a o, in float64."""
+    o0 = float(means[j, 0]) - float(means[i, 0])
+    o1 = float(means[j, 1]) - float(means[i, 1])
+    o2 = float(means[j, 2]) - float(means[i, 2])
+    e0 = float(means_prev[j, 0]) - float(means_prev[i, 0]) - (rel[a, 0, 0] * o0 + rel[a, 0, 1] * o1 + rel[a, 0, 2] * o2)
+    e1 = float(means_prev[j, 1]) - float(means_prev[i, 1]) - (rel[a, 1, 0] * o0 + rel[a, 1, 1] * o1 + rel[a, 1, 2] * o2)
+    e2 = float(means_prev[j, 2]) - float(means_prev[i, 2]) - (rel[a, 2, 0] * o0 + rel[a, 2, 1] * o1 + rel[a, 2, 2] * o2)
+    return o0, o1, o2, e0, e1, e2
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _delta_gap(delta, i, j):
+    """|delta_j - delta_i|."""
+    s = 0.0
+    for c in range(4):
+        d = float(delta[j, c]) - float(delta[i, c])
+        s += d * d
+    return math.sqrt(s)
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
 def _forward(means_prev, means, rel, delta, anchor, index, weight, rest_dist, parts):
     for a in prange(index.shape[0]):
@@ -34,19 +56,10 @@ def _forward(means_prev, means, rel, delta, anchor, index, weight, rest_dist, pa
         for kk in range(index.shape[1]):
             j = index[a, kk]
             w = float(weight[a, kk])
-            o0 = float(means[j, 0]) - float(means[i, 0])
-            o1 = float(means[j, 1]) - float(means[i, 1])
-            o2 = float(means[j, 2]) - float(means[i, 2])
-            e0 = float(means_prev[j, 0]) - float(means_prev[i, 0]) - (rel[a, 0, 0] * o0 + rel[a, 0, 1] * o1 + rel[a, 0, 2] * o2)
-            e1 = float(means_prev[j, 1]) - float(means_prev[i, 1]) - (rel[a, 1, 0] * o0 + rel[a, 1, 1] * o1 + rel[a, 1, 2] * o2)
-            e2 = float(means_prev[j, 2]) - float(means_prev[i, 2]) - (rel[a, 2, 0] * o0 + rel[a, 2, 1] * o1 + rel[a, 2, 2] * o2)
+            o0, o1, o2, e0, e1, e2 = _offsets(means_prev, means, rel, a, i, j)
             rig += w * math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
             iso += w * abs(math.sqrt(o0 * o0 + o1 * o1 + o2 * o2) - float(rest_dist[a, kk]))
-            s = 0.0
-            for c in range(4):
-                d = float(delta[j, c]) - float(delta[i, c])
-                s += d * d
-            rot += w * math.sqrt(s)
+            rot += w * _delta_gap(delta, i, j)
         parts[a, 0] = rig
         parts[a, 1] = rot
         parts[a, 2] = iso
@@ -67,12 +80,7 @@ def _backward_pairs(means_prev, means, rel, delta, anchor, index, weight, rest_d
         for kk in range(index.shape[1]):
             j = index[a, kk]
             w = float(weight[a, kk])
-            o0 = float(means[j, 0]) - float(means[i, 0])
-            o1 = float(means[j, 1]) - float(means[i, 1])
-            o2 = float(means[j, 2]) - float(means[i, 2])
-            e0 = float(means_prev[j, 0]) - float(means_prev[i, 0]) - (rel[a, 0, 0] * o0 + rel[a, 0, 1] * o1 + rel[a, 0, 2] * o2)
-            e1 = float(means_prev[j, 1]) - float(means_prev[i, 1]) - (rel[a, 1, 0] * o0 + rel[a, 1, 1] * o1 + rel[a, 1, 2] * o2)
-            e2 = float(means_prev[j, 2]) - float(means_prev[i, 2]) - (rel[a, 2, 0] * o0 + rel[a, 2, 1] * o1 + rel[a, 2, 2] * o2)
+            o0, o1, o2, e0, e1, e2 = _offsets(means_prev, means, rel, a, i, j)
             go0 = 0.0
             go1 = 0.0
             go2 = 0.0
@@ -105,11 +113,7 @@ def _backward_pairs(means_prev, means, rel, delta, anchor, index, weight, rest_d
             own_m[a, 0] -= go0
             own_m[a, 1] -= go1
             own_m[a, 2] -= go2
-            s = 0.0
-            for c in range(4):
-                d = float(delta[j, c]) - float(delta[i, c])
-                s += d * d
-            nd = math.sqrt(s)
+            nd = _delta_gap(delta, i, j)
             for c in range(4):
                 h = w * g_rot * (float(delta[j, c]) - float(delta[i, c])) / nd if nd > 0.0 else 0.0
                 pair_d[a, kk, c] = h
