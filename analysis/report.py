@@ -161,8 +161,7 @@ def _video(doc: dict) -> str:
     r2 = v.get("sensor_r2", [])
     if r2:
         out.append("<p>Share of each sensor point's video motion that these modes explain (r&sup2;):</p>")
-        out.append(_table(["sensor", "r&sup2;"], [[escape(sensors[j] if j < len(sensors) else f"sensor {j + 1}"),
-                                                  _num(x, ".3f")] for j, x in enumerate(r2)]))
+        out.append(_sensor_table(sensors, "r&sup2;", r2))
     fv, zv = v.get("freq_hz", []), v.get("damping", [])
     fa = np.array([m["freq_hz"] for m in modes], float)
     if fv:
@@ -188,6 +187,12 @@ def _video(doc: dict) -> str:
     return "".join(out)
 
 
+def _sensor_table(sensors: list[str], header: str, values) -> str:
+    """One value per sensor (named, or numbered where the document has fewer names)."""
+    return _table(["sensor", header], [[escape(sensors[j] if j < len(sensors) else f"sensor {j + 1}"),
+                                        _num(x, ".3f")] for j, x in enumerate(values)])
+
+
 def _correlation(doc: dict) -> str:
     c = doc.get("correlation")
     out = []
@@ -210,8 +215,7 @@ def _correlation(doc: dict) -> str:
         comac = c.get("comac", [])
         if comac:
             out.append("<h3>CoMAC per sensor</h3>")
-            out.append(_table(["sensor", "CoMAC"], [[escape(sensors[j] if j < len(sensors) else f"sensor {j + 1}"),
-                                                      _num(x, ".3f")] for j, x in enumerate(comac)]))
+            out.append(_sensor_table(sensors, "CoMAC", comac))
     ods = doc.get("ods", [])
     if ods:
         out.append("<h2>ODS: accelerometers vs video</h2>")
