@@ -15,6 +15,7 @@ import math
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 
 from odsplat.errors import InputError
 from odsplat.processing.filters import TemporalFilter
@@ -39,16 +40,27 @@ class PhaseMagnifier(StreamingMagnifier):
 
     Measured limit: the amplitude envelope of a band does not move, so on broadband texture the motion
     falls short of alpha * d, by ~13 % with 4 orientations and ~7 % with 8 (docs/magnification-phase.md).
+
+    `warp=True` synthesises the other way (Lagrangian): the filtered phase changes of every band give a
+    dense displacement field u (to first order dphi = -u . grad phi in each band; weighted least squares over
+    all bands and orientations, each term weighted by the squared amplitude and summed over the
+    `sigma_px` window of its scale), and the frame is resampled at x - (alpha - 1) u (Keys cubic). Envelope,
+    phase and the unmagnified residuals all move, so the gain is alpha on any texture. With
+    `attenuate_other` the reference frame is resampled at x - alpha u.
     """
 
     def __init__(self, alpha: float, temporal: TemporalFilter | None = None, *, n_orientations: int = 4,
                  sigma_px: float = 2.0, reference: str | torch.Tensor = "first", attenuate_other: bool = False,
-                 n_scales: int | None = None, twidth: float = 1.0, top_band: bool = False,
-                 batch_frames: int = 8):
+                 n_scales: int | None = None, twidth: float = 1.0, top_band: bool = False, warp: bool = False,
+                 noise_sd: float | None = None, batch_frames: int = 8):
         if not sigma_px >= 0:
             raise InputError("sigma_px", f"the phase smoothing width must be >= 0 px, got {sigma_px}")
         self.n_orientations, self.n_scales, self.twidth, self.top_band = n_orientations, n_scales, twidth, top_band
-        self.sigma_px, self.attenuate_other = float(sigma_px), bool(attenuate_other)
+        self.sigma_px, self.attenuate_other, self.warp = float(sigma_px), bool(attenuate_other), bool(warp)
+        if noise_sd is not None and not noise_sd >= 0:
+            raise InputError("noise_sd", f"the frames' noise sd must be >= 0 (in [0, 1] units) or None "
+                                         f"(estimated), got {noise_sd}")
+        self.noise_sd = None if noise_sd is None else float(noise_sd)
         self.pyramid: ComplexSteerablePyramid | None = None
         super().__init__(alpha, temporal, reference=reference, batch_frames=batch_frames)
 
@@ -56,6 +68,10 @@ class PhaseMagnifier(StreamingMagnifier):
         self._prev: list[torch.Tensor] = []  # last frame's complex bands
         self._acc: list[torch.Tensor] = []  # its phase change against the reference (float64)
         self._ref_phase: list[torch.Tensor] = []
+        self._ref_bands: list[torch.Tensor] = []  # warp + attenuate_other: the reference's bands and luminance
+        self._ref_y: torch.Tensor | None = None
+        self._first_y: torch.Tensor | None = None  # warp: the first frame, until the noise is estimated
+        self._noise_est: float | None = None
 
     def _setup(self, height_px: int, width_px: int, device: torch.device) -> int:
         if self.pyramid is None or (self.pyramid.height_px, self.pyramid.width_px) != (height_px, width_px):
@@ -66,6 +82,13 @@ class PhaseMagnifier(StreamingMagnifier):
                 wy = 2 * math.pi * torch.fft.fftfreq(h, device=device)
                 wx = 2 * math.pi * torch.fft.rfftfreq(w, device=device)
                 self._gauss.append(torch.exp(-0.5 * self.sigma_px ** 2 * (wy[:, None] ** 2 + wx[None, :] ** 2)))
+            # Derivatives on each band's own grid (the bands are one-sided: their Nyquist rows carry nothing).
+            self._d_ops = [(1j * 2 * math.pi * torch.fft.fftfreq(w, device=device)[None, :],
+                            1j * 2 * math.pi * torch.fft.fftfreq(h, device=device)[:, None])
+                           for h, w in self.pyramid.band_shapes]
+            # Each band's noise variance per unit image noise variance: white noise through its filter.
+            noise = torch.randn((4, height_px, width_px), generator=torch.Generator().manual_seed(0)).to(device)
+            self._band_noise = [float(b.abs().pow(2).mean()) for b in self.pyramid.build(noise).bands]
         K = self.pyramid.n_orientations
         return sum(K * h * w for h, w in self.pyramid.band_shapes)
 
@@ -74,8 +97,30 @@ class PhaseMagnifier(StreamingMagnifier):
         self._prev = [b[0] for b in bands]
         self._acc = [torch.zeros(b.shape[1:], dtype=torch.float64, device=b.device) for b in bands]
         self._ref_phase = [torch.angle(b[0]) for b in bands] if self.attenuate_other else []
+        if self.warp and self.attenuate_other:
+            self._ref_bands, self._ref_y = [b[:1] for b in bands], y_ref
+
+    @property
+    def frame_noise_sd(self) -> float | None:
+        """The frames' noise sd that the warp weighs with: `noise_sd` if given, else the estimate from the
+        first two frames of the stream (None until two have been pushed)."""
+        return self.noise_sd if self.noise_sd is not None else self._noise_est
+
+    def _estimate_noise(self, y: torch.Tensor) -> None:
+        """The frames' noise sd from the first two frames pushed: the median absolute deviation of their
+        difference (a moving structure covers a small part of the frame), over sqrt(2)."""
+        frames = y if self._first_y is None else torch.cat([self._first_y[None], y])
+        if frames.shape[0] < 2:
+            self._first_y = frames[0].clone()
+            return
+        diff = (frames[1] - frames[0]).flatten().double()
+        self._noise_est = float((diff - diff.median()).abs().median()) / 0.6745 / math.sqrt(2.0)
+        self._first_y = None
+        log.debug("phase warp: frame noise sd estimated at %.2e", self._noise_est)
 
     def _analyse(self, y: torch.Tensor) -> tuple[torch.Tensor, SteerableCoeffs]:
+        if self.warp and self.noise_sd is None and self._noise_est is None:
+            self._estimate_noise(y)
         coeffs = self.pyramid.build(y)
         n = y.shape[0]
         features = []
@@ -90,6 +135,8 @@ class PhaseMagnifier(StreamingMagnifier):
 
     def _synthesise(self, y: torch.Tensor, features: torch.Tensor, cache: SteerableCoeffs | None) -> torch.Tensor:
         coeffs = cache if cache is not None else self.pyramid.build(y)
+        if self.warp:
+            return self._warp(y, features, coeffs)
         out, offset = [], 0
         for s, b in enumerate(coeffs.bands):
             size = b[0].numel()
@@ -104,6 +151,64 @@ class PhaseMagnifier(StreamingMagnifier):
                 out.append(b * torch.polar(torch.ones_like(dphi), (self.alpha - 1.0) * dphi))
         return self.pyramid.reconstruct(coeffs.replace_bands(out))
 
+    def _warp(self, y: torch.Tensor, features: torch.Tensor, coeffs: SteerableCoeffs) -> torch.Tensor:
+        """Resample the frames (or the reference) along the displacement field that the phases measure."""
+        n, (H, W) = y.shape[0], y.shape[-2:]
+        # The least-squares normal equations of u (image px) summed over scales, each brought to full size:
+        # [mxx, mxy, myy] u = [bx, by].
+        normal = torch.zeros((n, 5, H, W), dtype=torch.float32, device=y.device)
+        offset = 0
+        for s, b in enumerate(coeffs.bands):
+            size = b[0].numel()
+            dphi = features[:, offset:offset + size].reshape(b.shape)
+            offset += size
+            if self.attenuate_other:
+                b = self._ref_bands[s]
+            terms = self._normal_terms(b, dphi, s)
+            h, w = b.shape[-2:]
+            # A displacement of u_s band px is u_s * W / w image px: the matrix scales by (w / W)^2, b by w / W.
+            f = w / W
+            terms = terms * torch.tensor([f * f, f * f, f * f, f, f], device=y.device)[:, None, None]
+            if (h, w) != (H, W):
+                terms = F.interpolate(terms, size=(H, W), mode="bilinear", align_corners=False)
+            normal += terms
+        mxx, mxy, myy, bx, by = normal.unbind(1)
+        # A floor keeps textureless regions (no phase evidence) still.
+        floor = 1e-6 * (mxx + myy).mean(dim=(-2, -1), keepdim=True) + 1e-20
+        mxx, myy = mxx + floor, myy + floor
+        det = mxx * myy - mxy * mxy
+        ux, uy = (myy * bx - mxy * by) / det, (mxx * by - mxy * bx) / det
+        gain = self.alpha if self.attenuate_other else self.alpha - 1.0
+        src = self._ref_y.expand(n, -1, -1) if self.attenuate_other else y
+        yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float32, device=y.device),
+                                torch.arange(W, dtype=torch.float32, device=y.device), indexing="ij")
+        return cubic_sample(src, xx - gain * ux, yy - gain * uy)
+
+    def _normal_terms(self, b: torch.Tensor, dphi: torch.Tensor, scale: int) -> torch.Tensor:
+        """(n, 5, h, w): the scale's weighted least-squares terms [mxx, mxy, myy, bx, by] of dphi_k = -u . grad phi_k
+        over its orientations k (u in band px), each weighted by A_k^2 and summed over the sigma_px window."""
+        dx_op, dy_op = self._d_ops[scale]
+        spec = torch.fft.fft2(b)
+        # Im(conj(c) grad c) = A^2 grad phi, so A^2 (grad phi)(grad phi)^T = q q^T / A^2 with q = Im(conj(c) grad c).
+        qx = (b.conj() * torch.fft.ifft2(spec * dx_op)).imag
+        qy = (b.conj() * torch.fft.ifft2(spec * dy_op)).imag
+        a2 = (b.real ** 2 + b.imag ** 2).clamp_min(1e-12)
+        noise_sd = self.frame_noise_sd or 0.0
+        if noise_sd > 0:
+            # Weight A^2 / var_c where the coefficient stands clear of the noise (var_c its noise variance),
+            # fading to 0 at A^2 = 2 var_c: pure-noise coefficients have random phases, not small ones.
+            var_c = noise_sd ** 2 * self._band_noise[scale]
+            wrel = (a2 - 2.0 * var_c).clamp_min(0.0) / (a2 * var_c)
+            qx, qy = qx * wrel.sqrt(), qy * wrel.sqrt()
+            dphi = dphi * wrel.sqrt()
+        n = dphi.shape[0]
+        terms = torch.stack([(qx * qx / a2).sum(1).expand(n, -1, -1), (qx * qy / a2).sum(1).expand(n, -1, -1),
+                             (qy * qy / a2).sum(1).expand(n, -1, -1), -(qx * dphi).sum(1), -(qy * dphi).sum(1)],
+                            dim=1)
+        if self.sigma_px > 0:
+            terms = torch.fft.irfft2(torch.fft.rfft2(terms) * self._gauss[scale], s=terms.shape[-2:])
+        return terms
+
     def _smooth(self, dphi: torch.Tensor, amp: torch.Tensor, scale: int) -> torch.Tensor:
         # Weighting by amplitude keeps the noisy phase of near-zero coefficients from leaking into their
         # neighbours; the FFT blur is circular like the pyramid itself.
@@ -112,6 +217,31 @@ class PhaseMagnifier(StreamingMagnifier):
         num = torch.fft.irfft2(torch.fft.rfft2(dphi * amp) * g, s=shape)
         den = torch.fft.irfft2(torch.fft.rfft2(amp) * g, s=shape)
         return num / den.clamp_min(1e-8)
+
+
+def cubic_sample(img: torch.Tensor, x_px: torch.Tensor, y_px: torch.Tensor) -> torch.Tensor:
+    """Sample (N, H, W) images at pixel coordinates (N, H, W) (x along columns) with Keys' cubic
+    convolution, a = -0.5, borders clamped. That kernel is third-order accurate; the a = -0.75 of OpenCV's
+    and torch's bicubic is not, and shifts a smooth texture by 0.1 px as 0.135 px."""
+    n, h, w = img.shape
+    x0, y0 = torch.floor(x_px), torch.floor(y_px)
+    tx, ty = x_px - x0, y_px - y0
+    x0, y0 = x0.long(), y0.long()
+
+    def kernel(t: torch.Tensor) -> torch.Tensor:
+        t = t.abs()
+        near = (1.5 * t - 2.5) * t * t + 1.0
+        far = ((-0.5 * t + 2.5) * t - 4.0) * t + 2.0
+        return torch.where(t <= 1.0, near, torch.where(t < 2.0, far, torch.zeros_like(t)))
+
+    flat = img.reshape(n, -1)
+    out = torch.zeros_like(x_px)
+    for j in range(-1, 3):
+        wy, rows = kernel(ty - j), (y0 + j).clamp(0, h - 1) * w
+        for i in range(-1, 3):
+            idx = (rows + (x0 + i).clamp(0, w - 1)).reshape(n, -1)
+            out += wy * kernel(tx - i) * torch.gather(flat, 1, idx).reshape(n, h, w)
+    return out
 
 
 def shift_image_px(img: torch.Tensor, dx_px: float, dy_px: float) -> torch.Tensor:
@@ -159,4 +289,4 @@ def measure_shift_px(ref: torch.Tensor, img: torch.Tensor, *, iterations: int = 
     return float(d[0]), float(d[1])
 
 
-__all__ = ["PhaseMagnifier", "measure_shift_px", "shift_image_px"]
+__all__ = ["PhaseMagnifier", "cubic_sample", "measure_shift_px", "shift_image_px"]
