@@ -7,7 +7,7 @@ import os
 import time
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol, Sequence, Union
-from urllib.parse import parse_qsl, urlsplit
+from urllib.parse import urlsplit
 
 import numpy as np
 import serial
@@ -15,7 +15,7 @@ import serial
 from odsplat import daqproto as dp
 from odsplat.errors import InputError
 
-from .pty import PtyDevice
+from .pty import PtyDevice, parse_bool, split_url_options
 
 log = logging.getLogger(__name__)
 
@@ -317,19 +317,11 @@ def register_url_handler() -> None:
         serial.protocol_handler_packages.append("odsplat.hil_sim")
 
 
-def _parse_bool(value: str) -> bool:
-    if value.lower() in ("1", "true", "yes", "on"):
-        return True
-    if value.lower() in ("0", "false", "no", "off"):
-        return False
-    raise ValueError(f"expected 0 or 1, got {value!r}")
-
-
 # URL option -> (SimDAQDevice or DAQFaults keyword, parser)
 _URL_OPTIONS: dict[str, tuple[str, Callable[[str], Any]]] = {
     "fs": ("max_rate_hz", float),
     "block": ("block_samples", int),
-    "realtime": ("realtime", _parse_bool),
+    "realtime": ("realtime", parse_bool),
     "range": ("range_v", lambda v: tuple(float(x) for x in v.split(","))),
     "id": ("device_id", str),
     "drop_every": ("drop_packet_every", int),
@@ -347,18 +339,7 @@ def device_from_url(url: str) -> SimDAQDevice:
     parts = urlsplit(url)
     if parts.scheme.lower() != "simdaq" or not parts.netloc:
         raise InputError(url, "expected simdaq://SOURCE[?option=value&...]")
-    device_kw: dict[str, Any] = {}
-    fault_kw: dict[str, Any] = {}
-    source_options: dict[str, str] = {}
-    for key, value in parse_qsl(parts.query, keep_blank_values=True):
-        if key not in _URL_OPTIONS:
-            source_options[key] = value
-            continue
-        name, parse = _URL_OPTIONS[key]
-        try:
-            parsed = parse(value)
-        except ValueError as e:
-            raise InputError(url, f"option {key}={value!r}: {e}") from None
-        (fault_kw if name in _FAULT_FIELDS else device_kw)[name] = parsed
+    source_options: dict[str, str] = {}  # the rest are the source's own
+    device_kw, fault_kw = split_url_options(url, parts.query, _URL_OPTIONS, _FAULT_FIELDS, source_options)
     source = _make_source(parts.netloc, source_options)
     return SimDAQDevice(source, faults=DAQFaults(**fault_kw), **device_kw)

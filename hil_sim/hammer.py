@@ -10,7 +10,7 @@ import threading
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
-from urllib.parse import parse_qsl, urlsplit
+from urllib.parse import urlsplit
 
 import can
 import numpy as np
@@ -18,8 +18,8 @@ import numpy as np
 from odsplat import hammerproto as hp
 from odsplat.errors import InputError
 
-from .daq import _parse_bool, register_url_handler
-from .pty import PtyDevice
+from .daq import register_url_handler
+from .pty import PtyDevice, parse_bool, split_url_options
 from .structure import Impact, check_unit_vector
 
 if TYPE_CHECKING:
@@ -593,7 +593,7 @@ _URL_OPTIONS: dict[str, tuple[str, Callable[[str], Any]]] = {
     "not_ready_fires": ("not_ready_fires", _ints),
     "stuck_fires": ("stuck_fires", _ints),
     "no_response_fires": ("no_response_fires", _ints),
-    "stuck_persists": ("stuck_persists", _parse_bool),
+    "stuck_persists": ("stuck_persists", parse_bool),
     "silent_ms": ("silent_s", _ms),
     "not_ready_ms": ("not_ready_s", _ms),
 }
@@ -609,17 +609,7 @@ def model_from_url(url: str) -> SimAutoHammer:
         target = _TARGETS[parts.netloc.lower()]
     except KeyError:
         raise InputError(url, f"no target {parts.netloc!r}; registered: {sorted(_TARGETS)}") from None
-    settings_kw: dict[str, Any] = {}
-    fault_kw: dict[str, Any] = {}
-    for key, value in parse_qsl(parts.query, keep_blank_values=True):
-        if key not in _URL_OPTIONS:
-            raise InputError(url, f"unknown option {key!r}; expected one of {sorted(_URL_OPTIONS)}")
-        name, parse = _URL_OPTIONS[key]
-        try:
-            parsed = parse(value)
-        except ValueError as e:
-            raise InputError(url, f"option {key}={value!r}: {e}") from None
-        (fault_kw if name in _FAULT_FIELDS else settings_kw)[name] = parsed
+    settings_kw, fault_kw = split_url_options(url, parts.query, _URL_OPTIONS, _FAULT_FIELDS)
     try:
         settings = SimHammerSettings(**settings_kw)
     except InputError as e:

@@ -1,6 +1,6 @@
-"""What every simulated serial device shares: serving a PTY from a daemon thread (`PtyDevice`), and the pyserial
-URL handler that opens one on a fresh PTY (`PtySerial`). The DAQ (`simdaq://`) and the automatic hammer
-(`simhammer://`) are built on them."""
+"""What every simulated serial device shares: serving a PTY from a daemon thread (`PtyDevice`), the pyserial
+URL handler that opens one on a fresh PTY (`PtySerial`), and the parsing of the URL's options
+(`split_url_options`). The DAQ (`simdaq://`) and the automatic hammer (`simhammer://`) are built on them."""
 from __future__ import annotations
 
 import abc
@@ -11,6 +11,8 @@ import os
 import select
 import threading
 import tty
+from typing import Any, Callable
+from urllib.parse import parse_qsl
 
 import serial
 from serial.serialutil import SerialException
@@ -18,6 +20,38 @@ from serial.serialutil import SerialException
 from odsplat.errors import InputError
 
 log = logging.getLogger(__name__)
+
+
+def parse_bool(value: str) -> bool:
+    """A URL option's boolean: 1/true/yes/on or 0/false/no/off."""
+    if value.lower() in ("1", "true", "yes", "on"):
+        return True
+    if value.lower() in ("0", "false", "no", "off"):
+        return False
+    raise ValueError(f"expected 0 or 1, got {value!r}")
+
+
+def split_url_options(url: str, query: str, options: dict[str, tuple[str, Callable[[str], Any]]],
+                      fault_fields: set[str], others: dict[str, str] | None = None
+                      ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Parse a device URL's query by `options` (URL key -> (keyword, parser)) into the device's keywords and
+    its faults' (the keywords in `fault_fields`). A key not in `options` goes to `others` as it is, or, without
+    `others`, is an InputError naming the URL and the keys expected."""
+    device_kw: dict[str, Any] = {}
+    fault_kw: dict[str, Any] = {}
+    for key, value in parse_qsl(query, keep_blank_values=True):
+        if key not in options:
+            if others is None:
+                raise InputError(url, f"unknown option {key!r}; expected one of {sorted(options)}")
+            others[key] = value
+            continue
+        name, parse = options[key]
+        try:
+            parsed = parse(value)
+        except ValueError as e:
+            raise InputError(url, f"option {key}={value!r}: {e}") from None
+        (fault_kw if name in fault_fields else device_kw)[name] = parsed
+    return device_kw, fault_kw
 
 
 class PtyDevice(abc.ABC):
