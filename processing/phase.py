@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterator
 from typing import Any
 
 import torch
@@ -43,7 +44,8 @@ class PhaseMagnifier(StreamingMagnifier):
 
     `warp=True` synthesises the other way (Lagrangian): the filtered phase changes of every band give a
     dense displacement field u (to first order dphi = -u . grad phi in each band; weighted least squares over
-    all bands and orientations, each term weighted by the squared amplitude and summed over the
+    all bands and orientations, each term weighted by its phase's inverse variance, from the amplitude and
+    the frames' noise sd `noise_sd` (None: estimated from the first two frames), and summed over the
     `sigma_px` window of its scale), and the frame is resampled at x - (alpha - 1) u (Keys cubic). Envelope,
     phase and the unmagnified residuals all move, so the gain is alpha on any texture. With
     `attenuate_other` the reference frame is resampled at x - alpha u.
@@ -82,15 +84,31 @@ class PhaseMagnifier(StreamingMagnifier):
                 wy = 2 * math.pi * torch.fft.fftfreq(h, device=device)
                 wx = 2 * math.pi * torch.fft.rfftfreq(w, device=device)
                 self._gauss.append(torch.exp(-0.5 * self.sigma_px ** 2 * (wy[:, None] ** 2 + wx[None, :] ** 2)))
-            # Derivatives on each band's own grid (the bands are one-sided: their Nyquist rows carry nothing).
-            self._d_ops = [(1j * 2 * math.pi * torch.fft.fftfreq(w, device=device)[None, :],
-                            1j * 2 * math.pi * torch.fft.fftfreq(h, device=device)[:, None])
-                           for h, w in self.pyramid.band_shapes]
-            # Each band's noise variance per unit image noise variance: white noise through its filter.
-            noise = torch.randn((4, height_px, width_px), generator=torch.Generator().manual_seed(0)).to(device)
-            self._band_noise = [float(b.abs().pow(2).mean()) for b in self.pyramid.build(noise).bands]
+            if self.warp:
+                self._setup_warp(height_px, width_px, device)
         K = self.pyramid.n_orientations
         return sum(K * h * w for h, w in self.pyramid.band_shapes)
+
+    def _setup_warp(self, height_px: int, width_px: int, device: torch.device) -> None:
+        # Derivatives on each band's own grid (the bands are one-sided: their Nyquist rows carry nothing).
+        self._d_ops = [(1j * 2 * math.pi * torch.fft.fftfreq(w, device=device)[None, :],
+                        1j * 2 * math.pi * torch.fft.fftfreq(h, device=device)[:, None])
+                       for h, w in self.pyramid.band_shapes]
+        # Each band's noise variance per unit image noise variance: white noise through its filter.
+        noise = torch.randn((4, height_px, width_px), generator=torch.Generator().manual_seed(0)).to(device)
+        self._band_noise = [float(b.abs().pow(2).mean()) for b in self.pyramid.build(noise).bands]
+        self._pixel_y, self._pixel_x = torch.meshgrid(torch.arange(height_px, dtype=torch.float32, device=device),
+                                                      torch.arange(width_px, dtype=torch.float32, device=device),
+                                                      indexing="ij")
+
+    def _band_phases(self, features: torch.Tensor, coeffs: SteerableCoeffs
+                     ) -> Iterator[tuple[int, torch.Tensor, torch.Tensor]]:
+        """(scale, its bands (n, K, h, w), their filtered phase changes, the same shape), scale by scale."""
+        offset = 0
+        for s, b in enumerate(coeffs.bands):
+            size = b[0].numel()
+            yield s, b, features[:, offset:offset + size].reshape(b.shape)
+            offset += size
 
     def _init_reference(self, y_ref: torch.Tensor) -> None:
         bands = self.pyramid.build(y_ref).bands
@@ -137,11 +155,8 @@ class PhaseMagnifier(StreamingMagnifier):
         coeffs = cache if cache is not None else self.pyramid.build(y)
         if self.warp:
             return self._warp(y, features, coeffs)
-        out, offset = [], 0
-        for s, b in enumerate(coeffs.bands):
-            size = b[0].numel()
-            dphi = features[:, offset:offset + size].reshape(b.shape)
-            offset += size
+        out = []
+        for s, b, dphi in self._band_phases(features, coeffs):
             amp = b.abs()
             if self.sigma_px > 0:
                 dphi = self._smooth(dphi, amp, s)
@@ -157,11 +172,7 @@ class PhaseMagnifier(StreamingMagnifier):
         # The least-squares normal equations of u (image px) summed over scales, each brought to full size:
         # [mxx, mxy, myy] u = [bx, by].
         normal = torch.zeros((n, 5, H, W), dtype=torch.float32, device=y.device)
-        offset = 0
-        for s, b in enumerate(coeffs.bands):
-            size = b[0].numel()
-            dphi = features[:, offset:offset + size].reshape(b.shape)
-            offset += size
+        for s, b, dphi in self._band_phases(features, coeffs):
             if self.attenuate_other:
                 b = self._ref_bands[s]
             terms = self._normal_terms(b, dphi, s)
@@ -180,13 +191,12 @@ class PhaseMagnifier(StreamingMagnifier):
         ux, uy = (myy * bx - mxy * by) / det, (mxx * by - mxy * bx) / det
         gain = self.alpha if self.attenuate_other else self.alpha - 1.0
         src = self._ref_y.expand(n, -1, -1) if self.attenuate_other else y
-        yy, xx = torch.meshgrid(torch.arange(H, dtype=torch.float32, device=y.device),
-                                torch.arange(W, dtype=torch.float32, device=y.device), indexing="ij")
-        return cubic_sample(src, xx - gain * ux, yy - gain * uy)
+        return cubic_sample(src, self._pixel_x - gain * ux, self._pixel_y - gain * uy)
 
     def _normal_terms(self, b: torch.Tensor, dphi: torch.Tensor, scale: int) -> torch.Tensor:
         """(n, 5, h, w): the scale's weighted least-squares terms [mxx, mxy, myy, bx, by] of dphi_k = -u . grad phi_k
-        over its orientations k (u in band px), each weighted by A_k^2 and summed over the sigma_px window."""
+        over its orientations k (u in band px), each weighted by its phase's inverse variance (A_k^2 over the
+        band's noise variance, faded out near the noise) and summed over the sigma_px window."""
         dx_op, dy_op = self._d_ops[scale]
         spec = torch.fft.fft2(b)
         # Im(conj(c) grad c) = A^2 grad phi, so A^2 (grad phi)(grad phi)^T = q q^T / A^2 with q = Im(conj(c) grad c).
