@@ -49,7 +49,7 @@ from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E4
 from odsplat.hil_sim.camera import SimCameraConfig  # noqa: E402
 from odsplat.hil_sim.rig import TakeTruth, truth_path  # noqa: E402
 from odsplat.hil_sim.structure import ModalStructure  # noqa: E402
-from odsplat.processing.run import MagnifySettings, magnify_capture  # noqa: E402
+from odsplat.processing.run import MagnifySettings, magnify_capture, parse_options  # noqa: E402
 from odsplat.reconstruction.dynamic import FitSettings  # noqa: E402
 from odsplat.reconstruction.poses import estimate_poses  # noqa: E402
 from odsplat.reconstruction.run import ReconstructSettings, reconstruct  # noqa: E402
@@ -95,7 +95,8 @@ def record_and_process(out: Path, args, figures: dict, perfect: bool) -> Capture
     if perfect:
         return cap
     stage(figures, "magnify", (cap.derived_dir / "magnified" / "phase").exists(),
-          lambda: magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha), progress=False))
+          lambda: magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha,
+                                                       options=parse_options(args.magnify_option)), progress=False))
     stage(figures, "poses", (cap.derived_dir / "poses.json").exists(), lambda: estimate_poses(cap).save(cap))
     n = len(timesteps(cap, args.timesteps, args.step))
     fit = FitSettings(iters_t0=args.iters_t0, iters_per_step=args.iters_step, seed=args.seed, progress=False)
@@ -325,6 +326,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--iters-step", type=int, default=50)
     ap.add_argument("--fmax", type=float, default=None, help="the analysis' band (default: its own, 0.45 x fps)")
     ap.add_argument("--max-order", type=int, default=AnalyzeSettings.max_order, help="the analysis' LSCF order")
+    ap.add_argument("--magnify-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a keyword of the phase magnifier, e.g. warp=true (repeatable)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--perfect", action="store_true",
@@ -363,7 +366,7 @@ def main(argv: list[str] | None = None) -> dict:
     figures["settings"] = dict(views=args.views, frames=args.frames, record_s=args.record_s, timesteps=args.timesteps,
                                step=args.step, alpha=args.alpha, width_px=args.width, iters_t0=args.iters_t0,
                                iters_step=args.iters_step, fmax_hz=args.fmax, max_order=args.max_order,
-                               threads=args.threads, seed=args.seed,
+                               threads=args.threads, seed=args.seed, magnify_options=args.magnify_option,
                                capture=str(args.capture) if args.capture else None)
     print(json.dumps(figures, default=float))
     return figures

@@ -46,7 +46,7 @@ from odsplat.hil_sim.render import PinholeCamera, render, to_mono  # noqa: E402
 from odsplat.hil_sim.rig import SimRig, TakeTruth, truth_path  # noqa: E402
 from odsplat.hil_sim.scene import STRUCTURE, STRUCTURE_TAG  # noqa: E402
 from odsplat.processing.metrics import psnr, ssim  # noqa: E402
-from odsplat.processing.run import MagnifySettings, magnify_capture  # noqa: E402
+from odsplat.processing.run import MagnifySettings, magnify_capture, parse_options  # noqa: E402
 from odsplat.reconstruction.dynamic import FitSettings  # noqa: E402
 from odsplat.reconstruction.modal import ModalSettings  # noqa: E402
 from odsplat.reconstruction.poses import PoseResult, compare_poses, estimate_poses  # noqa: E402
@@ -234,6 +234,8 @@ def main() -> None:
     ap.add_argument("--orders", default=",".join(DEFAULT_ORDERS), help=f"comma-separated, of {', '.join(ORDERS)}")
     ap.add_argument("--sensitivity", action="store_true",
                     help="also vary views, pose noise and rgb noise (for the first of --orders)")
+    ap.add_argument("--magnify-option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a keyword of the phase magnifier, e.g. warp=true (repeatable)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--keep", type=Path, default=None, help="record the capture here and keep it")
@@ -256,7 +258,8 @@ def main() -> None:
     if not (cap.derived_dir / "sync.json").exists():
         sync_capture(cap, SyncSettings())
     if not (cap.derived_dir / "magnified" / "phase").exists():
-        magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha), progress=False)
+        magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha,
+                                             options=parse_options(args.magnify_option)), progress=False)
     figures["sync_magnify_s"] = time.perf_counter() - t
     t = time.perf_counter()
     if (cap.derived_dir / "poses.json").exists():
@@ -306,7 +309,8 @@ def main() -> None:
     figures.update(settings=dict(views=args.views, frames=args.frames, timesteps=args.timesteps, step=args.step,
                                  alpha=args.alpha, width_px=args.width, iters_t0=args.iters_t0,
                                  iters_step=args.iters_step, iters_modal=args.iters_modal,
-                                 prior_fraction=args.prior_fraction, threads=args.threads))
+                                 prior_fraction=args.prior_fraction, threads=args.threads,
+                                 magnify_options=args.magnify_option))
     print(json.dumps(figures, default=float))
 
 

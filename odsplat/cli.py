@@ -233,22 +233,12 @@ def sync(capture_dir: Path, method: str, all_takes: bool, normalize_impulse: boo
 def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: str | None, mode: str, source: str,
             workers: int | None, takes: tuple[str, ...], options: tuple[str, ...]) -> None:
     """Magnify the motion in every view of CAPTURE_DIR into derived/magnified/METHOD/."""
-    from .errors import InputError
-    from .processing.run import MagnifySettings, magnify_capture
+    from .processing.run import MagnifySettings, magnify_capture, parse_options
     from .store import Capture
 
-    parsed = []
-    for item in options:
-        key, eq, value = item.partition("=")
-        if not eq or not key.isidentifier():
-            raise InputError("--option", f"expected KEY=VALUE, got {item!r}")
-        try:
-            parsed.append((key, json.loads(value.lower() if value.lower() in ("true", "false") else value)))
-        except json.JSONDecodeError:
-            parsed.append((key, value))
     settings = MagnifySettings(method=method, alpha=alpha, band_hz=tuple(band_hz) if band_hz else None,
                                filter=filter_kind, mode=mode, source=source, workers=workers, takes=takes,
-                               options=tuple(parsed))
+                               options=parse_options(options))
     click.echo(magnify_capture(Capture.open(capture_dir), settings).summary())
 
 

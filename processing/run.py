@@ -65,6 +65,21 @@ class MagnifySettings:
         return self.filter or ("butter" if self.band_hz else "none")
 
 
+def parse_options(items) -> tuple[tuple[str, Any], ...]:
+    """A magnifier's keyword arguments from KEY=VALUE strings (`odsplat magnify --option`): VALUE is read as JSON
+    (numbers, true/false in any case, lists), else kept as a string."""
+    parsed = []
+    for item in items:
+        key, eq, value = str(item).partition("=")
+        if not eq or not key.isidentifier():
+            raise InputError("--option", f"expected KEY=VALUE, got {item!r}")
+        try:
+            parsed.append((key, json.loads(value.lower() if value.lower() in ("true", "false") else value)))
+        except json.JSONDecodeError:
+            parsed.append((key, value))
+    return tuple(parsed)
+
+
 def make_magnifier(settings: MagnifySettings, fps: float) -> Magnifier:
     """A fresh magnifier for one stream, with its own temporal filter."""
     s = settings

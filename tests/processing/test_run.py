@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from odsplat.errors import InputError
-from odsplat.processing.run import MagnifiedVideo, MagnifySettings, magnify_capture
+from odsplat.processing.run import MagnifiedVideo, MagnifySettings, magnify_capture, parse_options
 from odsplat.store import Capture
 from odsplat.sync import AlignedTake, SyncSettings, load_sync, sync_capture
 from odsplat.sync.image import DisplacementBasis
@@ -74,6 +74,14 @@ def test_raw_source_and_bad_settings(synced, tmp_path):
     shutil.copytree(synced.root, bare, ignore=shutil.ignore_patterns("derived"))
     with pytest.raises(InputError, match="run `odsplat sync` first"):
         magnify_capture(Capture.open(bare), MagnifySettings(source="aligned"), progress=False)
+
+
+def test_method_options_from_the_command_line():
+    assert parse_options(["warp=True", "n_orientations=8", "sigma_px=1.5", "filter=butter", "levels=[1, 2]"]) == (
+        ("warp", True), ("n_orientations", 8), ("sigma_px", 1.5), ("filter", "butter"), ("levels", [1, 2]))
+    for bad in ("warp", "=1", "two words=1"):
+        with pytest.raises(InputError, match="expected KEY=VALUE"):
+            parse_options([bad])
 
 
 def test_cli_magnify(synced):
