@@ -79,11 +79,22 @@ class SurfaceMotion:
         w = 1.0 / np.maximum(dist, 1e-6)
         return idx, w / w.sum(axis=1, keepdims=True), dist
 
-    def at_points(self, points_m, directions=None, *, k: int = 8) -> np.ndarray:
-        """Displacement at points (inverse-distance mean of the k nearest Gaussians): (T, S, 3), or (T, S) along
-        unit `directions` (S, 3) such as the accelerometers' axes."""
+    def at_points(self, points_m, directions=None, *, k: int = 16, outlier_factor: float | None = 2.0
+                  ) -> np.ndarray:
+        """Displacement at points: (T, S, 3), or (T, S) along unit `directions` (S, 3) such as the accelerometers'
+        axes. The inverse-distance mean of the k nearest Gaussians, less the outliers among them: a Gaussian whose
+        trajectory lies further than `outlier_factor` times the median such distance from the median trajectory
+        (per timestep and component, over the k) is left out (None: keep all). A per-timestep fit leaves a few
+        Gaussians that wander, and one of them in a plain mean can move a sensor's reading by half."""
         idx, w, _ = self.nearest(points_m, k)
-        d = np.einsum("tskc,sk->tsc", self.displacement_m[:, idx], w)
+        disp = self.displacement_m[:, idx]                                    # (T, S, k, 3)
+        if outlier_factor is not None and idx.shape[1] > 2:
+            med = np.median(disp, axis=2, keepdims=True)
+            dev = np.sqrt(((disp - med) ** 2).sum(axis=(0, 3)))               # (S, k)
+            keep = dev <= outlier_factor * np.median(dev, axis=1, keepdims=True) * (1 + 1e-9) + 1e-30
+            w = w * keep
+            w = w / w.sum(axis=1, keepdims=True)
+        d = np.einsum("tskc,sk->tsc", disp, w)
         if directions is None:
             return d
         dirs = np.asarray(directions, float).reshape(-1, 3)

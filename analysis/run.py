@@ -45,7 +45,8 @@ class AnalyzeSettings:
     ods_freq_hz: tuple[float, ...] | None = None     # ODS lines; None: the modal frequencies
     video: bool = True                               # use derived/reconstruction when it is there
     min_opacity: float = 0.5
-    k_neighbours: int = 8
+    k_neighbours: int = 16                           # Gaussians read at each sensor
+    outlier_factor: float | None = 2.0               # drop those whose motion strays this far (SurfaceMotion.at_points)
     lsce_orders: tuple[int, ...] = (24, 32, 40)
     crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
     crosscheck_points: int = 30
@@ -292,7 +293,7 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     poles = modes.poles_rad_s[use]
     pos = np.stack([sn.position_m for sn in sensors])
     dirs = np.stack([sn.direction for sn in sensors])
-    at_sensors = motion.at_points(pos, dirs, k=s.k_neighbours)                      # (T, S)
+    at_sensors = motion.at_points(pos, dirs, k=s.k_neighbours, outlier_factor=s.outlier_factor)  # (T, S)
     surface = motion.displacement_m.reshape(len(t), -1)                             # (T, N*3)
     t_min = 1.5e-3                                                                   # after a ~1 ms pulse
     n_s = at_sensors.shape[1]

@@ -13,10 +13,12 @@ Ground truth: hil_sim's noise-free renders from the true camera with the structu
 alpha. PSNR, SSIM and L2 are taken in the structure's box (the foreground), as the paper crops. Baseline in the
 same run: the rest state rendered at every time (what a static reconstruction would show). Displacement: each
 model's physical 3D displacement (its frames' magnification divided out) at the accelerometer and CAN-node
-points (inverse-distance mean of the 8 nearest opaque Gaussians) against the truth over the trained window;
+points (read as the analysis reads them: the inverse-distance mean of the 16 nearest opaque Gaussians less the
+outliers among them) against the truth over the trained window;
 `dominant_amplitude` is the least-squares coefficient of the dominant mode when the model's displacement is
 regressed on every mode's true contribution (1 is exact); `point_gains`, per point, the model's motion projected on
-the true motion over the window. Sensitivity, each varied on its own: training views,
+the true motion over the window; `dominant_amplitude_plain_readout`, the baseline readout (the 8 nearest, no
+outlier cut). Sensitivity, each varied on its own: training views,
 pose noise on the training views, rgb noise on the training images. Speed: the rasterizer (bench/raster.py).
 
 Prints one JSON line on stdout; progress goes to stderr.
@@ -40,6 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from odsplat.analysis.ods import SurfaceMotion  # noqa: E402
+from odsplat.analysis.run import AnalyzeSettings  # noqa: E402
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
 from odsplat.hil_sim.camera import SimCameraConfig  # noqa: E402
 from odsplat.hil_sim.render import PinholeCamera, render, to_mono  # noqa: E402
@@ -97,14 +100,17 @@ def scores(img: np.ndarray, ref: np.ndarray, crop) -> tuple[float, float, float]
     return psnr(a, b), ssim(a, b), float(torch.mean((a - b) ** 2))
 
 
-def sensor_displacement(scene, points_m: np.ndarray, k: int = 8) -> np.ndarray:
-    """(T, S, 3) physical displacement at points_m, read as the analysis reads it (`SurfaceMotion.at_points`: the
-    inverse-distance mean of the k nearest Gaussians), over the Gaussians more than 30 % opaque."""
+def sensor_displacement(scene, points_m: np.ndarray, *, plain: bool = False) -> np.ndarray:
+    """(T, S, 3) physical displacement at points_m, over the Gaussians more than 30 % opaque, read as the analysis
+    reads it (`SurfaceMotion.at_points` with AnalyzeSettings' neighbours and outlier cut); plain: the baseline
+    readout, the inverse-distance mean of the 8 nearest with no outlier cut."""
     opacity = scene.rest.opacities.numpy().reshape(-1)
     opaque = opacity > 0.3
     motion = SurfaceMotion(np.asarray(scene.times_s, float), scene.means_rest_m[opaque],
                            scene.physical_displacement_m()[:, opaque], opacity[opaque], 1.0)
-    return motion.at_points(points_m, k=k)
+    if plain:
+        return motion.at_points(points_m, k=8, outlier_factor=None)
+    return motion.at_points(points_m, k=AnalyzeSettings.k_neighbours, outlier_factor=AnalyzeSettings.outlier_factor)
 
 
 def displacement_scores(scene, truth: TakeTruth, gt: GroundTruth) -> dict:
@@ -120,10 +126,13 @@ def displacement_scores(scene, truth: TakeTruth, gt: GroundTruth) -> dict:
     energy = (parts ** 2).sum(axis=(1, 2, 3))
     dom = int(np.argmax(energy))
     a, *_ = np.linalg.lstsq(parts.reshape(len(parts), -1).T, model.ravel(), rcond=None)
+    a_plain, *_ = np.linalg.lstsq(parts.reshape(len(parts), -1).T, sensor_displacement(scene, pts, plain=True).ravel(),
+                                  rcond=None)
     # per point: the model's motion projected on the true motion, over the window (1 is exact)
     gains = (model * true).sum(axis=(0, 2)) / np.maximum((true ** 2).sum(axis=(0, 2)), 1e-30)
     return dict(n_points=int(len(pts)), dominant_mode=dom, dominant_share=float(energy[dom] / energy.sum()),
-                dominant_amplitude=float(a[dom]), point_gains=[float(g) for g in gains],
+                dominant_amplitude=float(a[dom]), dominant_amplitude_plain_readout=float(a_plain[dom]),
+                point_gains=[float(g) for g in gains],
                 rms_ratio=float(np.sqrt((model ** 2).sum() / (true ** 2).sum())),
                 rel_error=float(np.linalg.norm(model - true) / np.linalg.norm(true)),
                 peak_true_m=float(np.linalg.norm(true, axis=-1).max()))

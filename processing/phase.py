@@ -46,7 +46,7 @@ class PhaseMagnifier(StreamingMagnifier):
     dense displacement field u (to first order dphi = -u . grad phi in each band; weighted least squares over
     all bands and orientations, each term weighted by its phase's inverse variance, from the amplitude and
     the frames' noise sd `noise_sd` (None: estimated from the first two frames), and summed over the
-    `sigma_px` window of its scale), and the frame is resampled at x - (alpha - 1) u (Keys cubic). Envelope,
+    `sigma_px` window of its scale), and the frame is resampled at x - (alpha - 1) u (quintic B-spline). Envelope,
     phase and the unmagnified residuals all move, so the gain is alpha on any texture. With
     `attenuate_other` the reference frame is resampled at x - alpha u.
     """
@@ -191,7 +191,7 @@ class PhaseMagnifier(StreamingMagnifier):
         ux, uy = (myy * bx - mxy * by) / det, (mxx * by - mxy * bx) / det
         gain = self.alpha if self.attenuate_other else self.alpha - 1.0
         src = self._ref_y.expand(n, -1, -1) if self.attenuate_other else y
-        return cubic_sample(src, self._pixel_x - gain * ux, self._pixel_y - gain * uy)
+        return spline_sample(src, self._pixel_x - gain * ux, self._pixel_y - gain * uy)
 
     def _normal_terms(self, b: torch.Tensor, dphi: torch.Tensor, scale: int) -> torch.Tensor:
         """(n, 5, h, w): the scale's weighted least-squares terms [mxx, mxy, myy, bx, by] of dphi_k = -u . grad phi_k
@@ -229,28 +229,66 @@ class PhaseMagnifier(StreamingMagnifier):
         return num / den.clamp_min(1e-8)
 
 
-def cubic_sample(img: torch.Tensor, x_px: torch.Tensor, y_px: torch.Tensor) -> torch.Tensor:
-    """Sample (N, H, W) images at pixel coordinates (N, H, W) (x along columns) with Keys' cubic
-    convolution, a = -0.5, borders clamped. That kernel is third-order accurate; the a = -0.75 of OpenCV's
-    and torch's bicubic is not, and shifts a smooth texture by 0.1 px as 0.135 px."""
+def _bspline5_pairs(t: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """The quintic B-spline's six weights at taps -2..3 around a point t in [0, 1) past a sample, merged into
+    three pairs: (offsets from the sample, weights) such that w_a c[k] + w_b c[k + 1] = (w_a + w_b) times c read
+    linearly at k + w_b / (w_a + w_b). The weights are positive, so every pair is a proper linear read."""
+    s = 1.0 - t
+
+    def p5(u: torch.Tensor) -> torch.Tensor:
+        u2 = u * u
+        return u2 * u2 * u
+
+    s0, s1, t0, t1 = p5(s), p5(1 + s), p5(t), p5(1 + t)
+    w = [s0, s1 - 6 * s0, p5(2 + s) - 6 * s1 + 15 * s0, p5(2 + t) - 6 * t1 + 15 * t0, t1 - 6 * t0, t0]   # x 120
+    offsets, weights = [], []
+    for m in range(3):
+        a, b = w[2 * m], w[2 * m + 1]
+        total = a + b
+        offsets.append(2 * m - 2 + b / total)
+        weights.append(total / 120.0)
+    return offsets, weights
+
+
+SPLINE_PAD_PX = 12  # the mirrored margin: the prefilter's ringing from the wrap decays as 0.43^n
+
+
+def spline_sample(img: torch.Tensor, x_px: torch.Tensor, y_px: torch.Tensor) -> torch.Tensor:
+    """Sample (N, H, W) images at pixel coordinates (N, H, W) (x along columns) by quintic B-spline
+    interpolation: the images are mirrored by SPLINE_PAD_PX at the borders, prefiltered by FFT into spline
+    coefficients (so integer positions give the pixels back exactly), and the 6 x 6 coefficients around each
+    point are weighed by the spline, as 3 x 3 bilinear reads of merged pairs (one `grid_sample`); beyond the
+    margin the borders are clamped.
+
+    Shifting texture as fine as 3 px: 0.99 of a 0.05-0.5 px shift comes out. Keys' cubic convolution
+    (a = -0.5) gives 0.70 at 0.05 px and the cubic B-spline 0.95; OpenCV's and torch's bicubic (a = -0.75)
+    are worse still, and shift even a smooth texture by 0.135 px for 0.1 px."""
     n, h, w = img.shape
-    x0, y0 = torch.floor(x_px), torch.floor(y_px)
-    tx, ty = x_px - x0, y_px - y0
-    x0, y0 = x0.long(), y0.long()
+    p = min(SPLINE_PAD_PX, h - 1, w - 1)
+    padded = F.pad(img[:, None], (p, p, p, p), mode="reflect")[:, 0] if p > 0 else img
+    hp, wp = padded.shape[-2:]
+    wy = 2 * math.pi * torch.fft.fftfreq(hp, device=img.device, dtype=torch.float64)
+    wx = 2 * math.pi * torch.fft.rfftfreq(wp, device=img.device, dtype=torch.float64)
 
-    def kernel(t: torch.Tensor) -> torch.Tensor:
-        t = t.abs()
-        near = (1.5 * t - 2.5) * t * t + 1.0
-        far = ((-0.5 * t + 2.5) * t - 4.0) * t + 2.0
-        return torch.where(t <= 1.0, near, torch.where(t < 2.0, far, torch.zeros_like(t)))
+    def response(o: torch.Tensor) -> torch.Tensor:     # the quintic B-spline sampled at the integers, as a DFT
+        return (66 + 52 * torch.cos(o) + 2 * torch.cos(2 * o)) / 120
 
-    flat = img.reshape(n, -1)
+    coef = torch.fft.irfft2(torch.fft.rfft2(padded.to(x_px.dtype)) / (response(wy)[:, None] * response(wx)[None, :]
+                                                                      ).to(x_px.dtype), s=(hp, wp))
+    x, y = x_px + p, y_px + p
+    x0, y0 = torch.floor(x), torch.floor(y)
+    ox, gx = _bspline5_pairs(x - x0)
+    oy, gy = _bspline5_pairs(y - y0)
+    # The 9 reads as one grid_sample: grids stacked along the rows, coordinates normalised (align_corners).
+    grid = torch.empty((n, 3, 3, h, w, 2), dtype=x_px.dtype, device=x_px.device)
+    for m in range(3):
+        grid[:, :, m, ..., 0] = ((x0 + ox[m]) * (2.0 / (wp - 1)) - 1.0)[:, None]
+        grid[:, m, :, ..., 1] = ((y0 + oy[m]) * (2.0 / (hp - 1)) - 1.0)[:, None]
+    reads = F.grid_sample(coef[:, None], grid.reshape(n, 9 * h, w, 2), mode="bilinear", padding_mode="border",
+                          align_corners=True).reshape(n, 3, 3, h, w)
     out = torch.zeros_like(x_px)
-    for j in range(-1, 3):
-        wy, rows = kernel(ty - j), (y0 + j).clamp(0, h - 1) * w
-        for i in range(-1, 3):
-            idx = (rows + (x0 + i).clamp(0, w - 1)).reshape(n, -1)
-            out += wy * kernel(tx - i) * torch.gather(flat, 1, idx).reshape(n, h, w)
+    for j in range(3):
+        out += gy[j] * (gx[0] * reads[:, j, 0] + gx[1] * reads[:, j, 1] + gx[2] * reads[:, j, 2])
     return out
 
 
@@ -299,4 +337,4 @@ def measure_shift_px(ref: torch.Tensor, img: torch.Tensor, *, iterations: int = 
     return float(d[0]), float(d[1])
 
 
-__all__ = ["PhaseMagnifier", "cubic_sample", "measure_shift_px", "shift_image_px"]
+__all__ = ["PhaseMagnifier", "spline_sample", "measure_shift_px", "shift_image_px"]
