@@ -100,17 +100,12 @@ def scores(img: np.ndarray, ref: np.ndarray, crop) -> tuple[float, float, float]
     return psnr(a, b), ssim(a, b), float(torch.mean((a - b) ** 2))
 
 
-def sensor_displacement(scene, points_m: np.ndarray, *, plain: bool = False) -> np.ndarray:
-    """(T, S, 3) physical displacement at points_m, over the Gaussians more than 30 % opaque, read as the analysis
-    reads it (`SurfaceMotion.at_points` with AnalyzeSettings' neighbours and outlier cut); plain: the baseline
-    readout, the inverse-distance mean of the 8 nearest with no outlier cut."""
+def surface_motion(scene) -> SurfaceMotion:
+    """The model's physical motion over its Gaussians more than 30 % opaque, for reading at the sensor points."""
     opacity = scene.rest.opacities.numpy().reshape(-1)
     opaque = opacity > 0.3
-    motion = SurfaceMotion(np.asarray(scene.times_s, float), scene.means_rest_m[opaque],
-                           scene.physical_displacement_m()[:, opaque], opacity[opaque], 1.0)
-    if plain:
-        return motion.at_points(points_m, k=8, outlier_factor=None)
-    return motion.at_points(points_m, k=AnalyzeSettings.k_neighbours, outlier_factor=AnalyzeSettings.outlier_factor)
+    return SurfaceMotion(np.asarray(scene.times_s, float), scene.means_rest_m[opaque],
+                         scene.physical_displacement_m()[:, opaque], opacity[opaque], 1.0)
 
 
 def displacement_scores(scene, truth: TakeTruth, gt: GroundTruth) -> dict:
@@ -122,12 +117,16 @@ def displacement_scores(scene, truth: TakeTruth, gt: GroundTruth) -> dict:
     q = q - q[:1]                                                                  # from timestep 0, as the model
     parts = np.einsum("smc,tm->mtsc", phi, q)                                       # each mode's contribution
     true = parts.sum(0)
-    model = sensor_displacement(scene, pts)
+    # Read as the analysis reads it (AnalyzeSettings' neighbours and outlier cut); the baseline readout is the
+    # inverse-distance mean of the 8 nearest with no outlier cut.
+    motion = surface_motion(scene)
+    model = motion.at_points(pts, k=AnalyzeSettings.k_neighbours, outlier_factor=AnalyzeSettings.outlier_factor)
+    plain = motion.at_points(pts, k=8, outlier_factor=None)
     energy = (parts ** 2).sum(axis=(1, 2, 3))
     dom = int(np.argmax(energy))
-    a, *_ = np.linalg.lstsq(parts.reshape(len(parts), -1).T, model.ravel(), rcond=None)
-    a_plain, *_ = np.linalg.lstsq(parts.reshape(len(parts), -1).T, sensor_displacement(scene, pts, plain=True).ravel(),
-                                  rcond=None)
+    basis = parts.reshape(len(parts), -1).T
+    a, *_ = np.linalg.lstsq(basis, model.ravel(), rcond=None)
+    a_plain, *_ = np.linalg.lstsq(basis, plain.ravel(), rcond=None)
     # per point: the model's motion projected on the true motion, over the window (1 is exact)
     gains = (model * true).sum(axis=(0, 2)) / np.maximum((true ** 2).sum(axis=(0, 2)), 1e-30)
     return dict(n_points=int(len(pts)), dominant_mode=dom, dominant_share=float(energy[dom] / energy.sum()),
