@@ -58,6 +58,11 @@ class AnalyzeSettings:
             v = getattr(self, name)
             if v is not None and v < 0:
                 raise InputError(f"AnalyzeSettings.{name}", f"expected a value >= 0; got {v}")
+        if self.k_neighbours < 1:
+            raise InputError("AnalyzeSettings.k_neighbours", f"expected at least 1; got {self.k_neighbours}")
+        if self.outlier_factor is not None and not self.outlier_factor >= 1:
+            raise InputError("AnalyzeSettings.outlier_factor",
+                             f"expected None or a factor >= 1 (below 1 it can leave no Gaussian); got {self.outlier_factor}")
 
 
 @dataclass(frozen=True)

@@ -165,6 +165,10 @@ def test_accelerometers_only_and_bad_channels(capture):
         analyze_capture(capture, AnalyzeSettings(response_channels=("cam_ttl",)))
     with pytest.raises(InputError, match="takes"):
         AnalyzeSettings(takes="some")
+    with pytest.raises(InputError, match="outlier_factor"):
+        AnalyzeSettings(outlier_factor=0.5)
+    with pytest.raises(InputError, match="k_neighbours"):
+        AnalyzeSettings(k_neighbours=0)
 
 
 def test_cli_analyze_and_report(capture):
