@@ -19,6 +19,7 @@ log = logging.getLogger(__name__)
 
 POSES = "poses.json"   # under derived/: each view's K, R, t (world to camera, OpenCV axes)
 DEPTH_TOL_M = 0.01     # a point is visible when within this of the nearest surface point on its pixel
+CHUNK = 2048           # points read at a time (T x CHUNK x k x 3 values)
 
 
 @dataclass(frozen=True)
@@ -70,8 +71,10 @@ def _spread(order: np.ndarray, uv: np.ndarray, n: int, min_dist_px: float) -> np
 
 def check_view(frames: np.ndarray, frame_times_s: np.ndarray, motion: SurfaceMotion, K, R, t, *, take: str = "",
                n_points: int = 30, window_px: int = 15, method: str = "gradient",
-               force_ratio: float = 1.0) -> ViewCheck | None:
-    """Compare one take's synced frames (T', H, W) at frame_times_s with the motion projected into its camera."""
+               force_ratio: float = 1.0, k: int = 16, outlier_factor: float | None = 2.0) -> ViewCheck | None:
+    """Compare one take's synced frames (T', H, W) at frame_times_s with the motion projected into its camera.
+    The motion at each visible surface point is read as at the sensors (`SurfaceMotion.at_points` with k and
+    outlier_factor); the n_points that move most, a window apart, are tracked."""
     K, R, t = (np.asarray(a, float) for a in (K, R, t))
     pick = np.array([int(np.argmin(np.abs(frame_times_s - ti))) for ti in motion.times_s])
     if np.max(np.abs(frame_times_s[pick] - motion.times_s)) > 1e-6 + 0.01 * np.median(np.diff(frame_times_s)):
@@ -86,7 +89,11 @@ def check_view(frames: np.ndarray, frame_times_s: np.ndarray, motion: SurfaceMot
         log.warning("%s: fewer than 3 visible surface points; no cross-check", take)
         return None
     idx = np.flatnonzero(ok)
-    proj = project_displacement(motion.displacement_m[:, idx], motion.points_m[idx], K, R, t)     # (T, n, 2)
+    # each point's motion as its neighbours agree on it (as at the sensors): the points that move most in a real
+    # reconstruction are otherwise the few Gaussians that wandered off
+    disp = np.concatenate([motion.at_points(motion.points_m[idx[i:i + CHUNK]], k=k, outlier_factor=outlier_factor)
+                           for i in range(0, len(idx), CHUNK)], axis=1)
+    proj = project_displacement(disp, motion.points_m[idx], K, R, t)                               # (T, n, 2)
     proj = proj - proj[:1]
     strongest = np.argsort(-np.sqrt(np.mean(proj ** 2, axis=(0, 2))))
     sel = _spread(strongest, uv[idx], n_points, window_px)
@@ -105,7 +112,7 @@ def check_view(frames: np.ndarray, frame_times_s: np.ndarray, motion: SurfaceMot
 
 
 def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int = 6, n_points: int = 30,
-                     method: str = "gradient") -> list[ViewCheck]:
+                     method: str = "gradient", k: int = 16, outlier_factor: float | None = 2.0) -> list[ViewCheck]:
     """check_view on up to max_views synced takes spread over the capture (those with aligned frames and a
     pose); none when the capture has no aligned frames or poses."""
     from odsplat.sync import AlignedTake, load_sync
@@ -132,7 +139,8 @@ def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int 
             frames = frames.mean(axis=-1)
         p = poses[tk.name]
         check = check_view(frames, times, motion, p["K"], p["R"], p["t"], take=tk.name, n_points=n_points,
-                           method=method, force_ratio=float(np.nan_to_num(impulse[tk.name] / mean_impulse, nan=1.0)))
+                           method=method, force_ratio=float(np.nan_to_num(impulse[tk.name] / mean_impulse, nan=1.0)),
+                           k=k, outlier_factor=outlier_factor)
         if check is not None:
             log.info("%s: gain %.3f, correlation %.3f over %d points (%.3f px rms)", tk.name, check.gain,
                      check.correlation, check.n_points, check.motion_rms_px)

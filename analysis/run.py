@@ -305,7 +305,8 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     fit = fit_decay(t, np.concatenate([at_sensors, surface], axis=1), poles, t_min_s=t_min)  # one design matrix
     F = _sync_force(capture, force, poles)
     f_hz, zeta = _stable_video_poles(t[t >= t_min], surface[t >= t_min], s.lsce_orders, nyq * 0.8)
-    checks = crosscheck_views(capture, motion, max_views=s.crosscheck_views, n_points=s.crosscheck_points) \
+    checks = crosscheck_views(capture, motion, max_views=s.crosscheck_views, n_points=s.crosscheck_points,
+                              k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []
     residues = fit.residues(F)
     return VideoModes(poles, np.flatnonzero(use), residues[:, :n_s], motion.points_m,
