@@ -22,6 +22,8 @@ from scipy.spatial import cKDTree
 
 from odsplat.errors import InputError
 
+from .ema import pole_damping, pole_freq_hz
+
 log = logging.getLogger(__name__)
 
 TRAJECTORIES = Path("reconstruction") / "trajectories.npz"  # under the capture's derived/
@@ -205,3 +207,27 @@ def lsce_poles(times_s, x, order: int, *, t_min_s: float = 0.0, n_channels: int 
     lam = np.log(z.astype(complex)) / float(np.mean(dt))
     keep = (lam.real < 0) & (lam.imag > 0)
     return np.sort_complex(lam[keep])
+
+
+def stable_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
+    """Poles of a multi-channel free decay: found by LSCE at every order within 1 % in frequency, damped less than
+    20 %, and carrying at least `min_share` of the motion's energy in a decay fit (which drops the stable
+    but empty poles a high order fits to the noise). Returns (freq_hz, damping)."""
+    sets = []
+    for order in orders:
+        try:
+            lam = lsce_poles(times_s, x, order)
+        except InputError:          # too few timesteps for this order
+            continue
+        sets.append(lam[(pole_freq_hz(lam) < fmax_hz) & (pole_damping(lam) < 0.2)])
+    if not sets:
+        return np.zeros(0), np.zeros(0)
+    keep = [lam for lam in sets[-1]
+            if all(len(o) and np.min(np.abs(np.abs(o) - abs(lam))) < 0.01 * abs(lam) for o in sets[:-1])]
+    lam = np.array(sorted(keep, key=abs), complex)
+    if len(lam):
+        fit = fit_decay(times_s, x, lam)
+        env = np.exp(2 * np.outer(times_s - times_s[0], lam.real)).sum(axis=0)     # (R,)
+        energy = np.sum(np.abs(fit.amplitudes) ** 2, axis=1) * env
+        lam = lam[energy >= min_share * energy.sum()]
+    return pole_freq_hz(lam), pole_damping(lam)

@@ -162,20 +162,17 @@ def _video(doc: dict) -> str:
     if r2:
         out.append("<p>Share of each sensor point's video motion that these modes explain (r&sup2;):</p>")
         out.append(_sensor_table(sensors, "r&sup2;", r2))
-    fv, zv = v.get("freq_hz", []), v.get("damping", [])
-    fa = np.array([m["freq_hz"] for m in modes], float)
-    if fv:
-        rows = []
-        for i, f in enumerate(fv):
-            near = int(np.argmin(np.abs(fa - float(f)))) if len(fa) else None
-            rows.append([str(i + 1), _num(f, ".2f"), _num(zv[i] if i < len(zv) else None, ".2f", 100),
-                         _mode_name(modes, near) if near is not None else "&ndash;",
-                         _num((float(f) - fa[near]) / fa[near] if near is not None else None, "+.2f", 100)])
-        out.append("<p>Poles found in the video alone (LSCE, stable over orders), against the nearest "
-                   "accelerometer mode:</p>")
-        out.append(_table(["#", "frequency (Hz)", "damping (%)", "nearest mode", "difference (%)"], rows, 1))
-    else:
-        out.append("<p>No pole was found stable in the video alone.</p>")
+    out.append(_poles_table(modes, v.get("freq_hz", []), v.get("damping", []),
+                            "Poles found in the reconstruction's motion alone (LSCE, stable over orders)",
+                            "No pole was found stable in the reconstruction's motion alone."))
+    im = doc.get("image_poles")
+    if isinstance(im, dict):
+        window = im.get("window_s") or [None, None]
+        out.append(_poles_table(modes, im.get("freq_hz", []), im.get("damping", []),
+                                f"Poles found in the raw frames alone ({int(im.get('n_views', 0))} views, "
+                                f"{int(im.get('n_pixels', 0))} pixels, {_num(window[0], '.1f', 1e3)} to "
+                                f"{_num(window[-1], '.1f', 1e3)} ms; multi-rate LSCE)",
+                                "No pole was found stable in the raw frames alone."))
     checks = v.get("crosscheck") or []
     if checks:
         out.append("<p>The 3D motion projected into single views against 2D tracks of their raw frames "
@@ -185,6 +182,21 @@ def _video(doc: dict) -> str:
                             _num(c.get("correlation"), ".2f"), _num(c.get("motion_rms_px"), ".3f"),
                             _num(c.get("force_ratio"), ".2f")] for c in checks]))
     return "".join(out)
+
+
+def _poles_table(modes: list[dict], fv, zv, title: str, none: str) -> str:
+    """The camera's own poles against the nearest accelerometer mode."""
+    if not fv:
+        return f"<p>{none}</p>"
+    fa = np.array([m["freq_hz"] for m in modes], float)
+    rows = []
+    for i, f in enumerate(fv):
+        near = int(np.argmin(np.abs(fa - float(f)))) if len(fa) else None
+        rows.append([str(i + 1), _num(f, ".2f"), _num(zv[i] if i < len(zv) else None, ".2f", 100),
+                     _mode_name(modes, near) if near is not None else "&ndash;",
+                     _num((float(f) - fa[near]) / fa[near] if near is not None else None, "+.2f", 100)])
+    return (f"<p>{title}, against the nearest accelerometer mode:</p>"
+            + _table(["#", "frequency (Hz)", "damping (%)", "nearest mode", "difference (%)"], rows, 1))
 
 
 def _sensor_table(sensors: list[str], header: str, values) -> str:

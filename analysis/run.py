@@ -17,9 +17,10 @@ from odsplat.store import Capture, atomic_write_text
 
 from .correlation import Correlation, correlate, mac
 from .crosscheck import ViewCheck, crosscheck_views
-from .ema import ModalFit, fit_modes, pole_damping, pole_freq_hz
+from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_hit, estimate_frf
-from .ods import TRAJECTORIES, SurfaceMotion, fit_decay, force_transform, lsce_poles, receptance
+from .imagepoles import ImagePoles, image_poles
+from .ods import TRAJECTORIES, SurfaceMotion, fit_decay, force_transform, receptance, stable_poles
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +51,9 @@ class AnalyzeSettings:
     lsce_orders: tuple[int, ...] = (24, 32, 40)
     crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
     crosscheck_points: int = 30
+    image_poles: bool = True                         # poles from the synced takes' raw frames (imagepoles.py)
+    image_orders: tuple[int, ...] = (16, 20, 24)
+    image_pixel_fraction: float = 0.05               # the most textured pixels of each view
 
     def __post_init__(self) -> None:
         if self.takes not in ("accepted", "all"):
@@ -101,6 +105,7 @@ class AnalysisResult:
     ods_freq_hz: np.ndarray = field(default_factory=lambda: np.zeros(0))
     ods_accel: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), complex))   # (L, S) m/N, measured H1
     ods_video: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), complex))   # (L, S) m/N, synthesised
+    image: ImagePoles | None = None      # poles from the raw frames of every synced take
     files: dict[str, str] = field(default_factory=dict)
 
     def summary(self) -> dict:
@@ -125,6 +130,11 @@ class AnalysisResult:
                 out["video"]["crosscheck_gain_median"] = float(np.median([c.gain for c in v.crosscheck]))
                 out["video"]["crosscheck_correlation_median"] = float(np.median([c.correlation
                                                                                  for c in v.crosscheck]))
+        if self.image is not None:
+            im = self.image
+            out["image_poles"] = {"freq_hz": im.freq_hz.tolist(), "damping": im.damping.tolist(),
+                                  "n_views": im.n_views, "n_pixels": im.n_pixels, "window_s": list(im.window_s),
+                                  "component_snr": im.snr.tolist()}
         if self.correlation is not None:
             out["correlation"] = {"pairs": self.correlation.summary(), "comac": self.correlation.comac.tolist()}
         if len(self.ods_freq_hz) and self.ods_video.size:
@@ -149,6 +159,11 @@ class AnalysisResult:
                 lines.append(f"2D cross-check ({len(v.crosscheck)} views): gain tracked/3D median "
                              f"{np.median([c.gain for c in v.crosscheck]):.2f}, correlation median "
                              f"{np.median([c.correlation for c in v.crosscheck]):.2f}")
+        if self.image is not None:
+            im = self.image
+            lines.append(f"image poles ({im.n_views} views, {im.n_pixels} px, {1e3 * im.window_s[0]:.1f}-"
+                         f"{1e3 * im.window_s[1]:.1f} ms): " + (", ".join(f"{f:.2f}" for f in im.freq_hz) or "none")
+                         + " Hz")
         if self.correlation is not None:
             c = self.correlation
             lines.append("MAC video/accelerometers: " + ", ".join(
@@ -255,30 +270,6 @@ def _sync_force(capture: Capture, force: str, poles: np.ndarray) -> np.ndarray:
     return np.mean(vals, axis=0)
 
 
-def _stable_video_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
-    """Poles of the video's motion alone: found by LSCE at every order within 1 % in frequency, damped less than
-    20 %, and carrying at least `min_share` of the motion's energy in a decay fit (which drops the stable
-    but empty poles a high order fits to the noise). Returns (freq_hz, damping)."""
-    sets = []
-    for order in orders:
-        try:
-            lam = lsce_poles(times_s, x, order)
-        except InputError:          # too few timesteps for this order
-            continue
-        sets.append(lam[(pole_freq_hz(lam) < fmax_hz) & (pole_damping(lam) < 0.2)])
-    if not sets:
-        return np.zeros(0), np.zeros(0)
-    keep = [lam for lam in sets[-1]
-            if all(len(o) and np.min(np.abs(np.abs(o) - abs(lam))) < 0.01 * abs(lam) for o in sets[:-1])]
-    lam = np.array(sorted(keep, key=abs), complex)
-    if len(lam):
-        fit = fit_decay(times_s, x, lam)
-        env = np.exp(2 * np.outer(times_s - times_s[0], lam.real)).sum(axis=0)     # (R,)
-        energy = np.sum(np.abs(fit.amplitudes) ** 2, axis=1) * env
-        lam = lam[energy >= min_share * energy.sum()]
-    return pole_freq_hz(lam), pole_damping(lam)
-
-
 def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: AnalyzeSettings) -> VideoModes | None:
     path = capture.derived_dir / TRAJECTORIES
     if not s.video or not path.is_file():
@@ -304,7 +295,7 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     n_s = at_sensors.shape[1]
     fit = fit_decay(t, np.concatenate([at_sensors, surface], axis=1), poles, t_min_s=t_min)  # one design matrix
     F = _sync_force(capture, force, poles)
-    f_hz, zeta = _stable_video_poles(t[t >= t_min], surface[t >= t_min], s.lsce_orders, nyq * 0.8)
+    f_hz, zeta = stable_poles(t[t >= t_min], surface[t >= t_min], s.lsce_orders, nyq * 0.8)
     checks = crosscheck_views(capture, motion, max_views=s.crosscheck_views, n_points=s.crosscheck_points,
                               k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []
@@ -345,6 +336,9 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
         modes = modes.with_corrected_damping(frf.exp_tau_s)
     log.info("modes: %s Hz", ", ".join(f"{f:.2f}" for f in modes.freq_hz))
     video = video_modes(capture, modes, sensors, force, s)
+    image = None
+    if s.video and s.image_poles:
+        image = image_poles(capture, fmax_hz=fmax, orders=s.image_orders, pixel_fraction=s.image_pixel_fraction)
     corr = None
     ods_f = np.asarray(s.ods_freq_hz if s.ods_freq_hz is not None else modes.freq_hz, float)
     rec = frf.to_receptance()
@@ -353,10 +347,13 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     ods_video = np.zeros((0, 0), complex)
     if video is not None:
         f_acc = modes.freq_hz[video.mode_index]
-        corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc,
-                         freq_b_hz=_nearest(f_acc, video.freq_hz, 0.05))
+        # the camera's frequency of each mode: from the raw frames (the whole take) where found, else from the
+        # reconstruction's window
+        f_cam = _nearest(f_acc, image.freq_hz, 0.05) if image is not None else np.full(len(f_acc), np.nan)
+        f_cam = np.where(np.isnan(f_cam), _nearest(f_acc, video.freq_hz, 0.05), f_cam)
+        corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc, freq_b_hz=f_cam)
         ods_video = receptance(video.sensor_residues, video.poles_rad_s, ods_f)
-    result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video)
+    result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video, image)
     return _write(capture, result, s)
 
 

@@ -42,7 +42,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from odsplat.analysis.correlation import mac, modal_scale_factor  # noqa: E402
-from odsplat.analysis.ods import TRAJECTORIES  # noqa: E402
+from odsplat.analysis.ods import TRAJECTORIES, stable_poles  # noqa: E402
 from odsplat.analysis.run import AnalysisResult, AnalyzeSettings, analyze_capture  # noqa: E402
 from odsplat.errors import InputError  # noqa: E402
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
@@ -89,9 +89,9 @@ def record_and_process(out: Path, args, figures: dict, perfect: bool) -> Capture
         out, n_views=args.views, n_frames=args.frames, pretrigger_frames=6, record_s=args.record_s,
         settings=SimBenchSettings(camera=SimCameraConfig(fps=2000.0), seed=args.seed)))
     cap = Capture.open(out)
-    synced = (cap.derived_dir / "sync.json").exists() and (perfect or (cap.derived_dir / "sync").is_dir())
+    synced = (cap.derived_dir / "sync.json").exists() and (cap.derived_dir / "sync").is_dir()
     stage(figures, "sync", synced,
-          lambda: sync_capture(cap, SyncSettings(write_frames=not perfect), progress=False))
+          lambda: sync_capture(cap, SyncSettings(), progress=False))     # frames too: the image poles need them
     if perfect:
         return cap
     stage(figures, "magnify", (cap.derived_dir / "magnified" / "phase").exists(),
@@ -268,11 +268,39 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float) 
     figs["ratios"]["time_vs_peak_picking"] = analysis_s / pp_s
     targets = {"freq_within_1pct_accel": not missed and max_err is not None and max_err <= FREQ_TOL,
                "freq_within_1pct_video": None, "mac_ge_0.9": None}
+    # (b) the camera's own poles from the raw frames of every take (no reconstruction)
+    cam_found: dict[float, float] = {}
+    baseline_s = dict(peak_picking=pp_s)
+    im = res.image
+    if im is not None:
+        ii = match(f_true, im.freq_hz)
+        figs["image_poles"] = dict(
+            n_views=im.n_views, n_pixels=im.n_pixels, window_ms=[1e3 * im.window_s[0], 1e3 * im.window_s[1]],
+            component_snr=im.snr[:4].tolist(),
+            modes=[dict(true_hz=f_true[r], found=bool(ii[r] >= 0), freq_hz=im.freq_hz[ii[r]] if ii[r] >= 0 else None,
+                        freq_err=rel(im.freq_hz[ii[r]], f_true[r]) if ii[r] >= 0 else None,
+                        true_damping=z_true[r], damping=im.damping[ii[r]] if ii[r] >= 0 else None)
+                   for r in range(len(f_true))],
+            spurious_hz=[float(f) for i, f in enumerate(im.freq_hz) if i not in set(ii[ii >= 0].tolist())])
+        # baseline: one LSCE at the frame rate on the same components (as the reconstruction's poles are found)
+        tt = np.linspace(im.window_s[0], im.window_s[1], len(im.components))
+        t = time.perf_counter()
+        f1, _ = stable_poles(tt, im.components, AnalyzeSettings().image_orders, hi)
+        baseline_s["single_rate_lsce"] = time.perf_counter() - t
+        i1 = match(f_true, f1)
+        figs["image_poles"]["single_rate_baseline"] = dict(
+            found_hz=[float(f1[i1[r]]) if i1[r] >= 0 else None for r in range(len(f_true))],
+            n_found=int(np.sum(i1 >= 0)))
+        cam_found.update({float(f_true[r]): abs(rel(im.freq_hz[ii[r]], f_true[r])) for r in range(len(f_true))
+                          if ii[r] >= 0})
     v = res.video
     if v is None:
-        figs.update(video=None, targets=targets, baseline_s=dict(peak_picking=pp_s))
+        if cam_found:
+            targets["freq_within_1pct_video"] = bool(max(cam_found.values()) <= FREQ_TOL)
+            figs["video_modes_found"] = len(cam_found)
+        figs.update(video=None, targets=targets, baseline_s=baseline_s)
         return figs
-    # (b) the video: its own poles, its residues at the sensors and over the surface, and the DFT ODS
+    # (c) the reconstruction: its own poles, its residues at the sensors and over the surface, and the DFT ODS
     iv = match(f_true, v.freq_hz)
     pts = face_points(200, seed=1, hidden=False)
     phi_p = st.mode_shapes(pts)                                                          # (P, R, 3)
@@ -307,9 +335,14 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float) 
                          min_mac_dft_baseline=float(dft_macs.min()) if len(dft_macs) else None)
     figs["ratios"]["mac_err_vs_dft"] = ratio(float(np.mean(1 - macs)), float(np.mean(1 - dft_macs))) if rows else None
     figs["ratios"]["time_vs_dft"] = analysis_s / dft_s
-    targets["freq_within_1pct_video"] = bool(max(found_err) <= FREQ_TOL) if found_err else None
+    for x in lsce:                     # the reconstruction's own poles, for modes the frames did not give
+        if x["found"] and x["true_hz"] not in cam_found:
+            cam_found[float(x["true_hz"])] = abs(x["freq_err"])
+    # every mode the camera finds (raw frames, else the reconstruction) within 1 %; how many it finds beside it
+    targets["freq_within_1pct_video"] = bool(max(cam_found.values()) <= FREQ_TOL) if cam_found else None
+    figs["video_modes_found"] = len(cam_found)
     targets["mac_ge_0.9"] = bool(np.all(macs >= MIN_MAC)) if rows else None
-    figs.update(targets=targets, baseline_s=dict(peak_picking=pp_s, dft=dft_s))
+    figs.update(targets=targets, baseline_s={**baseline_s, "dft": dft_s})
     return figs
 
 

@@ -1,0 +1,141 @@
+"""Poles from the camera alone, straight from the synced takes' raw frames: no magnification, no reconstruction.
+
+For motion well below a pixel, a pixel's intensity change is linear in the displacement (dI = -grad I . u), so
+every textured pixel of every view is a response channel of the same free decay. Each view's most textured
+pixels, scaled by their own noise, are pooled over the takes on the impact-locked timeline; the pooled channels'
+principal components (from their time-by-time Gram matrix, so memory does not grow with the pixel count) carry
+the motion, and LSCE on the components that stand above the noise, kept where stable over orders, gives the
+poles.
+
+LSCE at a high frame rate resolves low modes poorly: 23.5 Hz at 2000 fps is 85 samples a period, its roots sit
+next to z = 1, and 23.5 and 31 Hz merge into one pole of 6 % damping. So the band is split by octaves and each
+octave is fitted on the components decimated to suit it (`multirate_poles`): on the bench's 200 ms takes the
+low modes are found within 0.1 % only at a decimation of 4 or 8.
+
+This uses every frame of the takes, so its frequency resolution follows the take's length, not the
+reconstruction's window (which is a few tens of milliseconds on a CPU). It cannot say which pole moves what:
+the shapes come from the reconstruction (`ods.py`).
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from odsplat.errors import InputError
+from odsplat.store import Capture
+
+from .ods import stable_poles
+
+MIN_SNR = 10.0   # a principal component is used when its power is this many times the noise floor's
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ImagePoles:
+    """Poles of the pooled image intensities of the synced takes."""
+
+    freq_hz: np.ndarray           # (R,) stable over orders, in the band
+    damping: np.ndarray           # (R,)
+    n_views: int
+    n_pixels: int                 # channels pooled over the views
+    window_s: tuple[float, float]  # the samples used, on the impact-locked timeline
+    snr: np.ndarray               # (n_components,) each principal component's power over the noise floor's
+    components: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (T', C) the strong ones, fitted
+
+
+def textured_pixels(frame: np.ndarray, fraction: float) -> np.ndarray:
+    """Boolean mask of the `fraction` of pixels with the strongest intensity gradient in a (H, W) frame."""
+    gy, gx = np.gradient(np.asarray(frame, np.float32))
+    g = np.hypot(gx, gy)
+    return g >= np.quantile(g, 1.0 - fraction)
+
+
+def pixel_channels(frames: np.ndarray, times_s: np.ndarray, *, t_min_s: float, fraction: float) -> np.ndarray:
+    """(T', P) the textured pixels' intensities at times_s >= t_min_s, each less its mean and divided by its own
+    noise (the rms of first differences over the whole take, over sqrt 2: nearly all noise at a high frame
+    rate)."""
+    frames = np.asarray(frames, np.float32)
+    if frames.ndim == 4:
+        frames = frames.mean(axis=-1)
+    mask = textured_pixels(frames[0], fraction)
+    x = frames[:, mask]                                           # (T, P)
+    noise = np.std(np.diff(x, axis=0), axis=0) / np.sqrt(2.0)
+    use = np.asarray(times_s) >= t_min_s
+    y = x[use] - x[use].mean(axis=0)
+    return y / np.maximum(noise, 1e-6 * max(float(noise.max()), 1e-30))
+
+
+def multirate_poles(times_s, y, fmax_hz: float, orders: tuple[int, ...], factors: tuple[int, ...] = (1, 2, 4, 8)
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Stable poles (freq_hz, damping) of a free decay y (T, C) sampled at uniform times_s: each decimation q
+    (largest first) fits its own band, from where the previous one ended up to 0.8 x its Nyquist frequency (and
+    fmax_hz), on y low-passed and decimated by q (zero-phase FIR)."""
+    from scipy.signal import decimate
+
+    t = np.asarray(times_s, float)
+    y = np.asarray(y, float).reshape(len(t), -1)
+    dt = float(np.mean(np.diff(t)))
+    f_out, z_out, lo = [], [], 0.0
+    for q in sorted(set(int(q) for q in factors), reverse=True):
+        hi = min(0.8 * 0.5 / (q * dt), float(fmax_hz))
+        if hi <= lo or len(t) // q < 3 * min(orders):
+            continue
+        yd = decimate(y, q, axis=0, ftype="fir", zero_phase=True) if q > 1 else y
+        f, z = stable_poles(t[0] + q * dt * np.arange(len(yd)), yd, orders, hi)
+        keep = f > lo
+        f_out.extend(f[keep])
+        z_out.extend(z[keep])
+        lo = hi
+    order = np.argsort(f_out)
+    return np.asarray(f_out, float)[order], np.asarray(z_out, float)[order]
+
+
+def image_poles(capture: Capture, *, fmax_hz: float, orders: tuple[int, ...] = (16, 20, 24),
+                factors: tuple[int, ...] = (1, 2, 4, 8), t_min_s: float = 1.5e-3, pixel_fraction: float = 0.05,
+                n_components: int = 16, progress: bool = True) -> ImagePoles | None:
+    """Poles from every synced take's aligned frames (`derived/sync/*.h5`); None when there are none."""
+    from tqdm import tqdm
+
+    from odsplat.sync import AlignedTake, load_sync
+
+    try:
+        sync = load_sync(capture)
+    except InputError as e:
+        log.info("no image poles: %s", e)
+        return None
+    takes = [tk for tk in sync.ok if tk.aligned_file and (capture.root / tk.aligned_file).is_file()]
+    if not takes:
+        log.info("no image poles: no synced take has aligned frames")
+        return None
+    gram, times, n_pix = None, None, 0
+    for tk in tqdm(takes, desc="analysis: image poles", unit="take", disable=not progress):
+        path = capture.root / tk.aligned_file
+        with AlignedTake(path) as f:
+            frames, t = f.read_frames(), f.times_s
+        if times is None:
+            times = t
+        elif len(t) != len(times) or np.max(np.abs(t - times)) > 1e-9:
+            raise InputError(f"{path}: times_s", "expected the capture's common sync grid, as the first take's")
+        y = pixel_channels(frames, t, t_min_s=t_min_s, fraction=pixel_fraction).astype(np.float64)
+        gram = y @ y.T if gram is None else gram + y @ y.T
+        n_pix += y.shape[1]
+    tt = times[times >= t_min_s]
+    if len(tt) < 3 * min(orders):
+        log.warning("no image poles: %d frames after %.1f ms", len(tt), 1e3 * t_min_s)
+        return None
+    w, v = np.linalg.eigh(gram)
+    w, v = np.maximum(w[::-1], 0.0), v[:, ::-1]
+    k = min(n_components, len(w))
+    floor = float(np.median(w[k:])) if len(w) > k else float(w[-1])
+    snr = w[:k] / max(floor, 1e-300)
+    strong = max(int(np.sum(snr >= MIN_SNR)), 1)
+    y = v[:, :strong] * np.sqrt(w[:strong])                        # the strong components' time histories
+    f_hz, zeta = multirate_poles(tt, y, fmax_hz, orders, factors)
+    log.info("image poles (%d views, %d px): %s Hz", len(takes), n_pix, ", ".join(f"{f:.2f}" for f in f_hz))
+    return ImagePoles(f_hz, zeta, len(takes), n_pix, (float(tt[0]), float(tt[-1])), snr, y)
+
+
+__all__ = ["ImagePoles", "image_poles", "multirate_poles", "pixel_channels", "textured_pixels"]
