@@ -392,12 +392,14 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
               help="Exponential window: its value at the end of the record (0: rectangular).")
 @click.option("--record", "record_s", type=float, default=None, help="Seconds of each hit to use (default: all).")
 @click.option("--no-video", is_flag=True, help="Accelerometers only, even with a reconstruction.")
+@click.option("--image-poles/--no-image-poles", default=True, show_default=True,
+              help="Also find poles in the synced takes' raw frames (needs a few hundred ms of frames for low modes).")
 @click.option("--report/--no-report", "with_report", default=True, show_default=True,
               help="Also write derived/analysis/report.html.")
 def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, ...], all_takes: bool,
             fmin_hz: float | None, fmax_hz: float | None, max_order: int, approx_freq_hz: tuple[float, ...],
             ods_freq_hz: tuple[float, ...], exp_end: float, record_s: float | None, no_video: bool,
-            with_report: bool) -> None:
+            image_poles: bool, with_report: bool) -> None:
     """FRFs, modes, the video's 3D shapes and their correlation for CAPTURE_DIR, into derived/analysis/
     (docs/analysis.md)."""
     from .analysis.frf import FRFSettings
@@ -412,7 +414,7 @@ def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, 
                                frf=FRFSettings(exponential_end=exp_end or None), record_s=record_s,
                                fmin_hz=fmin_hz, fmax_hz=fmax_hz, max_order=max_order,
                                approx_freq_hz=approx_freq_hz or None, ods_freq_hz=ods_freq_hz or None,
-                               video=not no_video)
+                               video=not no_video, image_poles=image_poles)
     cap = Capture.open(capture_dir)
     result = analyze_capture(cap, settings)
     click.echo(result.text())

@@ -202,11 +202,15 @@ def test_cli_analyze_and_report(capture):
     r = CliRunner().invoke(main, ["analyze", str(capture.root), "--fmax", "450"])
     assert r.exit_code == 0, r.output
     assert "modes (accelerometers)" in r.output and "report.html" in r.output
+    assert "image poles (3 views" in r.output
     html = (capture.derived_dir / "analysis" / "report.html").read_text()
     assert "data:image/png;base64," in html
     assert "2D tracks" in html and "v00_000" in html          # the cross-check table
     assert "Poles found in the raw frames alone (3 views" in html
     r = CliRunner().invoke(main, ["report", str(capture.root)])
     assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["analyze", str(capture.root), "--no-image-poles", "--no-report"])
+    assert r.exit_code == 0 and "image poles" not in r.output, r.output
+    assert "image_poles" not in json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text())
     r = CliRunner().invoke(main, ["analyze", str(capture.root), "--exp-end", "2"])
     assert r.exit_code == 2 and "--exp-end" in r.output
