@@ -19,7 +19,6 @@ log = logging.getLogger(__name__)
 
 POSES = "poses.json"   # under derived/: each view's K, R, t (world to camera, OpenCV axes)
 DEPTH_TOL_M = 0.01     # a point is visible when within this of the nearest surface point on its pixel
-CHUNK = 2048           # points read at a time (T x CHUNK x k x 3 values)
 
 
 @dataclass(frozen=True)
@@ -91,8 +90,7 @@ def check_view(frames: np.ndarray, frame_times_s: np.ndarray, motion: SurfaceMot
     idx = np.flatnonzero(ok)
     # each point's motion as its neighbours agree on it (as at the sensors): the points that move most in a real
     # reconstruction are otherwise the few Gaussians that wandered off
-    disp = np.concatenate([motion.at_points(motion.points_m[idx[i:i + CHUNK]], k=k, outlier_factor=outlier_factor)
-                           for i in range(0, len(idx), CHUNK)], axis=1)
+    disp = motion.at_points(motion.points_m[idx], k=k, outlier_factor=outlier_factor)
     proj = project_displacement(disp, motion.points_m[idx], K, R, t)                               # (T, n, 2)
     proj = proj - proj[:1]
     strongest = np.argsort(-np.sqrt(np.mean(proj ** 2, axis=(0, 2))))

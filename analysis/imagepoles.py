@@ -19,7 +19,7 @@ the shapes come from the reconstruction (`ods.py`).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -41,9 +41,13 @@ class ImagePoles:
     damping: np.ndarray           # (R,)
     n_views: int
     n_pixels: int                 # channels pooled over the views
-    window_s: tuple[float, float]  # the samples used, on the impact-locked timeline
+    times_s: np.ndarray           # (T',) the samples used, on the impact-locked timeline
     snr: np.ndarray               # (n_components,) each principal component's power over the noise floor's
-    components: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # (T', C) the strong ones, fitted
+    components: np.ndarray        # (T', C) the strong components' time histories, as fitted
+
+    @property
+    def window_s(self) -> tuple[float, float]:
+        return float(self.times_s[0]), float(self.times_s[-1])
 
 
 def textured_pixels(frame: np.ndarray, fraction: float) -> np.ndarray:
@@ -135,7 +139,7 @@ def image_poles(capture: Capture, *, fmax_hz: float, orders: tuple[int, ...] = (
     y = v[:, :strong] * np.sqrt(w[:strong])                        # the strong components' time histories
     f_hz, zeta = multirate_poles(tt, y, fmax_hz, orders, factors)
     log.info("image poles (%d views, %d px): %s Hz", len(takes), n_pix, ", ".join(f"{f:.2f}" for f in f_hz))
-    return ImagePoles(f_hz, zeta, len(takes), n_pix, (float(tt[0]), float(tt[-1])), snr, y)
+    return ImagePoles(f_hz, zeta, len(takes), n_pix, tt, snr, y)
 
 
 __all__ = ["ImagePoles", "image_poles", "multirate_poles", "pixel_channels", "textured_pixels"]

@@ -27,6 +27,7 @@ from .ema import pole_damping, pole_freq_hz
 log = logging.getLogger(__name__)
 
 TRAJECTORIES = Path("reconstruction") / "trajectories.npz"  # under the capture's derived/
+READ_CHUNK = 2048   # points SurfaceMotion.at_points reads at a time
 
 
 @dataclass(frozen=True)
@@ -88,7 +89,19 @@ class SurfaceMotion:
         trajectory lies further than `outlier_factor` times the median such distance from the median trajectory
         (per timestep and component, over the k) is left out (None: keep all). A per-timestep fit leaves a few
         Gaussians that wander, and one of them in a plain mean can move a sensor's reading by half."""
-        idx, w, _ = self.nearest(points_m, k)
+        pts = np.asarray(points_m, float).reshape(-1, 3)
+        dirs = None
+        if directions is not None:
+            dirs = np.asarray(directions, float).reshape(-1, 3)
+            if len(dirs) != len(pts):
+                raise InputError("at_points: directions",
+                                 f"expected one direction per point ({len(pts)}); got {len(dirs)}")
+            dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        if len(pts) > READ_CHUNK:          # bounded memory: T x READ_CHUNK x k x 3 values at a time
+            parts = [self.at_points(pts[i:i + READ_CHUNK], None if dirs is None else dirs[i:i + READ_CHUNK], k=k,
+                                    outlier_factor=outlier_factor) for i in range(0, len(pts), READ_CHUNK)]
+            return np.concatenate(parts, axis=1)
+        idx, w, _ = self.nearest(pts, k)
         disp = self.displacement_m[:, idx]                                    # (T, S, k, 3)
         if outlier_factor is not None and idx.shape[1] > 2:
             med = np.median(disp, axis=2, keepdims=True)
@@ -97,12 +110,7 @@ class SurfaceMotion:
             w = w * keep
             w = w / w.sum(axis=1, keepdims=True)
         d = np.einsum("tskc,sk->tsc", disp, w)
-        if directions is None:
-            return d
-        dirs = np.asarray(directions, float).reshape(-1, 3)
-        if dirs.shape[0] != d.shape[1]:
-            raise InputError("at_points: directions", f"expected one direction per point ({d.shape[1]}); got {len(dirs)}")
-        return np.einsum("tsc,sc->ts", d, dirs / np.linalg.norm(dirs, axis=1, keepdims=True))
+        return d if dirs is None else np.einsum("tsc,sc->ts", d, dirs)
 
 
 def force_transform(force_n, sample_rate_hz: float, t0_s: float, s) -> np.ndarray:

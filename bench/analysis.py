@@ -283,9 +283,8 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float) 
                    for r in range(len(f_true))],
             spurious_hz=[float(f) for i, f in enumerate(im.freq_hz) if i not in set(ii[ii >= 0].tolist())])
         # baseline: one LSCE at the frame rate on the same components (as the reconstruction's poles are found)
-        tt = np.linspace(im.window_s[0], im.window_s[1], len(im.components))
         t = time.perf_counter()
-        f1, _ = stable_poles(tt, im.components, AnalyzeSettings().image_orders, hi)
+        f1, _ = stable_poles(im.times_s, im.components, AnalyzeSettings().image_orders, hi)
         baseline_s["single_rate_lsce"] = time.perf_counter() - t
         i1 = match(f_true, f1)
         figs["image_poles"]["single_rate_baseline"] = dict(
