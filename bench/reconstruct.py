@@ -1,5 +1,5 @@
 """The paper's evaluation on hil_sim: held-out views of dynamic Gaussians against natively magnified ground truth,
-for three orders of the stages.
+for the orders of the stages.
 
 Records a capture (force held constant take to take), syncs it, magnifies every view in 2D (phase, alpha),
 estimates poses with pycolmap and the tags, trains dynamic 3D Gaussians on all views but the held-out ones,
@@ -7,6 +7,8 @@ and renders the held-out views (at their estimated poses) at every timestep, mag
 - paper: 2D-magnified views, a fit per timestep (Luiten et al.);
 - modal_magnified: 2D-magnified views, the modal model (reconstruction/modal.py);
 - modal_raw: the unmagnified views, the modal model, magnified in 3D at render time;
+- linear_raw: the unmagnified views at full resolution, every timestep in one linear solve on a node graph
+  (reconstruction/linear.py), magnified in 3D at render time;
 - paper_native (a control, not run by default): the paper order on hil_sim's noise-free renders of the true
   cameras with the motion multiplied by alpha, i.e. what a perfect 2D magnifier would give.
 Ground truth: hil_sim's noise-free renders from the true camera with the structure's motion multiplied by
@@ -204,7 +206,7 @@ def run_config(capture, poses, settings: ReconstructSettings, holdout, gts, alph
         for v in vs.views:
             v.images = (v.images + rgb_noise * torch.randn(v.images.shape, generator=gen)).clamp(0, 1)
     t0 = time.perf_counter()
-    model = train(vs, poses, settings)
+    model = train(vs, poses, settings, capture)
     seconds = time.perf_counter() - t0
     res = evaluate(model, poses, holdout, gts, alpha, settings.width_px)
     res.update(n_views=len(vs.views), n_gaussians=len(model.g0), train_s=seconds,
@@ -220,10 +222,11 @@ ORDERS = {  # name: (training frames, motion model)
     "paper": ("magnified/phase", "timestep"),
     "modal_magnified": ("magnified/phase", "modal"),
     "modal_raw": ("sync", "modal"),
+    "linear_raw": ("sync", "linear"),
     # control: the paper order on natively magnified renders of the true cameras (a perfect 2D magnifier)
     "paper_native": ("magnified/phase", "timestep"),
 }
-DEFAULT_ORDERS = ("paper", "modal_magnified", "modal_raw")
+DEFAULT_ORDERS = ("paper", "modal_magnified", "modal_raw", "linear_raw")
 
 
 def main() -> None:

@@ -292,17 +292,19 @@ def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, 
 
 @main.command()
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--source", default="magnified/phase", show_default=True,
-              help="Frames to fit: 'sync' (unmagnified, on the common grid) or 'magnified/METHOD'.")
+@click.option("--source", default=None,
+              help="Frames to fit: 'sync' (unmagnified, on the common grid) or 'magnified/METHOD'. Default: "
+                   "magnified/phase, or sync for --motion linear.")
 @click.option("--width", "width_px", type=int, default=128, show_default=True, help="Training image width in px.")
 @click.option("--timesteps", "n_timesteps", type=int, default=32, show_default=True)
 @click.option("--step", type=int, default=1, show_default=True, help="Grid frames between timesteps.")
 @click.option("--start", type=int, default=None, help="First grid frame (default: the last before the impact).")
 @click.option("--holdout", multiple=True, help="A take never used in training (repeatable).")
 @click.option("--no-static", is_flag=True, help="Do not condition the t=0 fit on static photos.")
-@click.option("--motion", type=click.Choice(["timestep", "modal"]), default="timestep", show_default=True,
+@click.option("--motion", type=click.Choice(["timestep", "modal", "linear"]), default="timestep", show_default=True,
               help="timestep: a fit per timestep (Luiten et al.); modal: one temporal basis for every Gaussian, all "
-                   "timesteps at once (docs/reconstruction.md compares them).")
+                   "timesteps at once; linear: every timestep in one linear solve on the raw frames at full "
+                   "resolution, magnified in 3D at render time (docs/reconstruction.md compares them).")
 @click.option("--iters-t0", type=int, default=1500, show_default=True, help="Iterations of the rest fit.")
 @click.option("--iters-modal", type=int, default=2000, show_default=True, help="Iterations of the modal fit.")
 @click.option("--components", type=int, default=4, show_default=True, help="Temporal basis functions (modal).")
@@ -310,7 +312,7 @@ def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, 
               help="Iterations per timestep (timestep).")
 @click.option("--threads", type=int, default=None, help="Torch threads (default: torch's).")
 @click.option("--seed", type=int, default=0, show_default=True)
-def reconstruct(capture_dir: Path, source: str, width_px: int, n_timesteps: int, step: int, start: int | None,
+def reconstruct(capture_dir: Path, source: str | None, width_px: int, n_timesteps: int, step: int, start: int | None,
                 holdout: tuple[str, ...], no_static: bool, motion: str, iters_t0: int, iters_modal: int,
                 components: int, iters_per_step: int, threads: int | None, seed: int) -> None:
     """Train dynamic 3D Gaussians on CAPTURE_DIR's posed views into derived/reconstruction/ (docs/reconstruction.md)."""
@@ -321,6 +323,7 @@ def reconstruct(capture_dir: Path, source: str, width_px: int, n_timesteps: int,
 
     fit = FitSettings(iters_t0=iters_t0, iters_per_step=iters_per_step, seed=seed)
     modal = ModalSettings(iters=iters_modal, n_components=components, seed=seed)
+    source = source or ("sync" if motion == "linear" else "magnified/phase")
     settings = ReconstructSettings(source=source, width_px=width_px, n_timesteps=n_timesteps, step=step, start=start,
                                    holdout=holdout, use_static=not no_static, threads=threads, motion=motion,
                                    fit=fit, modal=modal)

@@ -23,6 +23,7 @@ from odsplat.store import Capture, atomic_path, atomic_write_text
 
 from .dynamic import FitSettings, Trajectory, fit_dynamic, fit_static, render
 from .gaussians import Gaussians, save_ply
+from .linear import LinearSettings, fit_linear
 from .modal import ModalMotion, ModalSettings, fit_modal
 from .quaternion import quat_conjugate, quat_from_rotvec, quat_multiply, quat_normalize, quat_to_rotvec
 from .views import Camera, SceneFrame, ViewSet, load_views
@@ -30,7 +31,7 @@ from .views import Camera, SceneFrame, ViewSet, load_views
 log = logging.getLogger(__name__)
 
 FORMAT = "odsplat-reconstruction"
-MOTIONS = ("modal", "timestep")
+MOTIONS = ("modal", "timestep", "linear")
 
 
 @dataclass(frozen=True)
@@ -44,13 +45,18 @@ class ReconstructSettings:
     use_static: bool = True              # condition the t=0 fit on static photos too
     init_opacity: float = 0.1
     threads: int | None = None
-    motion: str = "timestep"             # "timestep" (a fit per timestep) or "modal" (modal.py: one basis, all at once)
+    motion: str = "timestep"             # "timestep" (a fit per timestep), "modal" (modal.py: one basis, all at
+    #                                      once) or "linear" (linear.py: one linear solve on the raw frames)
     fit: FitSettings = FitSettings()     # the rest fit, and the per-timestep fits when motion == "timestep"
     modal: ModalSettings = ModalSettings()
+    linear: LinearSettings = LinearSettings()
 
     def __post_init__(self) -> None:
         if self.motion not in MOTIONS:
             raise InputError("motion", f"expected one of {', '.join(MOTIONS)}, got {self.motion!r}")
+        if self.motion == "linear" and self.source != "sync":
+            raise InputError("source", f"the linear motion model reads the raw frames: expected 'sync', got "
+                                       f"{self.source!r} (it magnifies in 3D, at render time)")
 
 
 def out_dir(capture: Capture) -> Path:
@@ -129,13 +135,15 @@ class Model:
     init: str
     background: torch.Tensor
     modal: ModalMotion | None = None
+    linear: dict | None = None           # the linear solve's figures
 
     def scene(self) -> DynamicScene:
         return DynamicScene.from_model(self.g0, self.trajectory, self.views, self.background, self.modal)
 
 
-def train(vs: ViewSet, poses, settings: ReconstructSettings) -> Model:
-    """Fit the rest state to every view's rest frames (and static photos), then the motion (modal or per timestep)."""
+def train(vs: ViewSet, poses, settings: ReconstructSettings, capture: Capture | None = None) -> Model:
+    """Fit the rest state to every view's rest frames (and static photos), then the motion (modal, per timestep, or
+    linear: that one reads the capture's full-resolution raw frames)."""
     s = settings
     if s.threads:
         torch.set_num_threads(s.threads)
@@ -147,12 +155,18 @@ def train(vs: ViewSet, poses, settings: ReconstructSettings) -> Model:
     log.info("t=0: %d Gaussians in %.0f s", len(g0), stats0["seconds"])
     background = torch.tensor(stats0["background"], dtype=g0.means.dtype)
     t1 = time.perf_counter()
+    modal = linear = None
     if s.motion == "modal":
         modal = fit_modal(g0, vs.views, s.modal, background)
         traj = modal.trajectory(g0)
+    elif s.motion == "linear":
+        if capture is None:
+            raise InputError("motion", "the linear motion model needs the capture (its raw frames)")
+        modal, linear = fit_linear(capture, poses, vs, g0, background, s.linear)
+        traj = modal.trajectory(g0)
     else:
-        modal, traj = None, fit_dynamic(g0, vs.views, s.fit, background)
-    return Model(g0, traj, vs, stats0, time.perf_counter() - t1, init, background, modal)
+        traj = fit_dynamic(g0, vs.views, s.fit, background)
+    return Model(g0, traj, vs, stats0, time.perf_counter() - t1, init, background, modal, linear)
 
 
 def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -> ReconstructResult:
@@ -161,7 +175,7 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
     poses = _poses(capture)
     vs = load_views(capture, poses, source=s.source, width_px=s.width_px, n_timesteps=s.n_timesteps, step=s.step,
                     start=s.start, holdout=s.holdout, use_static=s.use_static)
-    m = train(vs, poses, s)
+    m = train(vs, poses, s, capture)
     last = vs.n_timesteps - 1
     bg = m.background
     psnr0 = _psnr(m.g0, vs.views, 0, background=bg)
@@ -177,6 +191,8 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
     if m.modal is not None:
         report["modal"] = dict(motion_scale_m=m.modal.scale * vs.scene.radius,
                                energy_share=m.modal.principal()[3].tolist())
+    if m.linear is not None:
+        report["linear"] = m.linear
     atomic_write_text(dest / "reconstruction.json", json.dumps(report, indent=1, default=str))  # str: paths
     log.info(result.summary())
     return result

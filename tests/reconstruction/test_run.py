@@ -121,6 +121,26 @@ def test_modal_model_on_raw_frames_and_magnification_at_render(reconstructed, tm
     assert r.exit_code == 2 and "--alpha" in r.output
 
 
+def test_linear_motion_through_the_command_line(reconstructed, tmp_path):
+    cap, _ = reconstructed
+    raw = tmp_path / "lin"
+    shutil.copytree(cap.root, raw)
+    text = _ok(["reconstruct", raw, "--motion", "linear", "--width", "64", "--timesteps", "8", "--iters-t0", "100",
+                "--threads", "1"])
+    assert "over 8 timesteps" in text
+    report = json.loads((raw / "derived" / "reconstruction" / "reconstruction.json").read_text())
+    assert report["settings"]["source"] == "sync" and report["source_alpha"] == 1.0
+    lin = report["linear"]
+    assert lin["n_nodes"] > 10 and lin["n_pixels"] > 1000 and len(lin["views"]) == 12
+    scene = DynamicScene.load(Capture.open(raw))
+    assert scene.motion == "modal" and scene.basis.shape[0] == 8
+    assert np.all(scene.displacement_m[0] == 0)
+    # Physical motion of a structure hit by a hand hammer: micrometres, not millimetres.
+    assert 0 < np.abs(scene.displacement_m).max() < 2e-3
+    r = CliRunner().invoke(main, ["reconstruct", str(raw), "--motion", "linear", "--source", "magnified/phase"])
+    assert r.exit_code == 2 and "sync" in r.output
+
+
 def test_render_errors(reconstructed, tmp_path):
     cap, _ = reconstructed
     r = CliRunner().invoke(main, ["render", str(cap.root), "--camera", "nope", "--times", "0"])
