@@ -19,7 +19,8 @@ per node and timestep, constrained by every pixel of every view; the linearised 
 rows are weighted by its noise, so the prior's weight (`smoothing`, relative to the data term) is dimensionless.
 
 The normal matrix is the same at every timestep: it is built and factorised once, and every timestep is one
-back-substitution. The frames are the raw ones (`source="sync"`): the model's displacement is the physical motion,
+back-substitution. The temporal components of the solution that stand above the noise floor are kept as the
+basis of a modal model (`ModalMotion`): the rest is each timestep's own noise. The frames are the raw ones (`source="sync"`): the model's displacement is the physical motion,
 magnified in 3D at render time (`odsplat render --alpha`).
 """
 from __future__ import annotations
@@ -173,7 +174,7 @@ class NodeGraph:
 
 @dataclass
 class ViewRows:
-    """One view's constraints: the pixels used and their rows of the linear model, already noise-weighted."""
+    """What one view contributed: the pixels used and its frames' noise (its rows were weighted by 1 / noise)."""
 
     name: str
     n_pixels: int
