@@ -20,8 +20,9 @@ rows are weighted by its noise, so the prior's weight (`smoothing`, relative to 
 
 The normal matrix is the same at every timestep: it is built and factorised once, and every timestep is one
 back-substitution. The temporal components of the solution that stand above the noise floor are kept as the
-basis of a modal model (`ModalMotion`): the rest is each timestep's own noise. The frames are the raw ones (`source="sync"`): the model's displacement is the physical motion,
-magnified in 3D at render time (`odsplat render --alpha`).
+basis of a modal model (`ModalMotion`): the rest is each timestep's own noise. The frames are the raw ones
+(`source="sync"`): the model's displacement is the physical motion, magnified in 3D at render time (`odsplat
+render --alpha`).
 """
 from __future__ import annotations
 
@@ -44,7 +45,7 @@ from odsplat.store import Capture
 from .dynamic import render
 from .gaussians import Gaussians
 from .modal import ModalMotion
-from .views import Camera, SceneFrame, SourceFrames, ViewSet, source_path
+from .views import Camera, SceneFrame, SourceFrames, ViewSet, pose_camera, source_path
 
 log = logging.getLogger(__name__)
 
@@ -209,13 +210,6 @@ def _projection_rows(camera: Camera, u_px: np.ndarray, v_px: np.ndarray, z_m: np
     return X, a_cam @ R                                                 # R^T a_cam
 
 
-def _full_camera(poses, name: str) -> Camera:
-    """A posed take's camera at its full resolution, world frame (the ViewSet's are resized, in scene units)."""
-    vp = poses.view(name)
-    return Camera(np.asarray(vp.K, float), np.asarray(vp.R, float), np.asarray(vp.t, float), vp.width_px,
-                  vp.height_px, name)
-
-
 def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: torch.Tensor,
                s: LinearSettings) -> tuple[ModalMotion, dict]:
     """The motion of g0 (scene coordinates) at vs's timesteps from the raw synced frames of vs's views, as a modal
@@ -227,7 +221,7 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
     if opaque.sum() < 4:
         raise InputError("linear motion", f"only {opaque.sum()} Gaussians at least {s.min_opacity} opaque to place "
                                           "nodes on; the rest fit failed")
-    cameras = [_full_camera(poses, v.name) for v in vs.views]
+    cameras = [pose_camera(poses, v.name) for v in vs.views]          # full resolution, world frame
     spacing = _node_spacing(means_m[opaque], cameras, scene, s)
     graph = NodeGraph.over(means_m[opaque], spacing, s.k_interp)
     log.info("linear motion: %d nodes %.1f mm apart over %d opaque Gaussians", graph.n_nodes, spacing * 1e3,
@@ -276,7 +270,8 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
             # Away from depth edges (a step of more than 1.5 node spacings between neighbouring pixels, or the
             # uncovered background) by the filters' reach: there the image moves with one side only.
             zf = np.where(use, z, 0.0)
-            step = np.maximum(np.abs(np.diff(zf, axis=0, append=zf[-1:])), np.abs(np.diff(zf, axis=1, append=zf[:, -1:])))
+            step = np.maximum(np.abs(np.diff(zf, axis=0, append=zf[-1:])),
+                              np.abs(np.diff(zf, axis=1, append=zf[:, -1:])))
             use &= maximum_filter(step, size=2 * EDGE_MARGIN_PX + 1) < 1.5 * spacing
             energy = gx**2 + gy**2
             if use.any():

@@ -26,7 +26,7 @@ from .gaussians import Gaussians, save_ply
 from .linear import LinearSettings, fit_linear
 from .modal import ModalMotion, ModalSettings, fit_modal
 from .quaternion import quat_conjugate, quat_from_rotvec, quat_multiply, quat_normalize, quat_to_rotvec
-from .views import Camera, SceneFrame, ViewSet, load_views
+from .views import Camera, SceneFrame, ViewSet, load_views, pose_camera
 
 log = logging.getLogger(__name__)
 
@@ -331,17 +331,6 @@ def orbit(poses, n: int, *, elevation_deg: float = 30.0, distance_m: float | Non
         cam = Camera(np.asarray(v0.K, float), R, t, v0.width_px, v0.height_px, f"orbit_{k:03d}")
         cams.append(cam.resized(width_px) if width_px else cam)
     return cams
-
-
-def pose_camera(poses, name: str, width_px: int | None = None) -> Camera:
-    """The estimated camera of a take (or static photo) by name."""
-    try:
-        v = poses.view(name)
-    except KeyError:
-        known = ", ".join(v.name for v in poses.views)
-        raise InputError("--camera", f"no posed view named {name!r} (posed: {known})") from None
-    cam = Camera(np.asarray(v.K, float), np.asarray(v.R, float), np.asarray(v.t, float), v.width_px, v.height_px, name)
-    return cam.resized(width_px) if width_px else cam
 
 
 def cameras_from_json(path: Path, width_px: int | None = None) -> list[Camera]:

@@ -222,6 +222,17 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
     return ViewSet(views, static, frames, grid[frames], scene, bit_depth, notes, alphas.pop())
 
 
+def pose_camera(poses, name: str, width_px: int | None = None) -> Camera:
+    """The estimated camera of a take (or static photo) by name."""
+    try:
+        v = poses.view(name)
+    except KeyError:
+        known = ", ".join(v.name for v in poses.views)
+        raise InputError("--camera", f"no posed view named {name!r} (posed: {known})") from None
+    cam = Camera(np.asarray(v.K, float), np.asarray(v.R, float), np.asarray(v.t, float), v.width_px, v.height_px, name)
+    return cam.resized(width_px) if width_px else cam
+
+
 def _read_photo(path: Path) -> np.ndarray:
     """A static photo as float32 (H, W, C) in [0, 1] (16-bit PNGs are full scale; colour returned as RGB)."""
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -232,5 +243,5 @@ def _read_photo(path: Path) -> np.ndarray:
     return img[..., ::-1].copy() if img.ndim == 3 else img
 
 
-__all__ = ["Camera", "SceneFrame", "SourceFrames", "TrainView", "ViewSet", "load_views", "select_frames",
+__all__ = ["Camera", "SceneFrame", "SourceFrames", "TrainView", "ViewSet", "load_views", "pose_camera", "select_frames",
            "source_path"]
