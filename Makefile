@@ -24,8 +24,9 @@ test: $(STAMP)
 
 # The demo runs what works end to end: a guided 27-view capture on the simulated rig (with two
 # injected faults that QC catches and the session redoes), sync of its takes onto one impact-locked
-# timeline, phase-based magnification of every view, camera poses (pycolmap + tags), dynamic 3D
-# Gaussians on the magnified views (demo-sized: 16 timesteps at 128 px), an orbit render and the analysis
+# timeline, phase-based magnification of every view (2D videos to watch), camera poses (pycolmap + tags),
+# dynamic 3D Gaussians (the rest state at 128 px, then 64 timesteps of motion from the raw frames in one linear
+# solve), an orbit render magnified 30x in 3D and the analysis
 # (modes from the accelerometers, the video's 3D shapes, MAC, UFF/HDF5, report), then real
 # recordings imported from $(SHARED_DATA) when that folder exists. Later stages add their steps here.
 demo: $(STAMP)
@@ -35,8 +36,8 @@ demo: $(STAMP)
 	$(BIN)/odsplat sync $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat magnify $(DEMO_OUT)/sim-rig --method phase --alpha 30
 	$(BIN)/odsplat poses $(DEMO_OUT)/sim-rig
-	$(BIN)/odsplat reconstruct $(DEMO_OUT)/sim-rig --timesteps 16 --step 2 --iters-t0 800 --iters-step 50
-	$(BIN)/odsplat render $(DEMO_OUT)/sim-rig --camera orbit:16:30 --times -0.0005:0.0145:16
+	$(BIN)/odsplat reconstruct $(DEMO_OUT)/sim-rig --timesteps 64 --iters-t0 800
+	$(BIN)/odsplat render $(DEMO_OUT)/sim-rig --camera orbit:16:30 --times -0.0005:0.031:16 --alpha 30
 	$(BIN)/odsplat analyze $(DEMO_OUT)/sim-rig
 	@if test -d $(SHARED_DATA); then \
 	  rm -rf $(DEMO_OUT)/ladisk-beam && \

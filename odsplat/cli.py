@@ -294,17 +294,18 @@ def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, 
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--source", default=None,
               help="Frames to fit: 'sync' (unmagnified, on the common grid) or 'magnified/METHOD'. Default: "
-                   "magnified/phase, or sync for --motion linear.")
+                   "sync, or magnified/phase for --motion timestep.")
 @click.option("--width", "width_px", type=int, default=128, show_default=True, help="Training image width in px.")
 @click.option("--timesteps", "n_timesteps", type=int, default=32, show_default=True)
 @click.option("--step", type=int, default=1, show_default=True, help="Grid frames between timesteps.")
 @click.option("--start", type=int, default=None, help="First grid frame (default: the last before the impact).")
 @click.option("--holdout", multiple=True, help="A take never used in training (repeatable).")
 @click.option("--no-static", is_flag=True, help="Do not condition the t=0 fit on static photos.")
-@click.option("--motion", type=click.Choice(["timestep", "modal", "linear"]), default="timestep", show_default=True,
-              help="timestep: a fit per timestep (Luiten et al.); modal: one temporal basis for every Gaussian, all "
-                   "timesteps at once; linear: every timestep in one linear solve on the raw frames at full "
-                   "resolution, magnified in 3D at render time (docs/reconstruction.md compares them).")
+@click.option("--motion", type=click.Choice(["linear", "modal", "timestep"]), default="linear", show_default=True,
+              help="linear: every timestep in one linear solve on the raw frames at full resolution, magnified in "
+                   "3D at render time; modal: one temporal basis for every Gaussian, all timesteps at once; "
+                   "timestep: a fit per timestep on frames magnified in 2D (Luiten et al.). docs/reconstruction.md "
+                   "compares them: linear measures best.")
 @click.option("--iters-t0", type=int, default=1500, show_default=True, help="Iterations of the rest fit.")
 @click.option("--iters-modal", type=int, default=2000, show_default=True, help="Iterations of the modal fit.")
 @click.option("--components", type=int, default=4, show_default=True, help="Temporal basis functions (modal).")
@@ -323,7 +324,7 @@ def reconstruct(capture_dir: Path, source: str | None, width_px: int, n_timestep
 
     fit = FitSettings(iters_t0=iters_t0, iters_per_step=iters_per_step, seed=seed)
     modal = ModalSettings(iters=iters_modal, n_components=components, seed=seed)
-    source = source or ("sync" if motion == "linear" else "magnified/phase")
+    source = source or ("magnified/phase" if motion == "timestep" else "sync")
     settings = ReconstructSettings(source=source, width_px=width_px, n_timesteps=n_timesteps, step=step, start=start,
                                    holdout=holdout, use_static=not no_static, threads=threads, motion=motion,
                                    fit=fit, modal=modal)

@@ -36,7 +36,7 @@ MOTIONS = ("modal", "timestep", "linear")
 
 @dataclass(frozen=True)
 class ReconstructSettings:
-    source: str = "magnified/phase"      # or "sync" (unmagnified frames on the common grid)
+    source: str = "sync"                 # unmagnified frames on the common grid, or "magnified/METHOD"
     width_px: int = 128                  # training image width (height by aspect)
     n_timesteps: int = 32
     step: int = 1                        # grid frames between timesteps
@@ -45,8 +45,9 @@ class ReconstructSettings:
     use_static: bool = True              # condition the t=0 fit on static photos too
     init_opacity: float = 0.1
     threads: int | None = None
-    motion: str = "timestep"             # "timestep" (a fit per timestep), "modal" (modal.py: one basis, all at
-    #                                      once) or "linear" (linear.py: one linear solve on the raw frames)
+    motion: str = "linear"               # "linear" (linear.py: one linear solve on the raw frames; measures best,
+    #                                      docs/reconstruction.md), "modal" (modal.py: one basis, all at once) or
+    #                                      "timestep" (a fit per timestep, the paper's)
     fit: FitSettings = FitSettings()     # the rest fit, and the per-timestep fits when motion == "timestep"
     modal: ModalSettings = ModalSettings()
     linear: LinearSettings = LinearSettings()

@@ -39,8 +39,8 @@ def reconstructed(tmp_path_factory):
     _ok(["sync", out])
     _ok(["magnify", out, "--alpha", "20", "--workers", "1"])
     _ok(["poses", out])
-    text = _ok(["reconstruct", out, "--width", "64", "--timesteps", "3", "--iters-t0", "150", "--iters-step", "15",
-                "--holdout", "v05_000", "--threads", "1"])
+    text = _ok(["reconstruct", out, "--motion", "timestep", "--width", "64", "--timesteps", "3", "--iters-t0", "150",
+                "--iters-step", "15", "--holdout", "v05_000", "--threads", "1"])
     return Capture.open(out), text
 
 
@@ -121,15 +121,14 @@ def test_modal_model_on_raw_frames_and_magnification_at_render(reconstructed, tm
     assert r.exit_code == 2 and "--alpha" in r.output
 
 
-def test_linear_motion_through_the_command_line(reconstructed, tmp_path):
+def test_linear_motion_is_the_default_of_the_command_line(reconstructed, tmp_path):
     cap, _ = reconstructed
     raw = tmp_path / "lin"
     shutil.copytree(cap.root, raw)
-    text = _ok(["reconstruct", raw, "--motion", "linear", "--width", "64", "--timesteps", "8", "--iters-t0", "100",
-                "--threads", "1"])
+    text = _ok(["reconstruct", raw, "--width", "64", "--timesteps", "8", "--iters-t0", "100", "--threads", "1"])
     assert "over 8 timesteps" in text
     report = json.loads((raw / "derived" / "reconstruction" / "reconstruction.json").read_text())
-    assert report["settings"]["source"] == "sync" and report["source_alpha"] == 1.0
+    assert report["motion"] == "linear" and report["settings"]["source"] == "sync" and report["source_alpha"] == 1.0
     lin = report["linear"]
     assert lin["n_nodes"] > 10 and lin["n_pixels"] > 1000 and len(lin["views"]) == 12
     scene = DynamicScene.load(Capture.open(raw))
