@@ -4,6 +4,8 @@ points, and modal amplitudes fitted with known poles (the hybrid approach: accel
 The reconstruction's `derived/reconstruction/trajectories.npz` holds every Gaussian's displacement as trained,
 i.e. multiplied by the magnification of the frames it was trained on (`source_alpha`); `SurfaceMotion` divides
 that out, so everything here is in metres of real motion, on the impact-locked timeline (0 = impact onset).
+The linear motion model also leaves `measured_motion.npz` in the same keys: its node graph's motion with every
+temporal component, where the model keeps only those above the noise floor.
 
 The free response after a short impulse is x(t) = sum_r A_r F(lambda_r) e^(lambda_r t) + c.c., where A_r is
 the displacement residue of mode r (the receptance is H(w) = sum_r A_r / (iw - lambda_r) + c.c.) and
@@ -27,6 +29,7 @@ from .ema import pole_damping, pole_freq_hz
 log = logging.getLogger(__name__)
 
 TRAJECTORIES = Path("reconstruction") / "trajectories.npz"  # under the capture's derived/
+MEASURED = Path("reconstruction") / "measured_motion.npz"   # the linear model's unfiltered motion, same keys
 READ_CHUNK = 2048   # points SurfaceMotion.at_points reads at a time
 
 

@@ -20,7 +20,7 @@ from .crosscheck import ViewCheck, crosscheck_views
 from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_hit, estimate_frf
 from .imagepoles import ImagePoles, image_poles
-from .ods import TRAJECTORIES, SurfaceMotion, fit_decay, force_transform, receptance, stable_poles
+from .ods import MEASURED, TRAJECTORIES, SurfaceMotion, fit_decay, force_transform, receptance, stable_poles
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +45,7 @@ class AnalyzeSettings:
     approx_freq_hz: tuple[float, ...] | None = None  # pick these poles instead of automatic selection
     ods_freq_hz: tuple[float, ...] | None = None     # ODS lines; None: the modal frequencies
     video: bool = True                               # use derived/reconstruction when it is there
+    measured_motion: bool = True                     # fit the shapes to its unfiltered motion when it has one
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
     outlier_factor: float | None = 2.0               # drop those whose motion strays this far (SurfaceMotion.at_points)
@@ -83,7 +84,7 @@ class VideoModes:
     poles_rad_s: np.ndarray          # (R,) the accelerometer poles inside the camera's band
     mode_index: np.ndarray           # (R,) their index in the accelerometer fit
     sensor_residues: np.ndarray      # (R, S) m/N along the sensor directions
-    surface_points_m: np.ndarray     # (N, 3)
+    surface_points_m: np.ndarray     # (N, 3) the Gaussians (or the linear model's nodes: `shapes_from`)
     surface_residues: np.ndarray     # (R, N, 3) m/N
     sensor_r2: np.ndarray            # (S,) share of each sensor point's motion the modes explain
     condition: float
@@ -92,6 +93,7 @@ class VideoModes:
     times_s: np.ndarray              # the trained window
     sensor_displacement_m: np.ndarray  # (T, S) the video's motion at the sensors, along their directions
     crosscheck: tuple[ViewCheck, ...] = ()   # the 3D motion against 2D tracks in single views
+    shapes_from: str = "trajectories"        # the motion the residues are fitted to: or "measured" (unfiltered)
 
 
 @dataclass(frozen=True)
@@ -124,7 +126,7 @@ class AnalysisResult:
             out["video"] = {"modes_fitted": [int(i) for i in v.mode_index], "sensor_r2": v.sensor_r2.tolist(),
                             "condition": v.condition, "freq_hz": v.freq_hz.tolist(), "damping": v.damping.tolist(),
                             "window_s": [float(v.times_s[0]), float(v.times_s[-1])],
-                            "n_surface_points": int(len(v.surface_points_m)),
+                            "n_surface_points": int(len(v.surface_points_m)), "shapes_from": v.shapes_from,
                             "crosscheck": [dataclasses.asdict(c) for c in v.crosscheck]}
             if v.crosscheck:
                 out["video"]["crosscheck_gain_median"] = float(np.median([c.gain for c in v.crosscheck]))
@@ -151,7 +153,8 @@ class AnalysisResult:
                                                         for f, z in zip(m.freq_hz, m.damping))]
         if self.video is not None:
             v = self.video
-            lines.append(f"video: {len(v.surface_points_m)} surface points, {len(v.times_s)} timesteps; modes "
+            lines.append(f"video ({v.shapes_from} motion): {len(v.surface_points_m)} surface points, "
+                         f"{len(v.times_s)} timesteps; modes "
                          f"{', '.join(str(int(k) + 1) for k in v.mode_index)} fitted (sensor r2 "
                          f"{', '.join(f'{r:.2f}' for r in v.sensor_r2)}); video-only poles "
                          + (", ".join(f"{f:.1f}" for f in v.freq_hz) or "none") + " Hz")
@@ -275,7 +278,19 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     if not s.video or not path.is_file():
         log.info("no video side: %s", "disabled" if not s.video else f"{path} not found")
         return None
-    motion = SurfaceMotion.read(path, min_opacity=s.min_opacity)
+    model = SurfaceMotion.read(path, min_opacity=s.min_opacity)
+    motion, shapes_from = model, "trajectories"
+    measured = capture.derived_dir / MEASURED
+    if s.measured_motion and measured.is_file():
+        # The linear model's unfiltered motion: the fit with known poles below is itself the filter, and recovers
+        # modes the model's basis leaves below its noise floor. The model (denoised) still gives the video's own
+        # poles and the 2D cross-check.
+        m = SurfaceMotion.read(measured, min_opacity=0.0)
+        if len(m.times_s) == len(model.times_s) and np.allclose(m.times_s, model.times_s, rtol=0, atol=1e-7):
+            motion, shapes_from = m, "measured"
+        else:
+            log.warning("%s: its timesteps are not those of %s (a stale file); the shapes come from the model",
+                        measured, path)
     t = motion.times_s
     if len(t) < 8:
         log.warning("%s: %d timesteps are too few for a decay fit; no video side", path, len(t))
@@ -295,14 +310,15 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     n_s = at_sensors.shape[1]
     fit = fit_decay(t, np.concatenate([at_sensors, surface], axis=1), poles, t_min_s=t_min)  # one design matrix
     F = _sync_force(capture, force, poles)
-    f_hz, zeta = stable_poles(t[t >= t_min], surface[t >= t_min], s.lsce_orders, nyq * 0.8)
-    checks = crosscheck_views(capture, motion, max_views=s.crosscheck_views, n_points=s.crosscheck_points,
+    model_surface = model.displacement_m.reshape(len(t), -1)
+    f_hz, zeta = stable_poles(t[t >= t_min], model_surface[t >= t_min], s.lsce_orders, nyq * 0.8)
+    checks = crosscheck_views(capture, model, max_views=s.crosscheck_views, n_points=s.crosscheck_points,
                               k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []
     residues = fit.residues(F)
     return VideoModes(poles, np.flatnonzero(use), residues[:, :n_s], motion.points_m,
                       residues[:, n_s:].reshape(len(poles), -1, 3), fit.r2[:n_s], fit.condition, f_hz, zeta, t,
-                      at_sensors, tuple(checks))
+                      at_sensors, tuple(checks), shapes_from)
 
 
 # ---------------------------------------------------------------------------------------------- the stage

@@ -43,7 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from odsplat.analysis.correlation import mac, modal_scale_factor  # noqa: E402
-from odsplat.analysis.ods import TRAJECTORIES, stable_poles  # noqa: E402
+from odsplat.analysis.ods import MEASURED, TRAJECTORIES, stable_poles  # noqa: E402
 from odsplat.analysis.run import AnalysisResult, AnalyzeSettings, analyze_capture  # noqa: E402
 from odsplat.errors import InputError  # noqa: E402
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
@@ -331,7 +331,8 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float) 
     macs = np.array([x["mac_sensors"] for x in rows])
     dft_macs = np.array([x["mac_dft_baseline"] for x in rows])
     spurious = [float(f) for i, f in enumerate(v.freq_hz) if i not in set(iv[iv >= 0].tolist())]
-    figs["video"] = dict(window_ms=[1e3 * v.times_s[0], 1e3 * v.times_s[-1]], n_timesteps=int(len(v.times_s)),
+    figs["video"] = dict(shapes_from=v.shapes_from, window_ms=[1e3 * v.times_s[0], 1e3 * v.times_s[-1]],
+                         n_timesteps=int(len(v.times_s)),
                          n_gaussians=int(len(v.surface_points_m)), fitted=rows, lsce=lsce,
                          lsce_found=int(sum(x["found"] for x in lsce)), lsce_spurious_hz=spurious,
                          max_freq_err=max(found_err, default=None), sensor_r2_min=float(v.sensor_r2.min()),
@@ -386,12 +387,14 @@ def main(argv: list[str] | None = None) -> dict:
     else:
         cap = record_and_process(args.keep or Path(tmp.name) / "cap", args, figures, args.perfect)
     traj = cap.derived_dir / TRAJECTORIES
-    aside = traj.with_name(traj.name + ".bench-aside")
+    asides = {p: p.with_name(p.name + ".bench-aside") for p in (traj, cap.derived_dir / MEASURED)}
     if args.perfect and traj.exists():
         with np.load(traj) as z:
             real = "perfect" not in z.files
-        if real:
-            os.replace(traj, aside)                       # a real reconstruction: put back afterwards
+        if real:                                          # a real reconstruction: put back afterwards
+            for p, aside in asides.items():
+                if p.exists():
+                    os.replace(p, aside)
     try:
         if args.perfect:
             write_perfect(cap, args.timesteps, args.step, args.alpha)
@@ -399,8 +402,9 @@ def main(argv: list[str] | None = None) -> dict:
         res = analyze_capture(cap, AnalyzeSettings(fmax_hz=args.fmax, max_order=args.max_order))
         analysis_s = time.perf_counter() - t
     finally:
-        if aside.exists():
-            os.replace(aside, traj)
+        for p, aside in asides.items():
+            if aside.exists():
+                os.replace(aside, p)
     print(res.text(), file=sys.stderr)
     first = res.takes[0]
     q_video = mean_q(cap, res.video.times_s) if res.video is not None else None

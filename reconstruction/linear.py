@@ -23,6 +23,10 @@ back-substitution. The temporal components of the solution that stand above the 
 basis of a modal model (`ModalMotion`): the rest is each timestep's own noise. The frames are the raw ones
 (`source="sync"`): the model's displacement is the physical motion, magnified in 3D at render time (`odsplat
 render --alpha`).
+
+The nodes' motion with every temporal component kept (`NodeMotion`) is the measurement itself. A mode whose motion
+is spread below the noise floor over the components (on the rig, 371 Hz at 16 um) is dropped from the basis but
+not from this; a fit with known poles (the analysis) recovers it there, since that fit is itself the filter.
 """
 from __future__ import annotations
 
@@ -173,6 +177,14 @@ class NodeGraph:
         return disp, np.einsum("nk,nkct->tnc", w, th)
 
 
+@dataclass(frozen=True)
+class NodeMotion:
+    """The solve's motion at the nodes, every temporal component kept (unfiltered), world frame, metres."""
+
+    points_m: np.ndarray          # (M, 3) the nodes at rest
+    displacement_m: np.ndarray    # (T, M, 3) at the model's timesteps
+
+
 @dataclass
 class ViewRows:
     """What one view contributed: the pixels used and its frames' noise (its rows were weighted by 1 / noise)."""
@@ -211,9 +223,10 @@ def _projection_rows(camera: Camera, u_px: np.ndarray, v_px: np.ndarray, z_m: np
 
 
 def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: torch.Tensor,
-               s: LinearSettings) -> tuple[ModalMotion, dict]:
+               s: LinearSettings) -> tuple[ModalMotion, dict, NodeMotion]:
     """The motion of g0 (scene coordinates) at vs's timesteps from the raw synced frames of vs's views, as a modal
-    model: the temporal components above the noise (basis) and each Gaussian's shape vectors."""
+    model (the temporal components above the noise, basis, and each Gaussian's shape vectors); its figures; and
+    the nodes' unfiltered motion."""
     t_start = time.perf_counter()
     scene = vs.scene
     means_m = scene.to_world(g0.means.detach().double().numpy())
@@ -300,6 +313,9 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
     solution = spla.splu(normal).solve(rhs)                            # (6M, T)
     basis, eig = _temporal_basis(rhs, solution, np.asarray(vs.times_s) < 0, s)
     shapes_m, rot_shapes = graph.displacement(means_m, solution @ basis)  # (K, N, 3) each
+    measured = NodeMotion(graph.nodes_m.copy(), np.concatenate(
+        [graph.displacement(graph.nodes_m, solution[:, a:a + s.chunk_frames])[0]
+         for a in range(0, solution.shape[1], s.chunk_frames)]).astype(np.float32))
     modal = ModalMotion(torch.as_tensor(basis, dtype=g0.means.dtype),
                         torch.as_tensor(shapes_m.transpose(1, 0, 2) / scene.radius, dtype=g0.means.dtype),
                         torch.as_tensor(rot_shapes.transpose(1, 0, 2), dtype=g0.means.dtype),
@@ -310,7 +326,7 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
                  views=[asdict(r) for r in views], n_pixels=int(sum(r.n_pixels for r in views)), seconds=seconds)
     log.info("linear motion: %d views, %d pixels, %d timesteps, %d temporal components, in %.1f s", len(views),
              stats["n_pixels"], len(frames), basis.shape[1], seconds)
-    return modal, stats
+    return modal, stats, measured
 
 
 def _temporal_basis(rhs: np.ndarray, solution: np.ndarray, at_rest: np.ndarray, s: LinearSettings
@@ -332,4 +348,4 @@ def _temporal_basis(rhs: np.ndarray, solution: np.ndarray, at_rest: np.ndarray, 
     return basis, snr
 
 
-__all__ = ["LinearSettings", "NodeGraph", "fit_linear"]
+__all__ = ["LinearSettings", "NodeGraph", "NodeMotion", "fit_linear"]

@@ -3,6 +3,9 @@
 Output in `derived/reconstruction/`:
 - `gaussians_t0.ply`: the rest state in the INRIA layout (world frame, metres), for standard splat viewers;
 - `trajectories.npz`: everything needed to render any time (see `DynamicScene`), world frame, metres;
+- `measured_motion.npz` (the linear motion model only): the node graph's motion with every temporal component
+  kept, in the same keys as `trajectories.npz`'s motion (`times_s`, `means_rest_m`, `displacement_m`,
+  `opacity_logits`, `source_alpha`); the analysis fits its mode shapes to this;
 - `reconstruction.json`: settings, views, timesteps, per-stage figures.
 """
 from __future__ import annotations
@@ -23,7 +26,7 @@ from odsplat.store import Capture, atomic_path, atomic_write_text
 
 from .dynamic import FitSettings, Trajectory, fit_dynamic, fit_static, render
 from .gaussians import Gaussians, save_ply
-from .linear import LinearSettings, fit_linear
+from .linear import LinearSettings, NodeMotion, fit_linear
 from .modal import ModalMotion, ModalSettings, fit_modal
 from .quaternion import quat_conjugate, quat_from_rotvec, quat_multiply, quat_normalize, quat_to_rotvec
 from .views import Camera, SceneFrame, ViewSet, load_views, pose_camera
@@ -31,6 +34,7 @@ from .views import Camera, SceneFrame, ViewSet, load_views, pose_camera
 log = logging.getLogger(__name__)
 
 FORMAT = "odsplat-reconstruction"
+MEASURED = "measured_motion.npz"
 MOTIONS = ("modal", "timestep", "linear")
 
 
@@ -137,6 +141,7 @@ class Model:
     background: torch.Tensor
     modal: ModalMotion | None = None
     linear: dict | None = None           # the linear solve's figures
+    measured: NodeMotion | None = None   # the linear solve's unfiltered node motion
 
     def scene(self) -> DynamicScene:
         return DynamicScene.from_model(self.g0, self.trajectory, self.views, self.background, self.modal)
@@ -156,18 +161,32 @@ def train(vs: ViewSet, poses, settings: ReconstructSettings, capture: Capture | 
     log.info("t=0: %d Gaussians in %.0f s", len(g0), stats0["seconds"])
     background = torch.tensor(stats0["background"], dtype=g0.means.dtype)
     t1 = time.perf_counter()
-    modal = linear = None
+    modal = linear = measured = None
     if s.motion == "modal":
         modal = fit_modal(g0, vs.views, s.modal, background)
         traj = modal.trajectory(g0)
     elif s.motion == "linear":
         if capture is None:
             raise InputError("motion", "the linear motion model needs the capture (its raw frames)")
-        modal, linear = fit_linear(capture, poses, vs, g0, background, s.linear)
+        modal, linear, measured = fit_linear(capture, poses, vs, g0, background, s.linear)
         traj = modal.trajectory(g0)
     else:
         traj = fit_dynamic(g0, vs.views, s.fit, background)
-    return Model(g0, traj, vs, stats0, time.perf_counter() - t1, init, background, modal, linear)
+    return Model(g0, traj, vs, stats0, time.perf_counter() - t1, init, background, modal, linear, measured)
+
+
+def save_measured(dest: Path, times_s: np.ndarray, measured: NodeMotion | None) -> None:
+    """`measured_motion.npz` from the linear solve, or none: a stale one from an earlier linear run goes, so that
+    the analysis never pairs it with another model."""
+    path = dest / MEASURED
+    if measured is None:
+        path.unlink(missing_ok=True)
+        return
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, times_s=np.asarray(times_s, float), means_rest_m=measured.points_m,
+                     displacement_m=measured.displacement_m.astype(np.float32),
+                     opacity_logits=np.full(len(measured.points_m), 10.0), source_alpha=1.0, kind="linear nodes")
 
 
 def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -> ReconstructResult:
@@ -183,6 +202,7 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
     psnr_last = _psnr(m.g0, vs.views, last, m.trajectory.means[last], m.trajectory.quats[last], bg)
     dest = out_dir(capture)
     m.scene().save(dest)
+    save_measured(dest, vs.times_s, m.measured)
     result = ReconstructResult(dest, len(m.g0), len(vs.views), len(vs.static), vs.n_timesteps, m.stats_t0["seconds"],
                                m.seconds_dynamic, psnr0, psnr_last, vs.notes + [f"initialised from {m.init} points"])
     report = dict(format=FORMAT, version=1, created_utc=utc_now(), settings=asdict(s),
@@ -406,4 +426,5 @@ def render_sequence(scene: DynamicScene, cameras: list[Camera], times_s: np.ndar
 
 
 __all__ = ["DynamicScene", "Model", "train", "ReconstructResult", "ReconstructSettings", "cameras_from_json", "initial_points",
-           "look_at_point", "orbit", "out_dir", "parse_times", "pose_camera", "reconstruct", "render_sequence"]
+           "look_at_point", "orbit", "out_dir", "parse_times", "pose_camera", "reconstruct", "render_sequence",
+           "save_measured"]

@@ -11,7 +11,7 @@ import pytest
 import pyuff
 from click.testing import CliRunner
 
-from odsplat.analysis.correlation import mac
+from odsplat.analysis.correlation import mac, modal_scale_factor
 from odsplat.analysis.run import AnalyzeSettings, analyze_capture
 from odsplat.cli import main
 from odsplat.errors import InputError
@@ -48,11 +48,15 @@ def _truth(cap: Capture, name: str | None = None) -> TakeTruth:
     return TakeTruth.load(truth_path(cap.takes_dir / f"{name}.h5"))
 
 
-def _write_trajectories(cap: Capture, n_steps: int = 64, wander_fraction: float = 0.0) -> TakeTruth:
+def _write_trajectories(cap: Capture, n_steps: int = 64, wander_fraction: float = 0.0,
+                        drop_mode: int | None = None) -> TakeTruth:
     """derived/reconstruction/trajectories.npz as a perfect reconstruction would leave it: hil_sim's surface
     points moving as the structure did, averaged over the synced takes (each hit a little different), on the
     impact-locked timeline, magnified ALPHA times. wander_fraction: that share of the points drift off as a
-    per-timestep fit leaves a few Gaussians (a random walk growing to 10x the largest true motion)."""
+    per-timestep fit leaves a few Gaussians (a random walk growing to 10x the largest true motion).
+    drop_mode: leave that mode out, as the linear model's basis does with a mode below its noise floor, and
+    write measured_motion.npz beside it as the linear model would: every mode, on a coarse node graph (one point
+    in 5), with noise. Without drop_mode any measured_motion.npz goes, as `odsplat reconstruct` does."""
     grid = load_sync(cap).times_s                  # the reconstruction trains on the sync grid's frames
     k0 = int(np.searchsorted(grid, 0.0)) - 1        # from the last frame before the impact
     times = grid[k0:k0 + n_steps]
@@ -64,14 +68,24 @@ def _write_trajectories(cap: Capture, n_steps: int = 64, wander_fraction: float 
         n = tr.modal_q_daq.shape[1]
         qs.append(np.stack([np.interp(x, np.arange(n), row) for row in tr.modal_q_daq]))   # (R, T)
     points = _surface_points()
-    disp = np.einsum("prc,rt->tpc", ModalStructure().mode_shapes(points), np.mean(qs, axis=0))
+    q = np.mean(qs, axis=0)
+    disp = np.einsum("prc,rt->tpc", ModalStructure().mode_shapes(points), q)
+    dest = cap.derived_dir / "reconstruction"
+    dest.mkdir(parents=True, exist_ok=True)
+    (dest / "measured_motion.npz").unlink(missing_ok=True)
+    if drop_mode is not None:
+        rng = np.random.default_rng(2)
+        nodes = points[::5]
+        dropped = np.einsum("pc,t->tpc", ModalStructure().mode_shapes(nodes)[:, drop_mode], q[drop_mode])
+        noisy = disp[:, ::5] + rng.normal(0, 0.5 * np.sqrt(np.mean(dropped**2)), dropped.shape)
+        np.savez(dest / "measured_motion.npz", times_s=times, means_rest_m=nodes, displacement_m=noisy,
+                 opacity_logits=np.full(len(nodes), 10.0), source_alpha=1.0)
+        disp = disp - np.einsum("pc,t->tpc", ModalStructure().mode_shapes(points)[:, drop_mode], q[drop_mode])
     if wander_fraction > 0:
         rng = np.random.default_rng(1)
         who = rng.random(len(points)) < wander_fraction
         walk = np.cumsum(rng.normal(size=(n_steps, int(who.sum()), 3)), axis=0)
         disp[:, who] += walk * (10 * np.abs(disp).max() / np.abs(walk).max())
-    dest = cap.derived_dir / "reconstruction"
-    dest.mkdir(parents=True, exist_ok=True)
     np.savez(dest / "trajectories.npz", times_s=times, means_rest_m=points,
              displacement_m=(ALPHA * disp).astype(np.float32), opacity_logits=np.full(len(disp[0]), 4.0),
              source_alpha=ALPHA)
@@ -160,6 +174,43 @@ def test_wandering_gaussians_do_not_mislead_the_readouts(capture):
         assert check.n_points >= 10
         assert 0.4 < check.gain < 1.2 and check.correlation > 0.6, check
         assert check.motion_rms_px < 0.1, check      # the true motion is 0.02-0.03 px rms; wanderers are larger
+
+
+def test_shapes_come_from_the_measured_motion_when_the_model_drops_a_mode(capture):
+    """The linear model keeps the temporal components above its noise floor and leaves the unfiltered node motion
+    beside them. A mode it drops (here the weakly excited 371 Hz one) is gone from trajectories.npz but not from
+    measured_motion.npz; the fit with the accelerometer poles takes the shapes from the latter, and recovers it."""
+    tr = _write_trajectories(capture, drop_mode=5)
+    f_true = np.asarray(tr.freqs_hz)
+
+    def mode(res, r_true) -> tuple[float, float]:
+        """MAC of the video's shape of true mode r_true against the truth at the sensors, and its scale against
+        the accelerometers' (1: the same residue in m/N)."""
+        v = res.video
+        k = [int(np.argmin(np.abs(f_true - res.modes.freq_hz[i]))) for i in v.mode_index].index(r_true)
+        pos = np.stack([s.position_m for s in res.sensors])
+        dirs = np.stack([s.direction for s in res.sensors])
+        scale = modal_scale_factor(v.sensor_residues[k], res.modes.shapes[v.mode_index[k]])[0]
+        return float(mac(v.sensor_residues[k], _truth_shapes(tr, pos, dirs)[r_true])[0, 0]), float(abs(scale))
+
+    try:
+        res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False))
+        assert res.video.shapes_from == "measured" and len(res.video.surface_points_m) == 7200 // 5
+        (mac5, scale5), (mac1, scale1) = mode(res, 5), mode(res, 0)
+        assert mac5 > 0.95 and abs(scale5 - 1) < 0.15 and mac1 > 0.95 and abs(scale1 - 1) < 0.1
+        # Fitted to the model instead, the dropped mode's residue is only the other modes' leakage: far too small.
+        model = analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False,
+                                                         measured_motion=False))
+        assert model.video.shapes_from == "trajectories" and mode(model, 5)[1] < 0.3
+        # A measured file from another run (other timesteps) is not paired with this model.
+        path = capture.derived_dir / "reconstruction" / "measured_motion.npz"
+        with np.load(path) as z:
+            stale = {k: z[k] for k in z.files}
+        np.savez(path, **{**stale, "times_s": stale["times_s"] + 1e-3})
+        assert analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False)
+                               ).video.shapes_from == "trajectories"
+    finally:
+        _write_trajectories(capture)
 
 
 def test_outputs_read_back(capture):

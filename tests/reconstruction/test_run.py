@@ -136,6 +136,11 @@ def test_linear_motion_is_the_default_of_the_command_line(reconstructed, tmp_pat
     assert np.all(scene.displacement_m[0] == 0)
     # Physical motion of a structure hit by a hand hammer: micrometres, not millimetres.
     assert 0 < np.abs(scene.displacement_m).max() < 2e-3
+    # Beside the model, its node graph's unfiltered motion (every temporal component) for the analysis' fits.
+    with np.load(raw / "derived" / "reconstruction" / "measured_motion.npz") as z:
+        assert z["displacement_m"].shape == (8, lin["n_nodes"], 3) and np.allclose(z["times_s"], scene.times_s)
+        assert float(z["source_alpha"]) == 1.0 and 0 < np.abs(z["displacement_m"]).max() < 2e-3
+    assert not (cap.derived_dir / "reconstruction" / "measured_motion.npz").exists()   # the per-timestep model
     r = CliRunner().invoke(main, ["reconstruct", str(raw), "--motion", "linear", "--source", "magnified/phase"])
     assert r.exit_code == 2 and "sync" in r.output
 
