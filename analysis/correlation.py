@@ -93,9 +93,13 @@ class Correlation:
         return rows
 
 
-def correlate(a, b, *, freq_a_hz=None, freq_b_hz=None, min_mac: float = 0.0) -> Correlation:
+def correlate(a, b, *, freq_a_hz=None, freq_b_hz=None, min_mac: float = 0.0, paired: bool = False) -> Correlation:
     """Pair the shapes of b with those of a one-to-one by maximum total MAC (Hungarian assignment), keeping pairs
-    with MAC >= min_mac, and report MAC, modal scale factors, CoMAC over the pairs and frequency differences."""
+    with MAC >= min_mac, and report MAC, modal scale factors, CoMAC over the pairs and frequency differences.
+
+    paired=True: row i of b already belongs to row i of a (as the video's residues fitted with the accelerometers'
+    poles do), so they are paired as given. Pairing by MAC would swap two modes whose shapes look alike at a few
+    sensors (on the rig, 262 and 371 Hz at the four accelerometers)."""
     a, b = _shapes(a, "correlate: a"), _shapes(b, "correlate: b")
     m = mac(a, b)
     fa = None if freq_a_hz is None else np.asarray(freq_a_hz, float)
@@ -103,7 +107,12 @@ def correlate(a, b, *, freq_a_hz=None, freq_b_hz=None, min_mac: float = 0.0) -> 
     for f, s, name in ((fa, a, "freq_a_hz"), (fb, b, "freq_b_hz")):
         if f is not None and f.shape != (s.shape[0],):
             raise InputError(f"correlate: {name}", f"expected one frequency per shape ({s.shape[0]}); got {f.shape}")
-    rows, cols = linear_sum_assignment(-m)
+    if paired:
+        if a.shape[0] != b.shape[0]:
+            raise InputError("correlate: b", f"paired shapes need as many rows as a ({a.shape[0]}); got {b.shape[0]}")
+        rows = cols = np.arange(a.shape[0])
+    else:
+        rows, cols = linear_sum_assignment(-m)
     keep = [(int(i), int(j)) for i, j in zip(rows, cols) if m[i, j] >= min_mac]
     keep.sort()
     ia = np.array([i for i, _ in keep], int)

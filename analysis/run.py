@@ -367,7 +367,8 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
         # reconstruction's window
         f_cam = _nearest(f_acc, image.freq_hz, 0.05) if image is not None else np.full(len(f_acc), np.nan)
         f_cam = np.where(np.isnan(f_cam), _nearest(f_acc, video.freq_hz, 0.05), f_cam)
-        corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc, freq_b_hz=f_cam)
+        corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc, freq_b_hz=f_cam,
+                         paired=True)      # each video residue was fitted with that accelerometer pole
         ods_video = receptance(video.sensor_residues, video.poles_rad_s, ods_f)
     result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video, image)
     return _write(capture, result, s)

@@ -126,6 +126,15 @@ def test_mac_comac_and_scale_factor_on_known_shapes():
     assert np.allclose(c.scale_factor, 1 / (-2.5j))
     assert np.allclose(c.comac[np.abs(a).sum(axis=0) > 0], 1.0)
     assert np.allclose(c.freq_diff_rel, 0.01)
+    # Paired as given (the video's residues fitted with the accelerometer poles): row i with row i, even where
+    # another row looks more alike; here two near-alike shapes that MAC pairing swaps.
+    alike = np.stack([a[0], a[0] + 0.3 * a[1]])
+    swapped = correlate(alike[:2], alike[::-1])
+    assert swapped.pairs == ((0, 1), (1, 0))
+    given = correlate(alike[:2], alike[::-1], paired=True)
+    assert given.pairs == ((0, 0), (1, 1)) and np.all(given.pair_mac < 1)
+    with pytest.raises(InputError, match="as many rows"):
+        correlate(a, b[:3], paired=True)
     # one corrupted coordinate shows in CoMAC, not much in MAC
     b2 = a.copy()
     b2[:, 4] = np.random.default_rng(2).normal(0, np.abs(a[:, 4]).max(), s.n_modes)   # a bad sensor
