@@ -412,7 +412,8 @@ def main(argv: list[str] | None = None) -> dict:
     figures["settings"] = dict(motion=args.motion, views=args.views, frames=args.frames, record_s=args.record_s,
                                timesteps=args.timesteps, step=args.step, alpha=args.alpha, width_px=args.width,
                                iters_t0=args.iters_t0, iters_step=args.iters_step, fmax_hz=args.fmax,
-                               max_order=args.max_order, threads=args.threads, seed=args.seed, magnify_options=args.magnify_option,
+                               max_order=args.max_order, threads=args.threads, seed=args.seed,
+                               magnify_options=args.magnify_option,
                                capture=str(args.capture) if args.capture else None)
     print(json.dumps(figures, default=float))
     return figures
