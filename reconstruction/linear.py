@@ -256,22 +256,25 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
             full = 2.0 ** int(ff.attrs["bit_depth"]) - 1
             read = lambda a, b: np.asarray(ff.read_frames(a, b), np.float64).reshape(b - a, *ff.frame_shape[:2], -1)\
                 .mean(axis=-1) / full  # noqa: E731  (colour: the mean of the channels)
-            before = np.flatnonzero(times < 0)
-            if not len(before):
+            before = times < 0
+            if not before.any():
                 raise InputError(path, "no frame before the impact to take the rest image from")
-            rest = read(int(before[0]), int(before[-1]) + 1).mean(axis=0)
-            if rest.shape != (cam.height_px, cam.width_px):
-                raise InputError(path, f"frames are {rest.shape[1]}x{rest.shape[0]} px, the pose says "
-                                       f"{cam.width_px}x{cam.height_px}")
-            # The mean of every frame: the appearance at rest with the noise of one frame / sqrt(T).
-            total, diffs, prev = np.zeros_like(rest), [], None
+            h, w = (int(n) for n in ff.frame_shape[:2])
+            if (h, w) != (cam.height_px, cam.width_px):
+                raise InputError(path, f"frames are {w}x{h} px, the pose says {cam.width_px}x{cam.height_px}")
+            # One pass over every frame: the rest image (the mean of those before the impact), the mean of all (the
+            # appearance at rest with the noise of one frame / sqrt(T)) and a few frame-to-frame differences.
+            total, rest, diffs, prev = np.zeros((h, w)), np.zeros((h, w)), [], None
             for a in range(0, len(times), s.chunk_frames):
-                chunk = read(a, min(a + s.chunk_frames, len(times)))
+                b = min(a + s.chunk_frames, len(times))
+                chunk = read(a, b)
                 total += chunk.sum(axis=0)
+                rest += chunk[before[a:b]].sum(axis=0)
                 for f in chunk:
                     if prev is not None and len(diffs) < 16:
                         diffs.append(smooth(f - prev))
                     prev = f
+            rest /= before.sum()
             mean_img = total / len(times)
             gx = blur(_filter(mean_img, DERIVATIVE, PREFILTER))
             gy = blur(_filter(mean_img, PREFILTER, DERIVATIVE))
