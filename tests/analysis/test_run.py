@@ -69,18 +69,19 @@ def _write_trajectories(cap: Capture, n_steps: int = 64, wander_fraction: float 
         qs.append(np.stack([np.interp(x, np.arange(n), row) for row in tr.modal_q_daq]))   # (R, T)
     points = _surface_points()
     q = np.mean(qs, axis=0)
-    disp = np.einsum("prc,rt->tpc", ModalStructure().mode_shapes(points), q)
+    phi = ModalStructure().mode_shapes(points)                  # (P, R, 3)
+    disp = np.einsum("prc,rt->tpc", phi, q)
     dest = cap.derived_dir / "reconstruction"
     dest.mkdir(parents=True, exist_ok=True)
     (dest / "measured_motion.npz").unlink(missing_ok=True)
     if drop_mode is not None:
         rng = np.random.default_rng(2)
+        dropped = np.einsum("pc,t->tpc", phi[:, drop_mode], q[drop_mode])
         nodes = points[::5]
-        dropped = np.einsum("pc,t->tpc", ModalStructure().mode_shapes(nodes)[:, drop_mode], q[drop_mode])
-        noisy = disp[:, ::5] + rng.normal(0, 0.5 * np.sqrt(np.mean(dropped**2)), dropped.shape)
+        noisy = disp[:, ::5] + rng.normal(0, 0.5 * np.sqrt(np.mean(dropped[:, ::5] ** 2)), (len(times), len(nodes), 3))
         np.savez(dest / "measured_motion.npz", times_s=times, means_rest_m=nodes, displacement_m=noisy,
                  opacity_logits=np.full(len(nodes), 10.0), source_alpha=1.0)
-        disp = disp - np.einsum("pc,t->tpc", ModalStructure().mode_shapes(points)[:, drop_mode], q[drop_mode])
+        disp = disp - dropped
     if wander_fraction > 0:
         rng = np.random.default_rng(1)
         who = rng.random(len(points)) < wander_fraction
