@@ -8,7 +8,8 @@ from .ema import LSFDResult, ModalFit, StabilisationChart, fit_modes, lscf, lsfd
 from .export import FRFRecord, Geometry, ResultSet, ShapeRecord, TimeSeries, read_results_h5, read_uff, \
     write_results_h5, write_uff
 from .frf import FRFResult, FRFSettings, HitCheck, check_hit, estimate_frf, split_hits
-from .ods import DecayFit, SurfaceMotion, fit_decay, force_transform, lsce_poles, receptance
+from .ods import DecayFit, SurfaceMotion, fit_decay, force_transform, lsce_poles, pencil_poles, \
+    receptance, stable_poles
 from .run import AnalysisResult, AnalyzeSettings, Sensor, VideoModes, analyze_capture
 from .tracking import Tracks, good_points, project_displacement, track_points
 
@@ -16,6 +17,6 @@ __all__ = ["AnalysisResult", "AnalyzeSettings", "Correlation", "DecayFit", "FRFR
            "Geometry", "HitCheck", "LSFDResult", "ModalFit", "ResultSet", "Sensor", "ShapeRecord",
            "StabilisationChart", "SurfaceMotion", "TimeSeries", "Tracks", "VideoModes", "analyze_capture",
            "check_hit", "comac", "correlate", "estimate_frf", "fit_decay", "fit_modes", "force_transform",
-           "good_points", "lscf", "lsce_poles", "lsfd", "mac", "modal_scale_factor", "project_displacement",
-           "read_results_h5", "read_uff", "receptance", "select_poles", "split_hits", "stabilisation",
-           "track_points", "write_results_h5", "write_uff"]
+           "good_points", "lscf", "lsce_poles", "lsfd", "mac", "modal_scale_factor", "pencil_poles",
+           "project_displacement", "read_results_h5", "read_uff", "receptance", "select_poles", "split_hits",
+           "stabilisation", "stable_poles", "track_points", "write_results_h5", "write_uff"]

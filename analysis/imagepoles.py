@@ -4,13 +4,14 @@ For motion well below a pixel, a pixel's intensity change is linear in the displ
 every textured pixel of every view is a response channel of the same free decay. Each view's most textured
 pixels, scaled by their own noise, are pooled over the takes on the impact-locked timeline; the pooled channels'
 principal components (from their time-by-time Gram matrix, so memory does not grow with the pixel count) carry
-the motion, and LSCE on the components that stand above the noise, kept where stable over orders, gives the
-poles.
+the motion, and the matrix pencil on the components that stand above the noise, kept where stable over ranks,
+gives the poles.
 
-LSCE at a high frame rate resolves low modes poorly: 23.5 Hz at 2000 fps is 85 samples a period, its roots sit
-next to z = 1, and 23.5 and 31 Hz merge into one pole of 6 % damping. So the band is split by octaves and each
-octave is fitted on the components decimated to suit it (`multirate_poles`): on the bench's 200 ms takes the
-low modes are found within 0.1 % only at a decimation of 4 or 8.
+The pencil works at the frame rate. LSCE there resolves low modes poorly (23.5 Hz at 2000 fps is 85 samples a
+period, its roots sit next to z = 1, and 23.5 and 31 Hz merge into one pole of 6 % damping), and needed the
+band split into octaves, each fitted on components decimated to suit it; the pencil's truncated Hankel matrix
+finds them at the full rate, within 0.1 % on the bench's 200 ms takes, and on a 70 ms window finds 31 and
+142 Hz as well as 262 Hz, where the multi-rate LSCE found 262 Hz alone.
 
 This uses every frame of the takes, so its frequency resolution follows the take's length, not the
 reconstruction's window (which is a few tens of milliseconds on a CPU). It cannot say which pole moves what:
@@ -72,33 +73,8 @@ def pixel_channels(frames: np.ndarray, times_s: np.ndarray, *, t_min_s: float, f
     return y / np.maximum(noise, 1e-6 * max(float(noise.max()), 1e-30))
 
 
-def multirate_poles(times_s, y, fmax_hz: float, orders: tuple[int, ...], factors: tuple[int, ...] = (1, 2, 4, 8)
-                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Stable poles (freq_hz, damping) of a free decay y (T, C) sampled at uniform times_s: each decimation q
-    (largest first) fits its own band, from where the previous one ended up to 0.8 x its Nyquist frequency (and
-    fmax_hz), on y low-passed and decimated by q (zero-phase FIR)."""
-    from scipy.signal import decimate
-
-    t = np.asarray(times_s, float)
-    y = np.asarray(y, float).reshape(len(t), -1)
-    dt = float(np.mean(np.diff(t)))
-    f_out, z_out, lo = [], [], 0.0
-    for q in sorted(set(int(q) for q in factors), reverse=True):
-        hi = min(0.8 * 0.5 / (q * dt), float(fmax_hz))
-        if hi <= lo or len(t) // q < 3 * min(orders):
-            continue
-        yd = decimate(y, q, axis=0, ftype="fir", zero_phase=True) if q > 1 else y
-        f, z = stable_poles(t[0] + q * dt * np.arange(len(yd)), yd, orders, hi)
-        keep = f > lo
-        f_out.extend(f[keep])
-        z_out.extend(z[keep])
-        lo = hi
-    order = np.argsort(f_out)
-    return np.asarray(f_out, float)[order], np.asarray(z_out, float)[order]
-
-
-def image_poles(capture: Capture, *, fmax_hz: float, orders: tuple[int, ...] = (16, 20, 24),
-                factors: tuple[int, ...] = (1, 2, 4, 8), t_min_s: float = 1.5e-3, pixel_fraction: float = 0.05,
+def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] = (12, 16, 20, 24),
+                t_min_s: float = 1.5e-3, pixel_fraction: float = 0.05,
                 n_components: int = 16, progress: bool = True) -> ImagePoles | None:
     """Poles from every synced take's aligned frames (`derived/sync/*.h5`); None when there are none."""
     from tqdm import tqdm
@@ -127,7 +103,7 @@ def image_poles(capture: Capture, *, fmax_hz: float, orders: tuple[int, ...] = (
         gram = y @ y.T if gram is None else gram + y @ y.T
         n_pix += y.shape[1]
     tt = times[times >= t_min_s]
-    if len(tt) < 3 * min(orders):
+    if len(tt) < 2 * max(ranks) + 2:               # the pencil's Hankel matrix needs rank + 1 rows
         log.warning("no image poles: %d frames after %.1f ms", len(tt), 1e3 * t_min_s)
         return None
     w, v = np.linalg.eigh(gram)
@@ -137,9 +113,9 @@ def image_poles(capture: Capture, *, fmax_hz: float, orders: tuple[int, ...] = (
     snr = w[:k] / max(floor, 1e-300)
     strong = max(int(np.sum(snr >= MIN_SNR)), 1)
     y = v[:, :strong] * np.sqrt(w[:strong])                        # the strong components' time histories
-    f_hz, zeta = multirate_poles(tt, y, fmax_hz, orders, factors)
+    f_hz, zeta = stable_poles(tt, y, ranks, fmax_hz)
     log.info("image poles (%d views, %d px): %s Hz", len(takes), n_pix, ", ".join(f"{f:.2f}" for f in f_hz))
     return ImagePoles(f_hz, zeta, len(takes), n_pix, tt, snr, y)
 
 
-__all__ = ["ImagePoles", "image_poles", "multirate_poles", "pixel_channels", "textured_pixels"]
+__all__ = ["ImagePoles", "image_poles", "pixel_channels", "textured_pixels"]

@@ -220,14 +220,51 @@ def lsce_poles(times_s, x, order: int, *, t_min_s: float = 0.0, n_channels: int 
     return np.sort_complex(lam[keep])
 
 
-def stable_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
-    """Poles of a multi-channel free decay: found by LSCE at every order within 1 % in frequency, damped less than
-    20 %, and carrying at least `min_share` of the motion's energy in a decay fit (which drops the stable
-    but empty poles a high order fits to the noise). Returns (freq_hz, damping)."""
+def pencil_poles(times_s, x, rank: int, *, t_min_s: float = 0.0, n_channels: int = 8) -> np.ndarray:
+    """Poles (rad/s, Re < 0 < Im) of a multi-channel free decay by the matrix pencil (Kung's shift invariance):
+    the block Hankel matrix of the channels' samples, truncated to its `rank` strongest singular vectors, and the
+    eigenvalues of the one-sample shift between their rows. The truncation removes most of the noise before the
+    poles are solved for, where LSCE's least-squares prediction fits it: on a short, noisy record LSCE merges
+    close low modes (23.5 and 31 Hz at 2000 fps) and biases the rest, the pencil does not. `rank` counts real
+    exponentials: two per mode, plus one per drift. The channels are first reduced to their n_channels
+    principal components."""
+    t = np.asarray(times_s, float).reshape(-1)
+    x = np.asarray(x, float).reshape(len(t), -1)
+    use = t >= t_min_s
+    dt = np.diff(t)
+    if len(dt) == 0 or np.ptp(dt) > 1e-6 * np.mean(dt):
+        raise InputError("pencil_poles: times_s", "expected uniformly spaced times")
+    y = x[use] - x[use].mean(axis=0)
+    u, s, _ = np.linalg.svd(y, full_matrices=False)
+    y = u[:, :n_channels] * s[:n_channels]
+    T = len(y)
+    L = T // 2                                   # rows: the shifts; half the record is the least noisy choice
+    if rank < 1 or L < rank + 1:
+        raise InputError("pencil_poles: rank", f"{T} samples cannot fit rank {rank} (at most {max(L - 1, 0)})")
+    H = np.stack([y[j:T - L + j] for j in range(L + 1)]).reshape(L + 1, -1)     # row j: samples j .. j+T-L-1
+    U = np.linalg.svd(H, full_matrices=False)[0][:, :rank]
+    z = np.linalg.eigvals(np.linalg.lstsq(U[:-1], U[1:], rcond=None)[0])
+    lam = np.log(z.astype(complex)) / float(np.mean(dt))
+    keep = (lam.real < 0) & (lam.imag > 0)
+    return np.sort_complex(lam[keep])
+
+
+POLE_METHODS = {"pencil": pencil_poles, "lsce": lsce_poles}
+
+
+def stable_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3, method: str = "pencil"
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Poles of a multi-channel free decay: found by `method` (the matrix pencil, or LSCE) at every order (the
+    pencil's rank) within 1 % in frequency, damped less than 20 %, and carrying at least `min_share` of the
+    motion's energy in a decay fit (which drops the stable but empty poles a high order fits to the noise).
+    Returns (freq_hz, damping)."""
+    if method not in POLE_METHODS:
+        raise InputError("stable_poles: method", f"expected one of {sorted(POLE_METHODS)}; got {method!r}")
+    find = POLE_METHODS[method]
     sets = []
     for order in orders:
         try:
-            lam = lsce_poles(times_s, x, order)
+            lam = find(times_s, x, order)
         except InputError:          # too few timesteps for this order
             continue
         sets.append(lam[(pole_freq_hz(lam) < fmax_hz) & (pole_damping(lam) < 0.2)])

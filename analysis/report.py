@@ -163,7 +163,7 @@ def _video(doc: dict) -> str:
         out.append("<p>Share of each sensor point's video motion that these modes explain (r&sup2;):</p>")
         out.append(_sensor_table(sensors, "r&sup2;", r2))
     out.append(_poles_table(modes, v.get("freq_hz", []), v.get("damping", []),
-                            "Poles found in the reconstruction's motion alone (LSCE, stable over orders)",
+                            "Poles found in the reconstruction's motion alone (matrix pencil, stable over ranks)",
                             "No pole was found stable in the reconstruction's motion alone."))
     im = doc.get("image_poles")
     if isinstance(im, dict):
@@ -171,7 +171,7 @@ def _video(doc: dict) -> str:
         out.append(_poles_table(modes, im.get("freq_hz", []), im.get("damping", []),
                                 f"Poles found in the raw frames alone ({int(im.get('n_views', 0))} views, "
                                 f"{int(im.get('n_pixels', 0))} pixels, {_num(window[0], '.1f', 1e3)} to "
-                                f"{_num(window[-1], '.1f', 1e3)} ms; multi-rate LSCE)",
+                                f"{_num(window[-1], '.1f', 1e3)} ms; matrix pencil)",
                                 "No pole was found stable in the raw frames alone."))
     checks = v.get("crosscheck") or []
     if checks:

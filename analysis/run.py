@@ -49,11 +49,11 @@ class AnalyzeSettings:
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
     outlier_factor: float | None = 2.0               # drop those whose motion strays this far (SurfaceMotion.at_points)
-    lsce_orders: tuple[int, ...] = (24, 32, 40)
+    video_ranks: tuple[int, ...] = (12, 16, 20, 24)   # the matrix pencil's, for the video's own poles
     crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
     crosscheck_points: int = 30
     image_poles: bool = True                         # poles from the synced takes' raw frames (imagepoles.py)
-    image_orders: tuple[int, ...] = (16, 20, 24)
+    image_ranks: tuple[int, ...] = (12, 16, 20, 24)
     image_pixel_fraction: float = 0.05               # the most textured pixels of each view
 
     def __post_init__(self) -> None:
@@ -88,7 +88,7 @@ class VideoModes:
     surface_residues: np.ndarray     # (R, N, 3) m/N
     sensor_r2: np.ndarray            # (S,) share of each sensor point's motion the modes explain
     condition: float
-    freq_hz: np.ndarray              # poles found in the video alone (LSCE, stable over orders)
+    freq_hz: np.ndarray              # poles found in the video alone (matrix pencil, stable over ranks)
     damping: np.ndarray
     times_s: np.ndarray              # the trained window
     sensor_displacement_m: np.ndarray  # (T, S) the video's motion at the sensors, along their directions
@@ -311,7 +311,7 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     fit = fit_decay(t, np.concatenate([at_sensors, surface], axis=1), poles, t_min_s=t_min)  # one design matrix
     F = _sync_force(capture, force, poles)
     model_surface = model.displacement_m.reshape(len(t), -1)
-    f_hz, zeta = stable_poles(t[t >= t_min], model_surface[t >= t_min], s.lsce_orders, nyq * 0.8)
+    f_hz, zeta = stable_poles(t[t >= t_min], model_surface[t >= t_min], s.video_ranks, nyq * 0.8)
     checks = crosscheck_views(capture, model, max_views=s.crosscheck_views, n_points=s.crosscheck_points,
                               k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []
@@ -354,7 +354,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     video = video_modes(capture, modes, sensors, force, s)
     image = None
     if s.video and s.image_poles:
-        image = image_poles(capture, fmax_hz=fmax, orders=s.image_orders, pixel_fraction=s.image_pixel_fraction)
+        image = image_poles(capture, fmax_hz=fmax, ranks=s.image_ranks, pixel_fraction=s.image_pixel_fraction)
     corr = None
     ods_f = np.asarray(s.ods_freq_hz if s.ods_freq_hz is not None else modes.freq_hz, float)
     rec = frf.to_receptance()

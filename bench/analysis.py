@@ -43,7 +43,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from odsplat.analysis.correlation import mac, modal_scale_factor  # noqa: E402
-from odsplat.analysis.ods import MEASURED, TRAJECTORIES, stable_poles  # noqa: E402
+from odsplat.analysis.ods import MEASURED, TRAJECTORIES, SurfaceMotion, stable_poles  # noqa: E402
 from odsplat.analysis.run import AnalysisResult, AnalyzeSettings, analyze_capture  # noqa: E402
 from odsplat.errors import InputError  # noqa: E402
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
@@ -64,6 +64,8 @@ log = logging.getLogger("bench.analysis")
 
 FREQ_TOL = 0.01      # the targets
 MIN_MAC = 0.9
+LSCE_ORDERS = (16, 20, 24)         # the baseline pole finder's (LSCE, stable over these orders): raw frames
+LSCE_VIDEO_ORDERS = (24, 32, 40)   # and the reconstruction's motion
 MATCH_TOL = 0.05     # a found frequency belongs to the nearest true mode within this (relative)
 
 
@@ -164,6 +166,18 @@ def write_perfect(cap: Capture, n: int, step: int, alpha: float) -> None:
              opacity_logits=np.full(len(points), 4.0), source_alpha=alpha, perfect=True)
 
 
+def lsce_video_poles(cap: Capture) -> tuple[np.ndarray, float]:
+    """The baseline for the video's own poles: LSCE (stable over its orders) on the same motion the analysis
+    finds them in, the reconstruction's opaque Gaussians after the pulse. Returns (freq_hz, seconds)."""
+    model = SurfaceMotion.read(cap.derived_dir / TRAJECTORIES, min_opacity=AnalyzeSettings.min_opacity)
+    t = model.times_s
+    use = t >= 1.5e-3
+    x = model.displacement_m.reshape(len(t), -1)[use]
+    start = time.perf_counter()
+    f, _ = stable_poles(t[use], x, LSCE_VIDEO_ORDERS, 0.8 * 0.5 / float(np.median(np.diff(t))), method="lsce")
+    return f, time.perf_counter() - start
+
+
 def match(f_true: np.ndarray, f: np.ndarray) -> np.ndarray:
     """Per true frequency, the index of the nearest of f within MATCH_TOL, else -1."""
     out = np.full(len(f_true), -1)
@@ -231,8 +245,10 @@ def surface_shapes(res: AnalysisResult, points: np.ndarray, k: int = 8) -> np.nd
     return np.einsum("rpkc,pk->rpc", v.surface_residues[:, idx], w).reshape(len(v.mode_index), -1)
 
 
-def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float) -> dict:
-    """The figures; q_video: (R, T) the true modal displacement at the video's timesteps (None: no video)."""
+def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float,
+             video_lsce: tuple[np.ndarray, float] | None = None) -> dict:
+    """The figures; q_video: (R, T) the true modal displacement at the video's timesteps (None: no video);
+    video_lsce: the baseline's poles found in the same motion as the video's own, and its time."""
     st = ModalStructure()
     f_true, z_true = np.asarray(truth.freqs_hz, float), np.asarray(truth.dampings, float)
     if not np.allclose(st.freqs_hz, f_true):
@@ -290,12 +306,12 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float) 
                         true_damping=z_true[r], damping=im.damping[ii[r]] if ii[r] >= 0 else None)
                    for r in range(len(f_true))],
             spurious_hz=[float(f) for i, f in enumerate(im.freq_hz) if i not in set(ii[ii >= 0].tolist())])
-        # baseline: one LSCE at the frame rate on the same components (as the reconstruction's poles are found)
+        # baseline: LSCE at the frame rate on the same components, stable over its orders
         t = time.perf_counter()
-        f1, _ = stable_poles(im.times_s, im.components, AnalyzeSettings().image_orders, hi)
-        baseline_s["single_rate_lsce"] = time.perf_counter() - t
+        f1, _ = stable_poles(im.times_s, im.components, LSCE_ORDERS, hi, method="lsce")
+        baseline_s["lsce"] = time.perf_counter() - t
         i1 = match(f_true, f1)
-        figs["image_poles"]["single_rate_baseline"] = dict(
+        figs["image_poles"]["lsce_baseline"] = dict(
             found_hz=[float(f1[i1[r]]) if i1[r] >= 0 else None for r in range(len(f_true))],
             n_found=int(np.sum(i1 >= 0)))
         cam_found.update({float(f_true[r]): abs(rel(im.freq_hz[ii[r]], f_true[r])) for r in range(len(f_true))
@@ -325,16 +341,27 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float) 
                          mac_surface=float(mac(surf[j], phi_p[:, r].ravel())[0, 0]),
                          mac_dft_baseline=float(mac(dft[j], phi_s[r])[0, 0]),
                          scale_factor=float(abs(modal_scale_factor(v.sensor_residues[j], m.shapes[k])[0]))))
-    lsce = [dict(true_hz=f_true[r], found=bool(iv[r] >= 0), freq_hz=v.freq_hz[iv[r]] if iv[r] >= 0 else None,
-                 freq_err=rel(v.freq_hz[iv[r]], f_true[r]) if iv[r] >= 0 else None) for r in range(len(f_true))]
-    found_err = [abs(x["freq_err"]) for x in lsce if x["found"]]
+    poles = [dict(true_hz=f_true[r], found=bool(iv[r] >= 0), freq_hz=v.freq_hz[iv[r]] if iv[r] >= 0 else None,
+                  freq_err=rel(v.freq_hz[iv[r]], f_true[r]) if iv[r] >= 0 else None) for r in range(len(f_true))]
+    found_err = [abs(x["freq_err"]) for x in poles if x["found"]]
     macs = np.array([x["mac_sensors"] for x in rows])
     dft_macs = np.array([x["mac_dft_baseline"] for x in rows])
     spurious = [float(f) for i, f in enumerate(v.freq_hz) if i not in set(iv[iv >= 0].tolist())]
+    if video_lsce is not None:
+        il = match(f_true, video_lsce[0])
+        f_lsce = video_lsce[0]
+        lsce_baseline = dict(found_hz=[float(f_lsce[il[r]]) if il[r] >= 0 else None for r in range(len(f_true))],
+                             n_found=int(np.sum(il >= 0)),
+                             max_freq_err=max((abs(rel(f_lsce[il[r]], f_true[r])) for r in range(len(f_true))
+                                               if il[r] >= 0), default=None))
+        baseline_s["video_lsce"] = video_lsce[1]
+    else:
+        lsce_baseline = None
     figs["video"] = dict(shapes_from=v.shapes_from, window_ms=[1e3 * v.times_s[0], 1e3 * v.times_s[-1]],
                          n_timesteps=int(len(v.times_s)),
-                         n_gaussians=int(len(v.surface_points_m)), fitted=rows, lsce=lsce,
-                         lsce_found=int(sum(x["found"] for x in lsce)), lsce_spurious_hz=spurious,
+                         n_gaussians=int(len(v.surface_points_m)), fitted=rows, poles=poles,
+                         poles_found=int(sum(x["found"] for x in poles)), poles_spurious_hz=spurious,
+                         lsce_baseline=lsce_baseline,
                          max_freq_err=max(found_err, default=None), sensor_r2_min=float(v.sensor_r2.min()),
                          sensor_peak_um=1e6 * float(np.abs(parts.sum(0)).max()),
                          sensor_disp_rel_err=float(np.linalg.norm(got - parts.sum(0)) / np.linalg.norm(parts.sum(0))),
@@ -343,7 +370,7 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float) 
                          min_mac_dft_baseline=float(dft_macs.min()) if len(dft_macs) else None)
     figs["ratios"]["mac_err_vs_dft"] = ratio(float(np.mean(1 - macs)), float(np.mean(1 - dft_macs))) if rows else None
     figs["ratios"]["time_vs_dft"] = analysis_s / dft_s
-    for x in lsce:                     # the reconstruction's own poles, for modes the frames did not give
+    for x in poles:                    # the reconstruction's own poles, for modes the frames did not give
         if x["found"] and x["true_hz"] not in cam_found:
             cam_found[float(x["true_hz"])] = abs(x["freq_err"])
     # every mode the camera finds (raw frames, else the reconstruction) within 1 %; how many it finds beside it
@@ -401,6 +428,7 @@ def main(argv: list[str] | None = None) -> dict:
         t = time.perf_counter()
         res = analyze_capture(cap, AnalyzeSettings(fmax_hz=args.fmax, max_order=args.max_order))
         analysis_s = time.perf_counter() - t
+        video_lsce = lsce_video_poles(cap) if res.video is not None else None
     finally:
         for p, aside in asides.items():
             if aside.exists():
@@ -408,7 +436,8 @@ def main(argv: list[str] | None = None) -> dict:
     print(res.text(), file=sys.stderr)
     first = res.takes[0]
     q_video = mean_q(cap, res.video.times_s) if res.video is not None else None
-    figures.update(evaluate(res, TakeTruth.load(truth_path(cap.takes_dir / f"{first}.h5")), q_video, analysis_s))
+    figures.update(evaluate(res, TakeTruth.load(truth_path(cap.takes_dir / f"{first}.h5")), q_video, analysis_s,
+                            video_lsce))
     figures["settings"] = dict(motion=args.motion, views=args.views, frames=args.frames, record_s=args.record_s,
                                timesteps=args.timesteps, step=args.step, alpha=args.alpha, width_px=args.width,
                                iters_t0=args.iters_t0, iters_step=args.iters_step, fmax_hz=args.fmax,
