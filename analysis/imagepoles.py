@@ -73,7 +73,7 @@ def pixel_channels(frames: np.ndarray, times_s: np.ndarray, *, t_min_s: float, f
     return y / np.maximum(noise, 1e-6 * max(float(noise.max()), 1e-30))
 
 
-def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] = (12, 16, 20, 24),
+def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] = (16, 20, 24),
                 t_min_s: float = 1.5e-3, pixel_fraction: float = 0.05,
                 n_components: int = 16, progress: bool = True) -> ImagePoles | None:
     """Poles from every synced take's aligned frames (`derived/sync/*.h5`); None when there are none."""

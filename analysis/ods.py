@@ -274,8 +274,26 @@ def stable_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3, me
             if all(len(o) and np.min(np.abs(np.abs(o) - abs(lam))) < 0.01 * abs(lam) for o in sets[:-1])]
     lam = np.array(sorted(keep, key=abs), complex)
     if len(lam):
-        fit = fit_decay(times_s, x, lam)
-        env = np.exp(2 * np.outer(times_s - times_s[0], lam.real)).sum(axis=0)     # (R,)
-        energy = np.sum(np.abs(fit.amplitudes) ** 2, axis=1) * env
-        lam = lam[energy >= min_share * energy.sum()]
+        lam = lam[explained_share(times_s, x, lam) >= min_share]
     return pole_freq_hz(lam), pole_damping(lam)
+
+
+def explained_share(times_s, x, poles_rad_s, n_channels: int = 8) -> np.ndarray:
+    """(R,) the share of the motion's energy (less its mean, in its n_channels principal components) that each
+    pole explains beyond all the others: what a decay fit loses without it. An amplitude would not do: two
+    close poles, one of them spurious, can take large amplitudes that cancel."""
+    t = np.asarray(times_s, float).reshape(-1)
+    y = np.asarray(x, float).reshape(len(t), -1)
+    y = y - y.mean(axis=0)
+    u, s, _ = np.linalg.svd(y, full_matrices=False)
+    y = u[:, :n_channels] * s[:n_channels]
+    total = float(np.sum(y ** 2))
+    lam = np.asarray(poles_rad_s, complex)
+
+    def residual(keep) -> float:
+        return float(np.sum((y - fit_decay(t, y, lam[keep]).synthesize(t)) ** 2)) if keep.any() else total
+
+    every = np.ones(len(lam), bool)
+    base = residual(every)
+    return np.array([(residual(every & (np.arange(len(lam)) != r)) - base) / max(total, 1e-300)
+                     for r in range(len(lam))])

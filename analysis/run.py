@@ -49,11 +49,11 @@ class AnalyzeSettings:
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
     outlier_factor: float | None = 2.0               # drop those whose motion strays this far (SurfaceMotion.at_points)
-    video_ranks: tuple[int, ...] = (12, 16, 20, 24)   # the matrix pencil's, for the video's own poles
+    video_ranks: tuple[int, ...] = (16, 20, 24)       # the matrix pencil's, for the video's own poles
     crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
     crosscheck_points: int = 30
     image_poles: bool = True                         # poles from the synced takes' raw frames (imagepoles.py)
-    image_ranks: tuple[int, ...] = (12, 16, 20, 24)
+    image_ranks: tuple[int, ...] = (16, 20, 24)
     image_pixel_fraction: float = 0.05               # the most textured pixels of each view
 
     def __post_init__(self) -> None:

@@ -65,7 +65,7 @@ class LinearSettings:
     node_spacing_m: float | None = None   # None: 5 px of the views' footprint (at least scene radius / 100), widened
     #                                       until at most max_nodes nodes
     max_nodes: int = 4000
-    smoothing: float = 1.0                # prior weight, relative to the data term's mean diagonal
+    smoothing: float = 16.0               # prior weight, relative to the data term's mean diagonal (docs: sweep)
     blur_px: float = 1.0                  # Gaussian blur (sd) of both sides after the prefilter: less noise
     min_alpha: float = 0.5                # pixels the rest Gaussians cover at least this much
     min_opacity: float = 0.5              # Gaussians that place nodes
