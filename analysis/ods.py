@@ -193,6 +193,14 @@ def receptance(residues, poles_rad_s, freq_hz) -> np.ndarray:
     return (g @ flat + gc @ np.conj(flat)).reshape((len(iw),) + A.shape[1:])
 
 
+def principal_components(x: np.ndarray, n: int) -> np.ndarray:
+    """(T, n) the time histories of x's (T, M) n strongest principal components, its mean taken out: the same
+    motion in few channels, scaled as it is, with the noise of the weak directions left out."""
+    y = x - x.mean(axis=0)
+    u, s, _ = np.linalg.svd(y, full_matrices=False)
+    return u[:, :n] * s[:n]
+
+
 def lsce_poles(times_s, x, order: int, *, t_min_s: float = 0.0, n_channels: int = 8) -> np.ndarray:
     """Poles (rad/s, Re < 0 < Im) of a multi-channel free decay by least-squares complex exponentials: one
     autoregressive polynomial of `order` shared by every channel (Prony, poly-reference form). The channels are
@@ -203,9 +211,7 @@ def lsce_poles(times_s, x, order: int, *, t_min_s: float = 0.0, n_channels: int 
     dt = np.diff(t)
     if len(dt) == 0 or np.ptp(dt) > 1e-6 * np.mean(dt):
         raise InputError("lsce_poles: times_s", "expected uniformly spaced times")
-    y = x[use] - x[use].mean(axis=0)
-    u, s, _ = np.linalg.svd(y, full_matrices=False)
-    y = u[:, :n_channels] * s[:n_channels]
+    y = principal_components(x[use], n_channels)
     T = len(y)
     if T - order < 2 or y.shape[1] * (T - order) < 2 * order:
         raise InputError("lsce_poles: order", f"{T} samples cannot fit an order-{order} model; lower it")
@@ -226,17 +232,15 @@ def pencil_poles(times_s, x, rank: int, *, t_min_s: float = 0.0, n_channels: int
     eigenvalues of the one-sample shift between their rows. The truncation removes most of the noise before the
     poles are solved for, where LSCE's least-squares prediction fits it: on a short, noisy record LSCE merges
     close low modes (23.5 and 31 Hz at 2000 fps) and biases the rest, the pencil does not. `rank` counts real
-    exponentials: two per mode, plus one per drift. The channels are first reduced to their n_channels
-    principal components."""
+    exponentials: two per mode, one per drift, and one for the mean taken out (six modes need 13). The channels
+    are first reduced to their n_channels principal components."""
     t = np.asarray(times_s, float).reshape(-1)
     x = np.asarray(x, float).reshape(len(t), -1)
     use = t >= t_min_s
     dt = np.diff(t)
     if len(dt) == 0 or np.ptp(dt) > 1e-6 * np.mean(dt):
         raise InputError("pencil_poles: times_s", "expected uniformly spaced times")
-    y = x[use] - x[use].mean(axis=0)
-    u, s, _ = np.linalg.svd(y, full_matrices=False)
-    y = u[:, :n_channels] * s[:n_channels]
+    y = principal_components(x[use], n_channels)
     T = len(y)
     L = T // 2                                   # rows: the shifts; half the record is the least noisy choice
     if rank < 1 or L < rank + 1:
@@ -255,9 +259,9 @@ POLE_METHODS = {"pencil": pencil_poles, "lsce": lsce_poles}
 def stable_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3, method: str = "pencil"
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Poles of a multi-channel free decay: found by `method` (the matrix pencil, or LSCE) at every order (the
-    pencil's rank) within 1 % in frequency, damped less than 20 %, and carrying at least `min_share` of the
-    motion's energy in a decay fit (which drops the stable but empty poles a high order fits to the noise).
-    Returns (freq_hz, damping)."""
+    pencil's rank) within 1 % in frequency, damped less than 20 %, and explaining at least `min_share` of the
+    motion's energy beyond the other poles (`explained_share`; drops the stable but empty poles a high order
+    fits to the noise). Returns (freq_hz, damping)."""
     if method not in POLE_METHODS:
         raise InputError("stable_poles: method", f"expected one of {sorted(POLE_METHODS)}; got {method!r}")
     find = POLE_METHODS[method]
@@ -283,10 +287,7 @@ def explained_share(times_s, x, poles_rad_s, n_channels: int = 8) -> np.ndarray:
     pole explains beyond all the others: what a decay fit loses without it. An amplitude would not do: two
     close poles, one of them spurious, can take large amplitudes that cancel."""
     t = np.asarray(times_s, float).reshape(-1)
-    y = np.asarray(x, float).reshape(len(t), -1)
-    y = y - y.mean(axis=0)
-    u, s, _ = np.linalg.svd(y, full_matrices=False)
-    y = u[:, :n_channels] * s[:n_channels]
+    y = principal_components(np.asarray(x, float).reshape(len(t), -1), n_channels)
     total = float(np.sum(y ** 2))
     lam = np.asarray(poles_rad_s, complex)
 
