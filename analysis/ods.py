@@ -201,17 +201,28 @@ def principal_components(x: np.ndarray, n: int) -> np.ndarray:
     return u[:, :n] * s[:n]
 
 
+def _decay_channels(who: str, times_s, x, t_min_s: float, n_channels: int) -> tuple[np.ndarray, float]:
+    """The samples at t >= t_min_s reduced to n_channels principal components, and the sample interval (the
+    times must be uniform): what both pole finders start from."""
+    t = np.asarray(times_s, float).reshape(-1)
+    x = np.asarray(x, float).reshape(len(t), -1)
+    dt = np.diff(t)
+    if len(dt) == 0 or np.ptp(dt) > 1e-6 * np.mean(dt):
+        raise InputError(f"{who}: times_s", "expected uniformly spaced times")
+    return principal_components(x[t >= t_min_s], n_channels), float(np.mean(dt))
+
+
+def _stable_upper(z: np.ndarray, dt: float) -> np.ndarray:
+    """Discrete roots z as poles lambda = ln(z) / dt, the stable ones of positive frequency, sorted."""
+    lam = np.log(np.asarray(z).astype(complex)) / dt
+    return np.sort_complex(lam[(lam.real < 0) & (lam.imag > 0)])
+
+
 def lsce_poles(times_s, x, order: int, *, t_min_s: float = 0.0, n_channels: int = 8) -> np.ndarray:
     """Poles (rad/s, Re < 0 < Im) of a multi-channel free decay by least-squares complex exponentials: one
     autoregressive polynomial of `order` shared by every channel (Prony, poly-reference form). The channels are
     first reduced to their n_channels principal components, which keeps the solve small and averages the noise."""
-    t = np.asarray(times_s, float).reshape(-1)
-    x = np.asarray(x, float).reshape(len(t), -1)
-    use = t >= t_min_s
-    dt = np.diff(t)
-    if len(dt) == 0 or np.ptp(dt) > 1e-6 * np.mean(dt):
-        raise InputError("lsce_poles: times_s", "expected uniformly spaced times")
-    y = principal_components(x[use], n_channels)
+    y, dt = _decay_channels("lsce_poles", times_s, x, t_min_s, n_channels)
     T = len(y)
     if T - order < 2 or y.shape[1] * (T - order) < 2 * order:
         raise InputError("lsce_poles: order", f"{T} samples cannot fit an order-{order} model; lower it")
@@ -221,9 +232,7 @@ def lsce_poles(times_s, x, order: int, *, t_min_s: float = 0.0, n_channels: int 
     b = -y[order:].reshape(-1)
     a, *_ = np.linalg.lstsq(A, b, rcond=None)
     z = np.roots(np.concatenate([[1.0], a[::-1]]))
-    lam = np.log(z.astype(complex)) / float(np.mean(dt))
-    keep = (lam.real < 0) & (lam.imag > 0)
-    return np.sort_complex(lam[keep])
+    return _stable_upper(z, dt)
 
 
 def pencil_poles(times_s, x, rank: int, *, t_min_s: float = 0.0, n_channels: int = 8) -> np.ndarray:
@@ -234,13 +243,7 @@ def pencil_poles(times_s, x, rank: int, *, t_min_s: float = 0.0, n_channels: int
     close low modes (23.5 and 31 Hz at 2000 fps) and biases the rest, the pencil does not. `rank` counts real
     exponentials: two per mode, one per drift, and one for the mean taken out (six modes need 13). The channels
     are first reduced to their n_channels principal components."""
-    t = np.asarray(times_s, float).reshape(-1)
-    x = np.asarray(x, float).reshape(len(t), -1)
-    use = t >= t_min_s
-    dt = np.diff(t)
-    if len(dt) == 0 or np.ptp(dt) > 1e-6 * np.mean(dt):
-        raise InputError("pencil_poles: times_s", "expected uniformly spaced times")
-    y = principal_components(x[use], n_channels)
+    y, dt = _decay_channels("pencil_poles", times_s, x, t_min_s, n_channels)
     T = len(y)
     L = T // 2                                   # rows: the shifts; half the record is the least noisy choice
     if rank < 1 or L < rank + 1:
@@ -248,9 +251,7 @@ def pencil_poles(times_s, x, rank: int, *, t_min_s: float = 0.0, n_channels: int
     H = np.stack([y[j:T - L + j] for j in range(L + 1)]).reshape(L + 1, -1)     # row j: samples j .. j+T-L-1
     U = np.linalg.svd(H, full_matrices=False)[0][:, :rank]
     z = np.linalg.eigvals(np.linalg.lstsq(U[:-1], U[1:], rcond=None)[0])
-    lam = np.log(z.astype(complex)) / float(np.mean(dt))
-    keep = (lam.real < 0) & (lam.imag > 0)
-    return np.sort_complex(lam[keep])
+    return _stable_upper(z, dt)
 
 
 POLE_METHODS = {"pencil": pencil_poles, "lsce": lsce_poles}

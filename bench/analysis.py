@@ -6,8 +6,9 @@ default the linear motion model on the raw frames; `--motion timestep` first mag
 times, as the paper does) and runs `analyze_capture`; `--perfect` replaces the Gaussians with hil_sim's
 exact surface motion (averaged over the synced takes, on the reconstruction's timesteps, magnified alpha times),
 which isolates the analysis' own accuracy from the reconstruction's. Figures per true mode: the accelerometer
-fit's frequency and damping errors; the video-only (LSCE) poles matched to the true frequencies (within 5 %; a
-trained window of 16-32 ms cannot separate every low mode, so "found" is reported per mode); MAC of the video's
+fit's frequency and damping errors; the video-only poles (matrix pencil, from the raw frames and from the
+reconstruction's motion) matched to the true frequencies (within 5 %; a short window cannot separate every low mode,
+so "found" is reported per mode); MAC of the video's
 residues at the accelerometers (along their axes) against the true shapes, and over 200 true points on the column
 and arm's visible faces (all 3 components, the video's residues taken at the 8 nearest Gaussians); the modal scale
 factor |video / accelerometers| (1: metres and newtons right); the video's motion at the sensors against the truth
@@ -15,7 +16,8 @@ over the window (sensor_disp_rel_err) and each mode's true peak there (true_peak
 that misses the motion from an analysis that misreads it. Baselines in the same run: (a) peak picking on the
 summed |H1| (the n largest local maxima in the analysis' band, n = the true modes in it, 3-point parabolic
 refinement, half-power damping less the exponential window's 1 / (tau wn)); (b) the non-parametric video ODS: the
-DFT of the video's sensor-point motion over the trained window at each true frequency. Error ratios are the
+DFT of the video's sensor-point motion over the trained window at each true frequency; (c) LSCE, stable over its
+orders, on the same raw-frame components and reconstruction motion as the pencil. Error ratios are the
 analysis' over the baseline's (below 1: the analysis is better); analysis_s is all of `analyze_capture` (FRFs,
 fits, exports and plots), against the baselines' own seconds on the analysis' FRFs and video motion.
 Targets: every true frequency within 1 % (accelerometers; video: over the modes it finds), MAC >= 0.9 at the
@@ -55,7 +57,7 @@ from odsplat.reconstruction.dynamic import FitSettings  # noqa: E402
 from odsplat.reconstruction.linear import LinearSettings  # noqa: E402
 from odsplat.reconstruction.modal import ModalSettings  # noqa: E402
 from odsplat.reconstruction.poses import estimate_poses  # noqa: E402
-from odsplat.reconstruction.run import ReconstructSettings, reconstruct  # noqa: E402
+from odsplat.reconstruction.run import ReconstructSettings, default_source, reconstruct  # noqa: E402
 from odsplat.reconstruction.views import select_frames  # noqa: E402
 from odsplat.store import Capture  # noqa: E402
 from odsplat.sync import SyncSettings, load_sync, sync_capture  # noqa: E402
@@ -107,7 +109,7 @@ def record_and_process(out: Path, args, figures: dict, perfect: bool) -> Capture
     stage(figures, "poses", (cap.derived_dir / "poses.json").exists(), lambda: estimate_poses(cap).save(cap))
     n = len(timesteps(cap, args.timesteps, args.step))
     fit = FitSettings(iters_t0=args.iters_t0, iters_per_step=args.iters_step, seed=args.seed, progress=False)
-    settings = ReconstructSettings(source="magnified/phase" if args.motion == "timestep" else "sync",
+    settings = ReconstructSettings(source=default_source(args.motion),
                                    motion=args.motion, width_px=args.width, n_timesteps=n, step=args.step,
                                    threads=args.threads, fit=fit, linear=LinearSettings(progress=False),
                                    modal=ModalSettings(seed=args.seed, progress=False))
@@ -176,6 +178,14 @@ def lsce_video_poles(cap: Capture) -> tuple[np.ndarray, float]:
     start = time.perf_counter()
     f, _ = stable_poles(t[use], x, LSCE_VIDEO_ORDERS, 0.8 * 0.5 / float(np.median(np.diff(t))), method="lsce")
     return f, time.perf_counter() - start
+
+
+def found(f_true: np.ndarray, f: np.ndarray) -> dict:
+    """A baseline's poles against the true ones: the one matched to each (or None), how many, the worst error."""
+    i = match(f_true, f)
+    hit = [r for r in range(len(f_true)) if i[r] >= 0]
+    return dict(found_hz=[float(f[i[r]]) if i[r] >= 0 else None for r in range(len(f_true))], n_found=len(hit),
+                max_freq_err=max((abs(rel(f[i[r]], f_true[r])) for r in hit), default=None))
 
 
 def match(f_true: np.ndarray, f: np.ndarray) -> np.ndarray:
@@ -310,10 +320,7 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float,
         t = time.perf_counter()
         f1, _ = stable_poles(im.times_s, im.components, LSCE_ORDERS, hi, method="lsce")
         baseline_s["lsce"] = time.perf_counter() - t
-        i1 = match(f_true, f1)
-        figs["image_poles"]["lsce_baseline"] = dict(
-            found_hz=[float(f1[i1[r]]) if i1[r] >= 0 else None for r in range(len(f_true))],
-            n_found=int(np.sum(i1 >= 0)))
+        figs["image_poles"]["lsce_baseline"] = found(f_true, f1)
         cam_found.update({float(f_true[r]): abs(rel(im.freq_hz[ii[r]], f_true[r])) for r in range(len(f_true))
                           if ii[r] >= 0})
     v = res.video
@@ -347,16 +354,9 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float,
     macs = np.array([x["mac_sensors"] for x in rows])
     dft_macs = np.array([x["mac_dft_baseline"] for x in rows])
     spurious = [float(f) for i, f in enumerate(v.freq_hz) if i not in set(iv[iv >= 0].tolist())]
+    lsce_baseline = found(f_true, video_lsce[0]) if video_lsce is not None else None
     if video_lsce is not None:
-        il = match(f_true, video_lsce[0])
-        f_lsce = video_lsce[0]
-        lsce_baseline = dict(found_hz=[float(f_lsce[il[r]]) if il[r] >= 0 else None for r in range(len(f_true))],
-                             n_found=int(np.sum(il >= 0)),
-                             max_freq_err=max((abs(rel(f_lsce[il[r]], f_true[r])) for r in range(len(f_true))
-                                               if il[r] >= 0), default=None))
         baseline_s["video_lsce"] = video_lsce[1]
-    else:
-        lsce_baseline = None
     figs["video"] = dict(shapes_from=v.shapes_from, window_ms=[1e3 * v.times_s[0], 1e3 * v.times_s[-1]],
                          n_timesteps=int(len(v.times_s)),
                          n_gaussians=int(len(v.surface_points_m)), fitted=rows, poles=poles,

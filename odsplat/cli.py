@@ -319,12 +319,12 @@ def reconstruct(capture_dir: Path, source: str | None, width_px: int, n_timestep
     """Train dynamic 3D Gaussians on CAPTURE_DIR's posed views into derived/reconstruction/ (docs/reconstruction.md)."""
     from .reconstruction.dynamic import FitSettings
     from .reconstruction.modal import ModalSettings
-    from .reconstruction.run import ReconstructSettings, reconstruct as run
+    from .reconstruction.run import ReconstructSettings, default_source, reconstruct as run
     from .store import Capture
 
     fit = FitSettings(iters_t0=iters_t0, iters_per_step=iters_per_step, seed=seed)
     modal = ModalSettings(iters=iters_modal, n_components=components, seed=seed)
-    source = source or ("magnified/phase" if motion == "timestep" else "sync")
+    source = source or default_source(motion)
     settings = ReconstructSettings(source=source, width_px=width_px, n_timesteps=n_timesteps, step=step, start=start,
                                    holdout=holdout, use_static=not no_static, threads=threads, motion=motion,
                                    fit=fit, modal=modal)

@@ -38,6 +38,12 @@ MEASURED = "measured_motion.npz"
 MOTIONS = ("modal", "timestep", "linear")
 
 
+def default_source(motion: str) -> str:
+    """The frames a motion model fits unless told otherwise: the paper's per-timestep order the 2D-magnified
+    ones, the others the raw frames on the common grid (they magnify in 3D, at render time)."""
+    return "magnified/phase" if motion == "timestep" else "sync"
+
+
 @dataclass(frozen=True)
 class ReconstructSettings:
     source: str = "sync"                 # unmagnified frames on the common grid, or "magnified/METHOD"
