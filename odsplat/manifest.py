@@ -164,6 +164,7 @@ class Manifest:
     notes: str = ""
     created_utc: str = field(default_factory=utc_now)
     schema_version: str = SCHEMA_VERSION
+    capture_id: str = ""  # set when the capture is created; recorded in every derived file
 
     def validate(self, where: str = "capture.json") -> None:
         names = [c.name for c in self.channels]
@@ -258,6 +259,15 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
             raise InputError(where, f"expected a list; got {type(value).__name__}")
         (inner,) = typing.get_args(tp)
         return [_convert(inner, v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise InputError(where, f"expected a list; got {type(value).__name__}")
+        args = typing.get_args(tp)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(_convert(args[0], v, f"{where}[{i}]") for i, v in enumerate(value))
+        if len(args) != len(value):
+            raise InputError(where, f"expected {len(args)} values; got {len(value)}")
+        return tuple(_convert(a, v, f"{where}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
     if origin is dict:
         if not isinstance(value, dict):
             raise InputError(where, f"expected an object; got {type(value).__name__}")

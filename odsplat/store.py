@@ -22,6 +22,7 @@ import json
 import logging
 import os
 import shutil
+import uuid
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -31,14 +32,17 @@ import h5py
 import hdf5plugin
 import numpy as np
 
+from .contract import digest
 from .errors import IncompleteTakeError, InputError, OdsplatError, SchemaError
 from .manifest import SCHEMA_VERSION, ChannelInfo, Manifest, TakeRecord, check_schema, utc_now
+from .paths import DerivedPaths
 
 log = logging.getLogger(__name__)
 
 MANIFEST_NAME = "capture.json"
 PARTIAL_SUFFIX = ".h5.partial"
 CRASHED_SUFFIX = ".h5.crashed"
+TAKE_SELECTIONS = ("accepted", "all")
 _FRAME_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
 
 
@@ -560,9 +564,11 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
 class Capture:
     """A capture directory: the manifest, the raw takes and the derived results."""
 
-    def __init__(self, root: str | Path, manifest: Manifest):
+    def __init__(self, root: str | Path, manifest: Manifest, derived: str | Path | None = None):
         self.root = Path(root)
         self.manifest = manifest
+        # Every derived path comes from this registry; `derived` sends them elsewhere (the capture stays as it is).
+        self.paths = DerivedPaths(Path(derived) if derived is not None else self.root / "derived")
 
     @classmethod
     def create(cls, root: str | Path, manifest: Manifest) -> Capture:
@@ -570,6 +576,8 @@ class Capture:
         if (root / MANIFEST_NAME).exists():
             raise OdsplatError(f"{root}: a capture exists here already")
         manifest.validate(str(root / MANIFEST_NAME))
+        if not manifest.capture_id:
+            manifest.capture_id = uuid.uuid4().hex
         for sub in ("takes", "static", "derived"):
             (root / sub).mkdir(parents=True, exist_ok=True)
         capture = cls(root, manifest)
@@ -577,11 +585,18 @@ class Capture:
         return capture
 
     @classmethod
-    def open(cls, root: str | Path) -> Capture:
+    def open(cls, root: str | Path, *, derived: str | Path | None = None) -> Capture:
+        """Open a capture; `derived` (a folder) takes every derived file instead of the capture's `derived/`."""
         root = Path(root)
         if not root.is_dir():
             raise InputError(root, "no such capture directory")
-        return cls(root, Manifest.load(root / MANIFEST_NAME))
+        return cls(root, Manifest.load(root / MANIFEST_NAME), derived)
+
+    @property
+    def id(self) -> str:
+        """The capture's identity, recorded in every derived file: its manifest's id (older captures: a hash of
+        their name and creation time)."""
+        return self.manifest.capture_id or digest([self.manifest.name, self.manifest.created_utc])
 
     @property
     def takes_dir(self) -> Path:
@@ -589,9 +604,8 @@ class Capture:
 
     @property
     def derived_dir(self) -> Path:
-        path = self.root / "derived"
-        path.mkdir(exist_ok=True)
-        return path
+        """The root of the derived files (`paths.root`); reading it creates nothing."""
+        return self.paths.root
 
     @property
     def static_dir(self) -> Path:
@@ -604,6 +618,14 @@ class Capture:
 
     def take_names(self) -> list[str]:
         return [t.name for t in self.manifest.takes]
+
+    def select_takes(self, which: str = "accepted") -> list[TakeRecord]:
+        """The takes a stage works on, the one rule for every stage: the complete (or recovered) takes that QC
+        accepted, or with "all" every complete take whatever its QC verdict."""
+        if which not in TAKE_SELECTIONS:
+            raise InputError("takes", f"expected one of {TAKE_SELECTIONS}, got {which!r}")
+        return [t for t in self.manifest.takes
+                if t.status in ("complete", "recovered") and (which == "all" or t.qc == "accepted")]
 
     def next_take_name(self, view: int | None = None) -> str:
         stem = f"v{view:02d}" if view is not None else "take"
