@@ -5,8 +5,9 @@ with any reason is rejected; rejected takes are kept and marked, never deleted.
 """
 from __future__ import annotations
 
+import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
@@ -121,3 +122,145 @@ def check_hit(record: TriggeredRecord, channels: Sequence[DAQChannel], *, limits
         fail("tags_not_visible", f"{len(tags_seen)} floor AprilTag(s) visible, {limits.min_tags} needed")
     return HitQC(tuple(reasons), tuple(details), peak, times, accel_peak, record.lost_samples,
                  tuple(int(c) for c in dropped_frames), None if tags_seen is None else tuple(int(t) for t in tags_seen))
+
+
+# ---------------------------------------------------------------------------------------------- the qc stage
+
+QC_KIND = "odsplat.qc"
+QC_SCHEMA = 1
+
+
+@dataclass(frozen=True)
+class QCSettings:
+    """The pipeline's qc stage: every take's hit checked again from its file."""
+
+    force_band_n: tuple[float, float] | None = None  # the planned peak force (N); None: any
+    double_hit_fraction: float = 0.05
+
+    def limits(self) -> QCLimits:
+        band = self.force_band_n if self.force_band_n is not None else (0.0, float("inf"))
+        return QCLimits(force_band_n=band, double_hit_fraction=self.double_hit_fraction)
+
+
+@dataclass(frozen=True)
+class TakeQC:
+    """One take's verdicts: the one recorded with it (at capture or import) and the one from its file now."""
+
+    name: str
+    recorded: str                  # the manifest's: accepted, rejected or unchecked
+    checked: str                   # from the file: accepted or rejected
+    reasons: tuple[str, ...]
+    details: tuple[str, ...]
+    peak_force_n: float | None
+    n_impacts: int
+
+    @property
+    def status(self) -> str:
+        """The verdict that stands: the recorded one, or the check's where none was recorded."""
+        return self.checked if self.recorded == "unchecked" else self.recorded
+
+
+@dataclass(frozen=True)
+class QCReport:
+    takes: tuple[TakeQC, ...]
+    settings: QCSettings
+
+    def summary(self) -> str:
+        acc = sum(t.status == "accepted" for t in self.takes)
+        lines = [f"{acc}/{len(self.takes)} takes accepted"]
+        for t in self.takes:
+            if t.checked != t.recorded and t.recorded != "unchecked":
+                lines.append(f"  {t.name}: recorded {t.recorded}, the file now checks {t.checked}"
+                             + (f" ({'; '.join(t.details)})" if t.details else ""))
+            elif t.recorded == "unchecked":
+                lines.append(f"  {t.name}: unchecked until now, {t.checked}"
+                             + (f" ({'; '.join(t.details)})" if t.details else ""))
+        return "\n".join(lines)
+
+    def write(self, capture) -> None:
+        from odsplat.contract import describe
+        from odsplat.store import atomic_write_text
+
+        prov = describe(capture.id, QC_KIND, QC_SCHEMA, self.settings)
+        doc = {**prov.header(), "takes": [{**asdict(t), "status": t.status} for t in self.takes]}
+        path = capture.paths.qc_json
+        capture.paths.ensure(path.parent)
+        atomic_write_text(path, json.dumps(doc, indent=1, allow_nan=False, default=str) + "\n")
+
+    @classmethod
+    def read(cls, capture) -> QCReport:
+        from odsplat.contract import check
+        from odsplat.manifest import from_plain, load_json
+
+        path = capture.paths.qc_json
+        doc = load_json(path, missing="no QC result (run `odsplat run CAPTURE --to qc` first)")
+        prov = check(doc, path, kind=QC_KIND, schema_version=QC_SCHEMA, capture_id=capture.id)
+        takes = []
+        for i, t in enumerate(doc.get("takes") or []):
+            t = {k: v for k, v in t.items() if k != "status"} if isinstance(t, dict) else t
+            takes.append(from_plain(TakeQC, t, f"{path}: takes[{i}]"))
+        return cls(tuple(takes), from_plain(QCSettings, prov.settings, f"{path}: settings"))
+
+
+def check_take(reader, limits: QCLimits) -> HitQC:
+    """The checks a take's file allows afterwards: impacts, force band, lost samples (NaN) and dropped frames
+    (gaps in the camera's counter). Overloads need the DAQ's range, which only the live session knows."""
+    names = reader.channels_of_kind("force")
+    if len(names) != 1:
+        raise InputError(reader.path, f"expected exactly one DAQ channel of kind 'force', found {names}")
+    force = reader.channel(names[0]).astype(float)
+    reasons, details = [], []
+    peak = float(np.nanmax(force)) if np.isfinite(force).any() else 0.0
+    impacts = find_impacts(force, fraction=limits.double_hit_fraction)
+    fs = reader.sample_rate_hz
+    times = tuple(float(i) / fs for i in impacts)
+    if len(impacts) == 0:
+        reasons.append("force_low")
+        details.append("no impact in the force record")
+    elif len(impacts) > 1:
+        reasons.append("double_hit")
+        details.append(f"double hit: {len(impacts)} impacts, "
+                       + ", ".join(f"{1e3 * (b - a):.2f}" for a, b in zip(times, times[1:])) + " ms apart")
+    lo, hi = limits.force_band_n
+    if len(impacts) and peak < lo:
+        reasons.append("force_low")
+        details.append(f"peak force {peak:.1f} N below the planned {lo:g} N")
+    elif peak > hi:
+        reasons.append("force_high")
+        details.append(f"peak force {peak:.1f} N above the planned {hi:g} N")
+    lost = int(np.count_nonzero(~np.isfinite(force)))
+    if lost:
+        reasons.append("dropped_samples")
+        details.append(f"{lost} DAQ samples lost")
+    dropped: tuple[int, ...] = ()
+    if reader.has_frames and reader.n_frames > 1:
+        counter = np.asarray(reader.frame_counter, np.int64)
+        full = np.arange(counter[0], counter[-1] + 1)
+        dropped = tuple(int(c) for c in np.setdiff1d(full, counter))
+        if dropped:
+            reasons.append("dropped_frames")
+            details.append(f"{len(dropped)} camera frame(s) lost (counters {list(dropped)[:8]})")
+    return HitQC(tuple(reasons), tuple(details), peak, times, {}, lost, dropped)
+
+
+def run_qc(capture, settings: QCSettings | None = None) -> QCReport:
+    """The qc stage: every complete take's hit checked from its file, beside the verdict recorded with it;
+    writes derived/qc.json. A take recorded as unchecked (imported, say) gets the check's verdict there."""
+    s = settings or QCSettings()
+    limits = s.limits()
+    out = []
+    for rec in capture.manifest.takes:
+        if rec.status not in ("complete", "recovered"):
+            continue
+        with capture.open_take(rec.name) as reader:
+            if not reader.n_samples:
+                out.append(TakeQC(rec.name, rec.qc, "rejected", ("no_daq",), ("no DAQ samples",), None, 0))
+                continue
+            hit = check_take(reader, limits)
+        out.append(TakeQC(rec.name, rec.qc, "accepted" if hit.accepted else "rejected", hit.reasons, hit.details,
+                          hit.peak_force_n, len(hit.impact_times_s)))
+    if not out:
+        raise InputError(capture.root / "capture.json", "no complete take to check")
+    report = QCReport(tuple(out), s)
+    report.write(capture)
+    return report

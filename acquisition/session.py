@@ -82,6 +82,25 @@ class AutoHammerSettings:
         return self.force_n * (1 - self.tolerance), self.force_n * (1 + self.tolerance)
 
 
+def choose_hammer(mode: str | None, *, simulated_engineer: bool, lab_settings: AutoHammerSettings | None,
+                  has_lab: bool, force_n: float | None = None, tolerance: float | None = None,
+                  where: str = "lab file") -> AutoHammerSettings | None:
+    """The automatic hammer a session fires, or None for hits by hand. `mode` None picks: automatic with the
+    simulated engineer or a lab file with a [hammer] section, else by hand. `force_n` and `tolerance` replace the
+    lab file's (or the defaults)."""
+    if mode not in (None, "auto", "manual"):
+        raise InputError("--hammer", f"expected auto or manual, got {mode!r}")
+    if mode is None:
+        mode = "auto" if simulated_engineer or lab_settings is not None else "manual"
+    if mode == "manual":
+        return None
+    if has_lab and lab_settings is None:
+        raise InputError(where, "--hammer auto needs a [hammer] section (url or can) in the lab file")
+    base = lab_settings or AutoHammerSettings()
+    given = {k: v for k, v in (("force_n", force_n), ("tolerance", tolerance)) if v is not None}
+    return replace(base, **given)
+
+
 @dataclass(frozen=True)
 class SessionSettings:
     name: str = "capture"

@@ -9,7 +9,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from odsplat.errors import InputError
-from odsplat.manifest import load_json
 from odsplat.store import Capture
 
 from .ods import SurfaceMotion
@@ -17,7 +16,6 @@ from .tracking import project_displacement, track_points
 
 log = logging.getLogger(__name__)
 
-POSES = "poses.json"   # under derived/: each view's K, R, t (world to camera, OpenCV axes)
 DEPTH_TOL_M = 0.01     # a point is visible when within this of the nearest surface point on its pixel
 
 
@@ -34,12 +32,10 @@ class ViewCheck:
 
 
 def _poses(capture: Capture) -> dict[str, dict]:
-    path = capture.derived_dir / POSES
-    data = load_json(path, missing="no camera poses (run `odsplat poses` first)")
-    views = data.get("views") if isinstance(data, dict) else None
-    if not isinstance(views, list):
-        raise InputError(path, "expected a 'views' list of cameras")
-    return {v["name"]: v for v in views if isinstance(v, dict) and "name" in v}
+    """The pose stage's cameras by take name (read through its contract, `PoseResult.read`)."""
+    from odsplat.reconstruction import PoseResult
+
+    return {v.name: {"K": v.K, "R": v.R, "t": v.t} for v in PoseResult.read(capture).views}
 
 
 def _visible(points_cam: np.ndarray, uv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -122,7 +118,7 @@ def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int 
         return []
     synced = load_sync(capture).ok
     takes = [tk for tk in synced if tk.aligned_file and tk.name in poses
-             and (capture.root / tk.aligned_file).is_file()]
+             and (capture.paths.root / tk.aligned_file).is_file()]
     if not takes:
         log.info("no 2D cross-check: no synced take has aligned frames and a pose")
         return []
@@ -131,7 +127,7 @@ def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int 
     chosen = [takes[int(i)] for i in np.unique(np.linspace(0, len(takes) - 1, min(max_views, len(takes))).round())]
     out = []
     for tk in chosen:
-        with AlignedTake(capture.root / tk.aligned_file) as ff:
+        with AlignedTake(capture.paths.root / tk.aligned_file) as ff:
             frames, times = ff.read_frames(), ff.times_s
         if frames.ndim == 4:
             frames = frames.mean(axis=-1)

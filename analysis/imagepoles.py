@@ -86,13 +86,13 @@ def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] = (1
     except InputError as e:
         log.info("no image poles: %s", e)
         return None
-    takes = [tk for tk in sync.ok if tk.aligned_file and (capture.root / tk.aligned_file).is_file()]
+    takes = [tk for tk in sync.ok if tk.aligned_file and (capture.paths.root / tk.aligned_file).is_file()]
     if not takes:
         log.info("no image poles: no synced take has aligned frames")
         return None
     gram, times, n_pix = None, None, 0
     for tk in tqdm(takes, desc="analysis: image poles", unit="take", disable=not progress):
-        path = capture.root / tk.aligned_file
+        path = capture.paths.root / tk.aligned_file
         with AlignedTake(path) as f:
             frames, t = f.read_frames(), f.times_s
         if times is None:

@@ -28,8 +28,6 @@ from .ema import pole_damping, pole_freq_hz
 
 log = logging.getLogger(__name__)
 
-TRAJECTORIES = Path("reconstruction") / "trajectories.npz"  # under the capture's derived/
-MEASURED = Path("reconstruction") / "measured_motion.npz"   # the linear model's unfiltered motion, same keys
 READ_CHUNK = 2048   # points SurfaceMotion.at_points reads at a time
 
 

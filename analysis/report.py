@@ -11,12 +11,14 @@ from pathlib import Path
 import numpy as np
 
 from odsplat.errors import InputError
-from odsplat.store import atomic_write_text
+from odsplat.contract import check
+from odsplat.manifest import load_json
+from odsplat.store import Capture, atomic_write_text
+
+from .run import KIND, SCHEMA
 
 log = logging.getLogger(__name__)
 
-ANALYSIS_DIR = Path("derived") / "analysis"
-REPORT = "report.html"
 
 _PAGE = """<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
@@ -62,15 +64,10 @@ def _kind_name(kind) -> str:
 _NUM = (int, float)
 
 
-def _load(path: Path) -> dict:
-    if not path.is_file():
-        raise InputError(path, "no analysis (run `odsplat analyze` first)")
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"not valid JSON: {exc}") from None
-    if not isinstance(doc, dict):
-        raise InputError(path, f"expected a JSON object; got {type(doc).__name__}")
+def _load(capture: Capture) -> dict:
+    path = capture.paths.analysis_json
+    doc = load_json(path, missing="no analysis (run `odsplat analyze` first)")
+    check(doc, path, kind=KIND, schema_version=SCHEMA, capture_id=capture.id)
     for k, m in enumerate(_field(doc, "modes", list, str(path))):
         w = f"{path}: modes[{k}]"
         if not isinstance(m, dict):
@@ -269,11 +266,10 @@ def render_report(doc: dict, folder: Path, title: str) -> str:
                         sections="\n".join(s for s in sections if s))
 
 
-def write_report(capture_root: Path) -> Path:
+def write_report(capture: Capture) -> Path:
     """derived/analysis/report.html from derived/analysis/analysis.json and the plots it lists; returns its path."""
-    folder = Path(capture_root) / ANALYSIS_DIR
-    doc = _load(folder / "analysis.json")
-    path = folder / REPORT
-    atomic_write_text(path, render_report(doc, folder, Path(capture_root).name))
+    doc = _load(capture)
+    path = capture.paths.report_html
+    atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name))
     log.info("report written to %s", path)
     return path

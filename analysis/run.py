@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from odsplat.contract import describe, plain
 from odsplat.errors import InputError
 from odsplat.manifest import utc_now
 from odsplat.store import Capture, atomic_write_text
@@ -20,15 +21,16 @@ from .crosscheck import ViewCheck, crosscheck_views
 from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_hit, estimate_frf
 from .imagepoles import ImagePoles, image_poles
-from .ods import MEASURED, TRAJECTORIES, SurfaceMotion, fit_decay, force_transform, receptance, stable_poles
+from .ods import SurfaceMotion, fit_decay, force_transform, receptance, stable_poles
 
 log = logging.getLogger(__name__)
 
-FORMAT = "odsplat-analysis"
+KIND = "odsplat.analysis"
+SCHEMA = 2
 
 
 def out_dir(capture: Capture) -> Path:
-    return capture.derived_dir / "analysis"
+    return capture.paths.analysis_dir
 
 
 @dataclass(frozen=True)
@@ -208,8 +210,7 @@ def _channels(capture: Capture, s: AnalyzeSettings) -> tuple[str, tuple[Sensor, 
 
 
 def _take_names(capture: Capture, s: AnalyzeSettings) -> list[str]:
-    takes = [t.name for t in capture.manifest.takes if t.status in ("complete", "recovered")
-             and (s.takes == "all" or t.qc == "accepted") and t.n_samples > 0]
+    takes = [t.name for t in capture.select_takes(s.takes) if t.n_samples > 0]
     if not takes:
         raise InputError(capture.root / "capture.json", f"no {s.takes} take with DAQ samples to analyse")
     return takes
@@ -269,18 +270,18 @@ def _sync_force(capture: Capture, force: str, poles: np.ndarray) -> np.ndarray:
         seg = f[k0:k1] - np.median(f[:max(k0, 1)])
         vals.append(force_transform(seg, fs, t0 + k0 / fs, poles) * (t.impulse_scale or 1.0))
     if not vals:
-        raise InputError(capture.derived_dir / "sync.json", "no synced take to take the force pulse from")
+        raise InputError(capture.paths.sync_json, "no synced take to take the force pulse from")
     return np.mean(vals, axis=0)
 
 
 def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: AnalyzeSettings) -> VideoModes | None:
-    path = capture.derived_dir / TRAJECTORIES
+    path = capture.paths.trajectories_npz
     if not s.video or not path.is_file():
         log.info("no video side: %s", "disabled" if not s.video else f"{path} not found")
         return None
     model = SurfaceMotion.read(path, min_opacity=s.min_opacity)
     motion, shapes_from = model, "trajectories"
-    measured = capture.derived_dir / MEASURED
+    measured = capture.paths.measured_motion_npz
     if s.measured_motion and measured.is_file():
         # The linear model's unfiltered motion: the fit with known poles below is itself the filter, and recovers
         # modes the model's basis leaves below its noise floor. The model (denoised) still gives the video's own
@@ -377,10 +378,10 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
 def _write(capture: Capture, result: AnalysisResult, s: AnalyzeSettings) -> AnalysisResult:
     from .outputs import write_outputs
 
-    dest = out_dir(capture)
-    dest.mkdir(parents=True, exist_ok=True)
+    dest = capture.paths.ensure(capture.paths.analysis_dir)
     files = write_outputs(dest, result)
-    summary = {"format": FORMAT, "version": 1, "capture": capture.root.name, "created_utc": utc_now(),
-               "settings": dataclasses.asdict(s), **result.summary(), "files": files}
-    atomic_write_text(dest / "analysis.json", json.dumps(summary, indent=1, default=float))
+    summary = {**describe(capture.id, KIND, SCHEMA, s).header(), "capture": capture.root.name,
+               "created_utc": utc_now(), "settings": plain(s), **result.summary(), "files": files}
+    # Last: a reader that finds it finds the files it lists.
+    atomic_write_text(capture.paths.analysis_json, json.dumps(summary, indent=1, default=float))
     return dataclasses.replace(result, files={**files, "summary": "analysis.json"})

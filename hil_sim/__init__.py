@@ -7,3 +7,18 @@ import serial as _serial
 
 if "odsplat.hil_sim" not in _serial.protocol_handler_packages:
     _serial.protocol_handler_packages.append("odsplat.hil_sim")
+
+# The public surface, imported on first use (the package itself stays light for pyserial).
+_EXPORTS = {
+    "SimBench": "bench", "SimBenchSettings": "bench", "parse_faults": "bench", "simulate_capture": "bench",
+    "RigConfig": "rig", "SimRig": "rig",
+}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    import importlib
+
+    return getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)

@@ -20,9 +20,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from odsplat.contract import check, describe
 from odsplat.errors import InputError, OdsplatError
 from odsplat.framefile import FrameFile, atomic_h5, create_frames, to_stored
-from odsplat.manifest import utc_now
+from odsplat.manifest import load_json, utc_now
 from odsplat.store import Capture, atomic_write_text
 
 from .base import Magnifier, check_alpha
@@ -32,6 +33,8 @@ log = logging.getLogger(__name__)
 
 METHODS = ("phase", "linear", "learned")
 OUT_KIND = "odsplat-magnified-take"
+KIND = "odsplat.magnify"
+SCHEMA = 1
 
 
 @dataclass(frozen=True)
@@ -125,6 +128,24 @@ class MagnifyResult:
     settings: dict[str, Any] = field(default_factory=dict)
     created_utc: str = field(default_factory=utc_now)
 
+    def write(self, capture: Capture) -> Path:
+        """magnify.json beside the magnified takes (written after them)."""
+        path = capture.paths.magnify_json(self.method)
+        header = describe(capture.id, KIND, SCHEMA, self.settings).header()
+        atomic_write_text(path, json.dumps({**header, **asdict(self)}, indent=1))
+        return path
+
+    @classmethod
+    def read(cls, capture: Capture, method: str) -> MagnifyResult:
+        path = capture.paths.magnify_json(method)
+        d = load_json(path, missing=f"no {method} magnification here (run `odsplat magnify --method {method}`)")
+        check(d, path, kind=KIND, schema_version=SCHEMA, capture_id=capture.id)
+        try:
+            takes = [MagnifiedTake(**t) for t in d["takes"]]
+            return cls(d["method"], d["alpha"], d["band_hz"], d["filter"], takes, d["settings"], d["created_utc"])
+        except (TypeError, KeyError) as exc:
+            raise InputError(path, f"not a readable magnification summary: {exc}") from None
+
     def summary(self) -> str:
         band = f", band {self.band_hz[0]:g}-{self.band_hz[1]:g} Hz ({self.filter})" if self.band_hz else ", static"
         lines = [f"{len(self.takes)} view(s) magnified by {self.alpha:g} with {self.method}{band}"]
@@ -142,7 +163,7 @@ class _Source:
         if aligned_file:
             from odsplat.sync import AlignedTake
 
-            self._r = AlignedTake(capture.root / aligned_file)
+            self._r = AlignedTake(Path(aligned_file))
             self.kind = "aligned"
             self.bit_depth = int(self._r.attrs["bit_depth"])
             self.times_s = self._r.times_s
@@ -178,11 +199,12 @@ def _from_tensor(x: torch.Tensor, full_scale: float, rgb: bool) -> np.ndarray:
 
 
 def magnify_take(capture_root: str, name: str, aligned_file: str | None, settings: MagnifySettings,
-                 out_path: str, threads: int = 1) -> MagnifiedTake:
-    """Stream one take through a fresh magnifier into out_path (temporary file, fsync, rename)."""
+                 out_path: str, threads: int = 1, derived_root: str | None = None) -> MagnifiedTake:
+    """Stream one take (`aligned_file`: the path of its aligned frames, or None for the raw take) through a fresh
+    magnifier into out_path (temporary file, fsync, rename)."""
     torch.set_num_threads(threads)
     t0 = time.perf_counter()
-    capture = Capture.open(capture_root)
+    capture = Capture.open(capture_root, derived=derived_root)
     src = _Source(capture, name, aligned_file)
     try:
         if not src.fps:
@@ -216,7 +238,7 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
     finally:
         src.close()
     return MagnifiedTake(name, None if src.view is None else int(src.view), src.kind, written,
-                         str(out.relative_to(capture.root)), time.perf_counter() - t0)
+                         os.path.relpath(out, capture.paths.root), time.perf_counter() - t0)
 
 
 # ---------------------------------------------------------------------------------------------- a capture
@@ -224,11 +246,11 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
 def _inputs(capture: Capture, s: MagnifySettings) -> list[tuple[str, str | None]]:
     """(take, aligned file or None) for each take to magnify."""
     synced = None
-    sync_json = capture.derived_dir / "sync.json"
+    sync_json = capture.paths.sync_json
     if s.source in ("auto", "aligned") and sync_json.exists():
         from odsplat.sync import load_sync
 
-        synced = {t.name: t.aligned_file for t in load_sync(capture).ok if t.aligned_file}
+        synced = {t.name: str(capture.paths.root / t.aligned_file) for t in load_sync(capture).ok if t.aligned_file}
     if s.source == "aligned" and not synced:
         raise InputError(sync_json, "no aligned frames: run `odsplat sync` first (or --source raw)")
     if synced:
@@ -237,7 +259,7 @@ def _inputs(capture: Capture, s: MagnifySettings) -> list[tuple[str, str | None]
         if missing:
             raise InputError(sync_json, f"takes {missing} are not on sync's grid (excluded or not synced)")
         return [(n, synced[n]) for n in names]
-    names = list(s.takes) or [t.name for t in capture.manifest.takes if t.qc == "accepted"]
+    names = list(s.takes) or [t.name for t in capture.select_takes("accepted")]
     known = set(capture.take_names())
     missing = [n for n in names if n not in known]
     if missing:
@@ -246,7 +268,7 @@ def _inputs(capture: Capture, s: MagnifySettings) -> list[tuple[str, str | None]
 
 
 def out_dir(capture: Capture, method: str) -> Path:
-    return capture.derived_dir / "magnified" / method
+    return capture.paths.magnified_dir(method)
 
 
 def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bool = True) -> MagnifyResult:
@@ -255,12 +277,13 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
     jobs = _inputs(capture, s)
     if not jobs:
         raise OdsplatError(f"{capture.root}: no takes to magnify")
-    dest = out_dir(capture, s.method)
+    dest = capture.paths.ensure(capture.paths.magnified_dir(s.method))
     workers = max(1, min(s.workers or os.cpu_count() or 1, len(jobs)))
     threads = max(1, (os.cpu_count() or 1) // workers)
     result = MagnifyResult(s.method, s.alpha, list(s.band_hz) if s.band_hz else None, s.filter_kind,
                            settings=asdict(s))
-    args = [(str(capture.root), n, a, s, str(dest / f"{n}.h5"), threads) for n, a in jobs]
+    args = [(str(capture.root), n, a, s, str(capture.paths.magnified(s.method, n)), threads, str(capture.paths.root))
+            for n, a in jobs]
     bar = tqdm(total=len(args), desc=f"magnify ({s.method})", unit="view", disable=not progress)
     if workers == 1:
         for a in args:
@@ -272,7 +295,7 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
                 result.takes.append(done)
                 bar.update()
     bar.close()
-    atomic_write_text(dest / "magnify.json", json.dumps(asdict(result), indent=1))
+    result.write(capture)
     log.info("magnified %d view(s) into %s", len(result.takes), dest)
     return result
 

@@ -1,14 +1,23 @@
 """Reconstruction: camera poses with metric scale, a differentiable Gaussian rasterizer, and dynamic 3D Gaussians.
 
-The public surface; `poses` is imported on use (it loads pycolmap).
+The public surface. Two stages live here, each with its entry: `run_poses(capture, PoseSettings) -> PoseResult`
+(derived/poses.json, points.npz) and `run(capture, ReconstructSettings) -> ReconstructResult` (alias
+`reconstruct`; derived/reconstruction/). pycolmap is loaded only when poses are estimated.
 """
 from .dynamic import FitSettings, Trajectory, fit_dynamic, fit_static
 from .gaussians import Gaussians, load_ply, save_ply
+from .linear import LinearSettings
+from .modal import ModalSettings
+from .poses import PoseResult, PoseSettings, estimate_poses, run_poses
 from .raster import RasterOutput, gsplat_available, rasterize, rasterize_reference
-from .run import DynamicScene, ReconstructResult, ReconstructSettings, reconstruct, render_sequence, train
+from .run import DynamicScene, ReconstructResult, ReconstructSettings, camera_path, default_source, parse_times, \
+    reconstruct, render_sequence, train
 from .views import Camera, SceneFrame, TrainView, ViewSet, load_views
 
-__all__ = ["Camera", "DynamicScene", "FitSettings", "Gaussians", "RasterOutput", "ReconstructResult",
-           "ReconstructSettings", "SceneFrame", "Trajectory", "TrainView", "ViewSet", "fit_dynamic", "fit_static",
-           "gsplat_available", "load_ply", "load_views", "rasterize", "rasterize_reference", "reconstruct",
-           "render_sequence", "save_ply", "train"]
+run = reconstruct  # the reconstruct stage's entry
+
+__all__ = ["Camera", "DynamicScene", "FitSettings", "Gaussians", "LinearSettings", "ModalSettings", "PoseResult",
+           "PoseSettings", "RasterOutput", "ReconstructResult", "ReconstructSettings", "SceneFrame", "Trajectory",
+           "TrainView", "ViewSet", "camera_path", "default_source", "estimate_poses", "fit_dynamic", "fit_static",
+           "gsplat_available", "load_ply", "load_views", "parse_times", "rasterize", "rasterize_reference", "reconstruct",
+           "render_sequence", "run", "run_poses", "save_ply", "train"]

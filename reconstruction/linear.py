@@ -307,7 +307,7 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
                 rhs[:, a0:a0 + len(idx)] += A.T @ (d / noise)
         views.append(ViewRows(v.name, int(len(vv)), noise))
     if not views:
-        raise InputError(capture.derived_dir / "sync", "no view has pixels the rest Gaussians cover with texture")
+        raise InputError(capture.paths.aligned_dir, "no view has pixels the rest Gaussians cover with texture")
     prior = graph.prior(s.k_graph)
     ptp = (prior.T @ prior).tocsr()
     diag_a, diag_p = ata.diagonal()[0::6].mean(), ptp.diagonal()[0::6].mean()

@@ -23,16 +23,15 @@ from tqdm import tqdm
 from odsplat._deps import import_pycolmap
 from odsplat.errors import InputError, OdsplatError
 from odsplat.geometry import camera_center_m, rotation_angle_deg
-from odsplat.manifest import TagLayout, check_schema, load_json
+from odsplat.contract import check, describe, plain
+from odsplat.manifest import TagLayout, load_json
 from odsplat.store import Capture, atomic_open, atomic_write_text
 from odsplat.tags import TagDetection, camera_pose_from_tags, detect_tags
 
 log = logging.getLogger(__name__)
 
-POSES_FILE = "poses.json"
-POINTS_FILE = "points.npz"
-WORK_DIR = "poses"
-SCHEMA = "1.0"
+KIND = "odsplat.poses"
+SCHEMA = 2
 MIN_SIM3_VIEWS = 3           # a similarity needs three non-collinear camera centres
 _MAX_SIM3_HYPOTHESES = 2000  # LMedS tries every triple below this many, a random sample above
 _LMEDS_INLIER_SIGMAS = 2.5   # inlier threshold in robust standard deviations of the best hypothesis
@@ -53,6 +52,7 @@ class PoseSettings:
     seed: int = 0
     min_tags: int = 2                      # floor tags a view needs for a tag pose (one tag can flip, IPPE)
     threads: int | None = None             # COLMAP's threads; None: the cores this process may use
+    takes: str = "all"                     # rejected takes too: their first frame shows the structure at rest
 
     def __post_init__(self) -> None:
         if self.masks_dir is not None:
@@ -107,6 +107,7 @@ class PoseResult:
     sim3_views: list[str] = field(default_factory=list)     # views whose centres fit the Sim3
     sim3_outliers: list[str] = field(default_factory=list)  # views left out of it as outliers
     timings_s: dict[str, float] = field(default_factory=dict)
+    settings: dict[str, Any] = field(default_factory=dict)   # the PoseSettings it was made with
 
     def view(self, name: str) -> ViewPose:
         for v in self.views:
@@ -151,12 +152,12 @@ class PoseResult:
 
     # -- files ------------------------------------------------------------------------------------
 
-    def save(self, capture: Capture) -> None:
+    def write(self, capture: Capture) -> None:
         """derived/poses.json (views, report, method, notes) and derived/points.npz, each written atomically."""
-        derived = capture.derived_dir
+        paths = capture.paths
+        paths.ensure(paths.root)
         doc = {
-            "schema_version": SCHEMA,
-            "kind": "odsplat.poses",
+            **describe(capture.id, KIND, SCHEMA, self.settings).header(),
             "method": self.method,
             "reason": self.reason,
             "registered": self.registered,
@@ -174,21 +175,20 @@ class PoseResult:
                 "reproj_rms_px": v.reproj_rms_px, "tag_rot_deg": v.tag_rot_deg, "tag_trans_mm": v.tag_trans_mm,
                 "center_m": _plain(v.center_m)} for v in self.views],
         }
-        with atomic_open(derived / POINTS_FILE, "wb") as fh:
+        with atomic_open(paths.points_npz, "wb") as fh:
             np.savez(fh, points_m=self.points_m.astype(np.float64), points_color=self.points_color.astype(np.float32),
                      points_error_px=self.points_error_px.astype(np.float32))
         # The JSON goes last: a reader that finds it finds the points it describes.
-        atomic_write_text(derived / POSES_FILE, json.dumps(doc, indent=1) + "\n")
-        log.info("poses: wrote %s and %s", derived / POSES_FILE, derived / POINTS_FILE)
+        atomic_write_text(paths.poses_json, json.dumps(doc, indent=1) + "\n")
+        log.info("poses: wrote %s and %s", paths.poses_json, paths.points_npz)
 
     @classmethod
-    def load(cls, capture: Capture) -> PoseResult:
-        path = capture.root / "derived" / POSES_FILE
+    def read(cls, capture: Capture) -> PoseResult:
+        """The capture's poses; a file of another kind, schema or capture is refused with one line."""
+        path = capture.paths.poses_json
         doc = load_json(path, missing="no camera poses here; run `odsplat poses` first")
-        if not isinstance(doc, dict) or doc.get("kind") != "odsplat.poses":
-            raise InputError(path, "not an odsplat poses file (kind is not 'odsplat.poses')")
-        check_schema(doc.get("schema_version", "missing"), where=f"{path}: schema_version")
-        points_path = path.with_name(POINTS_FILE)
+        prov = check(doc, path, kind=KIND, schema_version=SCHEMA, capture_id=capture.id)
+        points_path = capture.paths.points_npz
         try:
             with np.load(points_path, allow_pickle=False) as npz:
                 points = {k: npz[k] for k in ("points_m", "points_color", "points_error_px")}
@@ -212,7 +212,8 @@ class PoseResult:
                        sim3_views=[] if sim3 is None else list(sim3["views"]),
                        sim3_outliers=[] if sim3 is None else list(sim3["outliers"]),
                        registered=int(doc["registered"]), n_images=int(doc["n_images"]), notes=list(doc["notes"]),
-                       reproj_mean_px=doc.get("reproj_mean_px"), timings_s=dict(doc.get("timings_s", {})))
+                       reproj_mean_px=doc.get("reproj_mean_px"), timings_s=dict(doc.get("timings_s", {})),
+                       settings=prov.settings)
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(path, f"malformed poses file ({exc!r}); run `odsplat poses` again") from None
 
@@ -347,7 +348,7 @@ def _to_u8(frame: np.ndarray, bit_depth: int) -> np.ndarray:
 
 def _collect_images(capture: Capture, settings: PoseSettings) -> tuple[list[_Image], list[str]]:
     images, notes = [], []
-    for name in capture.take_names():
+    for name in (t.name for t in capture.select_takes(settings.takes)):
         with capture.open_take(name) as reader:
             if not reader.has_frames or reader.n_frames == 0:
                 notes.append(f"take {name} holds no frames; left out")
@@ -705,7 +706,8 @@ def estimate_poses(capture: Capture, settings: PoseSettings | None = None) -> Po
     """Poses of every take's frame `settings.frame` (and the static photos) in the tag layout's frame, metres.
 
     Work files (8-bit images, COLMAP's database, its sparse models, the final metric model in COLMAP's format)
-    go to derived/poses/, replaced on each run. The result is not saved: call `PoseResult.save`.
+    go to derived/poses/, replaced on each run. The result is not saved: call `PoseResult.write` (or use
+    `run_poses`, the stage's entry, which does)
     """
     settings = settings or PoseSettings()
     pycolmap = import_pycolmap()
@@ -715,7 +717,7 @@ def estimate_poses(capture: Capture, settings: PoseSettings | None = None) -> Po
     images, notes = _collect_images(capture, settings)
     if not images:
         raise InputError(capture.root, "no take with frames and no static photo: nothing to pose")
-    work = capture.derived_dir / WORK_DIR
+    work = capture.paths.poses_work_dir
     shutil.rmtree(work, ignore_errors=True)  # a stale database would mix old features in
     work.mkdir(parents=True)
     masks = _write_images(images, work, settings.masks_dir)
@@ -761,8 +763,16 @@ def estimate_poses(capture: Capture, settings: PoseSettings | None = None) -> Po
     result.n_images = n_images
     timings["total_s"] = time.perf_counter() - started
     result.timings_s = {k: round(v, 3) for k, v in timings.items()}
+    result.settings = plain(settings)
     for line in result.report_lines():
         log.info("%s", line)
+    return result
+
+
+def run_poses(capture: Capture, settings: PoseSettings | None = None) -> PoseResult:
+    """The poses stage's entry: `estimate_poses`, saved to derived/poses.json and points.npz."""
+    result = estimate_poses(capture, settings)
+    result.write(capture)
     return result
 
 

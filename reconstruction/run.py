@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from odsplat.contract import describe, plain
 from odsplat.errors import InputError
 from odsplat.geometry import look_at
 from odsplat.manifest import load_json, utc_now
@@ -33,7 +34,8 @@ from .views import Camera, SceneFrame, ViewSet, load_views, pose_camera
 
 log = logging.getLogger(__name__)
 
-FORMAT = "odsplat-reconstruction"
+KIND = "odsplat.reconstruction"
+SCHEMA = 2
 MEASURED = "measured_motion.npz"
 MOTIONS = ("modal", "timestep", "linear")
 
@@ -46,7 +48,8 @@ def default_source(motion: str) -> str:
 
 @dataclass(frozen=True)
 class ReconstructSettings:
-    source: str = "sync"                 # unmagnified frames on the common grid, or "magnified/METHOD"
+    source: str | None = None            # "sync" (unmagnified, on the common grid) or "magnified/METHOD";
+    #                                      None: default_source(motion)
     width_px: int = 128                  # training image width (height by aspect)
     n_timesteps: int = 32
     step: int = 1                        # grid frames between timesteps
@@ -65,19 +68,23 @@ class ReconstructSettings:
     def __post_init__(self) -> None:
         if self.motion not in MOTIONS:
             raise InputError("motion", f"expected one of {', '.join(MOTIONS)}, got {self.motion!r}")
+        if self.source is None:
+            object.__setattr__(self, "source", default_source(self.motion))
+        if self.source != "sync" and not (self.source.startswith("magnified/") and len(self.source) > 10):
+            raise InputError("source", f"expected 'sync' or 'magnified/METHOD', got {self.source!r}")
         if self.motion == "linear" and self.source != "sync":
             raise InputError("source", f"the linear motion model reads the raw frames: expected 'sync', got "
                                        f"{self.source!r} (it magnifies in 3D, at render time)")
 
 
 def out_dir(capture: Capture) -> Path:
-    return capture.derived_dir / "reconstruction"
+    return capture.paths.reconstruction_dir
 
 
 def _poses(capture: Capture):
-    from .poses import PoseResult  # the pose stage's saved result; imported late (pycolmap is heavy)
+    from .poses import PoseResult  # the pose stage's saved result
 
-    return PoseResult.load(capture)
+    return PoseResult.read(capture)
 
 
 def initial_points(poses, scene: SceneFrame, n_colors: int, rng: np.random.Generator,
@@ -211,7 +218,7 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
     save_measured(dest, vs.times_s, m.measured)
     result = ReconstructResult(dest, len(m.g0), len(vs.views), len(vs.static), vs.n_timesteps, m.stats_t0["seconds"],
                                m.seconds_dynamic, psnr0, psnr_last, vs.notes + [f"initialised from {m.init} points"])
-    report = dict(format=FORMAT, version=1, created_utc=utc_now(), settings=asdict(s),
+    report = dict(**describe(capture.id, KIND, SCHEMA, s).header(), created_utc=utc_now(), settings=plain(s),
                   views=[v.name for v in vs.views], static=[v.name for v in vs.static], holdout=list(s.holdout),
                   frame_index=vs.frame_index.tolist(), times_s=vs.times_s.tolist(), source_alpha=vs.source_alpha,
                   t0=m.stats_t0, motion=s.motion, dynamic=m.trajectory.losses, result=asdict(result))
@@ -220,7 +227,8 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
                                energy_share=m.modal.principal()[3].tolist())
     if m.linear is not None:
         report["linear"] = m.linear
-    atomic_write_text(dest / "reconstruction.json", json.dumps(report, indent=1, default=str))  # str: paths
+    # Last: a reader that finds it finds the model it describes.
+    atomic_write_text(capture.paths.reconstruction_json, json.dumps(report, indent=1, default=str))  # str: paths
     log.info(result.summary())
     return result
 
@@ -255,7 +263,7 @@ class DynamicScene:
 
     @classmethod
     def load(cls, capture: Capture) -> DynamicScene:
-        return cls.read(out_dir(capture) / "trajectories.npz")
+        return cls.read(capture.paths.trajectories_npz)
 
     @classmethod
     def read(cls, path: Path) -> DynamicScene:
@@ -386,10 +394,33 @@ def parse_times(spec: str, trained_s: np.ndarray) -> np.ndarray:
             a, b, n = spec.split(":")
             if int(n) < 1:
                 raise ValueError
-            return np.linspace(float(a), float(b), int(n))
-        return np.array([float(x) for x in spec.split(",")])
+            times = np.linspace(float(a), float(b), int(n))
+        else:
+            times = np.array([float(x) for x in spec.split(",")])
     except ValueError:
         raise InputError("--times", f"expected 'all', 'A:B:N' or 'a,b,c' in seconds, got {spec!r}") from None
+    if not np.all(np.isfinite(times)):
+        raise InputError("--times", f"expected finite times in seconds, got {spec!r}")
+    return times
+
+
+def camera_path(capture: Capture, spec: str, n_times: int, width_px: int | None = None) -> list[Camera]:
+    """The cameras to render from a spec: a take name (its estimated pose), orbit[:N[:ELEVATION_DEG[:DISTANCE_M]]]
+    (N: one camera per time by default) or a JSON camera path file."""
+    if spec.endswith(".json"):
+        return cameras_from_json(Path(spec), width_px)
+    if spec.split(":")[0] == "orbit":
+        parts = spec.split(":")[1:]
+        try:
+            n = int(parts[0]) if parts else max(2, n_times)
+            elev = float(parts[1]) if len(parts) > 1 else 30.0
+            dist = float(parts[2]) if len(parts) > 2 else None
+        except ValueError:
+            raise InputError("--camera", f"expected orbit[:N[:ELEVATION_DEG[:DISTANCE_M]]], got {spec!r}") from None
+        if n < 1 or not np.isfinite(elev) or (dist is not None and not 0 < dist < np.inf):
+            raise InputError("--camera", f"expected N >= 1, a finite elevation and a distance > 0; got {spec!r}")
+        return orbit(_poses(capture), n, elevation_deg=elev, distance_m=dist, width_px=width_px)
+    return [pose_camera(_poses(capture), spec, width_px)]
 
 
 def render_sequence(scene: DynamicScene, cameras: list[Camera], times_s: np.ndarray, out: Path, *,

@@ -36,7 +36,7 @@ class SourceFrames(FrameFile):
 def source_path(capture: Capture, source: str, name: str) -> Path:
     """'sync' -> derived/sync/NAME.h5; 'magnified/METHOD' -> derived/magnified/METHOD/NAME.h5."""
     if source == "sync" or source.startswith("magnified/"):
-        return capture.derived_dir / source / f"{name}.h5"
+        return capture.paths.frames(source, name)
     raise InputError("source", f"expected 'sync' or 'magnified/METHOD' (e.g. magnified/phase), got {source!r}")
 
 
@@ -173,7 +173,7 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
     """
     take_poses = [v for v in poses.views if v.kind == "take" and v.name not in holdout]
     if not take_poses:
-        raise InputError(capture.derived_dir / "poses.json", "no posed takes to train on")
+        raise InputError(capture.paths.poses_json, "no posed takes to train on")
     notes: list[str] = []
     views, grid, bit_depth, frames, alphas = [], None, None, None, set()
     for vp in take_poses:
@@ -204,7 +204,7 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
             np.clip(_resize(rest / full, small.width_px, small.height_px), 0, 1), dtype=dtype)
         views.append(TrainView(small, torch.as_tensor(np.clip(imgs, 0, 1), dtype=dtype), rest=rest_t))
     if not views:
-        raise InputError(capture.derived_dir / source, f"no frame files for the posed takes ({'; '.join(notes)})")
+        raise InputError(capture.paths.frames_dir(source), f"no frame files for the posed takes ({'; '.join(notes)})")
     static = []
     if use_static:
         for vp in (v for v in poses.views if v.kind == "static" and v.name not in holdout):
@@ -213,7 +213,7 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
             static.append(TrainView(cam, torch.as_tensor(_resize(img, cam.width_px, cam.height_px)[None], dtype=dtype),
                                     kind="static"))
     if len(alphas) > 1:
-        raise InputError(capture.derived_dir / source, f"the takes were magnified by different factors: {sorted(alphas)}")
+        raise InputError(capture.paths.frames_dir(source), f"the takes were magnified by different factors: {sorted(alphas)}")
     scene = SceneFrame.fit(np.array([v.camera.center for v in views + static]))
     for v in views + static:
         v.camera = v.camera.in_scene(scene)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import os
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -19,10 +20,11 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from odsplat.contract import check, describe
 from odsplat.errors import InputError, OdsplatError
 from odsplat.impulse import find_impacts, fit_pulse
 from odsplat.manifest import CameraInfo, TagLayout, load_json, utc_now
-from odsplat.store import Capture, TakeReader, atomic_write_text
+from odsplat.store import TAKE_SELECTIONS, Capture, TakeReader, atomic_write_text
 from odsplat.tags import detect_tags
 
 from .aligned import write_aligned
@@ -32,11 +34,9 @@ from .strobe import fit_strobe
 
 log = logging.getLogger(__name__)
 
-SYNC_JSON = "sync.json"
-SYNC_DIR = "sync"
-FORMAT = "odsplat-sync"
+KIND = "odsplat.sync"
+SCHEMA = 2
 METHODS = ("auto", "ttl", "image")
-TAKE_SELECTIONS = ("accepted", "all")
 RESPONSE_S = 0.05  # how much of each take's response the cross-check compares
 
 
@@ -52,13 +52,16 @@ class SyncSettings:
     double_hit_fraction: float = 0.05     # a second pulse counts when it stands this much of the peak above its dip
     min_peak_n: float = 5.0               # smaller force peaks are noise, not a hit
     max_memory_mb: float = 256.0          # working memory per take (pixels kept, rows per band)
+    plot: bool = True                     # derived/sync.png
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise InputError("sync method", f"expected one of {METHODS}, got {self.method!r}")
         if self.takes not in TAKE_SELECTIONS:
             raise InputError("sync takes", f"expected one of {TAKE_SELECTIONS}, got {self.takes!r}")
-        if self.search_frames <= 0 or self.max_memory_mb <= 0:
+        if not (self.camera_trigger_delay_s == self.camera_trigger_delay_s and abs(self.camera_trigger_delay_s) < 1):
+            raise InputError("--trigger-delay-s", f"expected a delay below 1 s, got {self.camera_trigger_delay_s}")
+        if not (self.search_frames > 0 and 0 < self.max_memory_mb < float("inf")):
             raise InputError("SyncSettings", "search_frames and max_memory_mb must be positive")
 
 
@@ -95,7 +98,7 @@ class TakeSync:
     impulse_scale: float | None = None       # applied to the motion when normalising
     grid_shift_frames: float | None = None   # the take's input frame index at grid frame 0
     drift_frames: float | None = None        # largest timing error of a single shift over the grid (rate error)
-    aligned_file: str | None = None
+    aligned_file: str | None = None          # relative to the derived root: sync/NAME.h5
 
     def exclude(self, error: str) -> TakeSync:
         self.status, self.error = "excluded", error
@@ -123,20 +126,33 @@ class SyncResult:
     def times_s(self) -> np.ndarray:
         return (self.t0_s or 0.0) + np.arange(self.n_frames) / (self.fps or 1.0)
 
-    def to_json(self) -> str:
+    def to_json(self, capture_id: str) -> str:
         d = asdict(self)
         for t in d["takes"]:
             t.pop("counters")
-        return json.dumps({"format": FORMAT, "version": 1, **d}, indent=1, allow_nan=False, default=float)
+        header = describe(capture_id, KIND, SCHEMA, self.settings).header()
+        return json.dumps({**header, **d}, indent=1, allow_nan=False, default=float)
+
+    def write(self, capture: Capture) -> Path:
+        """derived/sync.json, atomically (the aligned frames are written before it)."""
+        path = capture.paths.sync_json
+        capture.paths.ensure(path.parent)
+        atomic_write_text(path, self.to_json(capture.id))
+        return path
 
     @classmethod
-    def load(cls, path: str | Path) -> SyncResult:
+    def read(cls, capture: Capture) -> SyncResult:
+        """The capture's sync result; a file of another kind, schema or capture is refused with one line."""
+        path = capture.paths.sync_json
         d = load_json(path, missing="no sync result (run `odsplat sync` first)")
-        if not isinstance(d, dict) or d.pop("format", None) != FORMAT or d.pop("version", None) != 1:
-            raise InputError(path, f"not an {FORMAT} version 1 file")
+        check(d, path, kind=KIND, schema_version=SCHEMA, capture_id=capture.id)
         names = {f.name for f in fields(TakeSync)}
-        d["takes"] = [TakeSync(**{k: v for k, v in t.items() if k in names}) for t in d["takes"]]
-        return cls(**d)
+        mine = {f.name for f in fields(cls)}
+        try:
+            d["takes"] = [TakeSync(**{k: v for k, v in t.items() if k in names}) for t in d["takes"]]
+            return cls(**{k: v for k, v in d.items() if k in mine})
+        except (TypeError, KeyError, AttributeError) as exc:
+            raise InputError(path, f"not a readable sync result: {exc}") from None
 
     def summary(self) -> str:
         head = f"{len(self.ok)}/{len(self.takes)} takes synced"
@@ -152,10 +168,6 @@ class SyncResult:
             else:
                 lines.append(f"  {t.name:<10} EXCLUDED: {t.error}")
         return "\n".join(lines)
-
-
-def sync_path(capture: Capture) -> Path:
-    return capture.derived_dir / SYNC_JSON
 
 
 # ---------------------------------------------------------------------------------------------- per take
@@ -394,14 +406,14 @@ def _write_aligned(capture: Capture, t: TakeSync, reader: TakeReader, rest_count
                 x = rest + (x - rest) * t.impulse_scale
             y = fractional_shift(x, frac, axis=0)
             write_band(rows, y[whole:whole + n_grid])
-    t.aligned_file = str(path.relative_to(capture.root))
+    t.aligned_file = os.path.relpath(path, capture.paths.root)  # relative to the derived root
 
 
 def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, progress: bool = True) -> SyncResult:
     """Sync every selected take of the capture; writes derived/sync.json and, if asked, the aligned frames."""
     s = settings or SyncSettings()
     m = capture.manifest
-    records = [t for t in m.takes if s.takes == "all" or t.qc == "accepted"]
+    records = capture.select_takes(s.takes)
     if not records:
         raise OdsplatError(f"{capture.root}: no {'' if s.takes == 'all' else 'accepted '}takes to sync")
     results: list[TakeSync] = []
@@ -429,7 +441,7 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
         with capture.open_take(ok[0].name) as r:
             shape = list(r.frame_shape)
         if s.write_frames:
-            out_dir = capture.derived_dir / SYNC_DIR
+            out_dir = capture.paths.ensure(capture.paths.aligned_dir)
             for t in tqdm(ok, desc="sync: aligning frames", unit="take", disable=not progress):
                 with capture.open_take(t.name) as r:
                     if list(r.frame_shape) != shape:
@@ -441,9 +453,12 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
     result = SyncResult(capture=m.name, fps=fps, n_frames=n_grid, t0_s=t0, frame_shape=shape,
                         reference_impulse_n_s=ref_impulse, normalized=s.normalize_impulse, takes=results,
                         settings=asdict(s))
-    atomic_write_text(sync_path(capture), result.to_json())
-    log.info("sync: %d/%d takes on the common grid (%d frames); %s", len(result.ok), len(results), n_grid,
-             sync_path(capture))
+    path = result.write(capture)
+    log.info("sync: %d/%d takes on the common grid (%d frames); %s", len(result.ok), len(results), n_grid, path)
+    if s.plot and result.ok:
+        from .plot import plot_sync
+
+        plot_sync(capture, result)
     return result
 
 
@@ -476,7 +491,7 @@ def _cross_check(ok: list[TakeSync], responses: dict[str, tuple[np.ndarray, floa
 
 
 def load_sync(capture: Capture) -> SyncResult:
-    return SyncResult.load(sync_path(capture))
+    return SyncResult.read(capture)
 
 
-__all__ = ["SyncResult", "SyncSettings", "TakeSync", "load_sync", "sync_capture", "sync_path"]
+__all__ = ["SyncResult", "SyncSettings", "TakeSync", "load_sync", "sync_capture"]

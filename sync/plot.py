@@ -18,7 +18,7 @@ def plot_sync(capture: Capture, result: SyncResult, path: Path | None = None) ->
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    path = path or capture.derived_dir / "sync.png"
+    path = path or capture.paths.sync_png
     fig, (ax_f, ax_o, ax_r) = plt.subplots(3, 1, figsize=(9, 10), constrained_layout=True)
     fps = result.fps or 1.0
     ok = result.ok
