@@ -1,13 +1,15 @@
-"""The `odsplat` command line: one subcommand per working stage; errors are one line naming the culprit."""
+"""The `odsplat` command line: `odsplat run` for the whole pipeline, and one thin subcommand per stage calling the
+same entry; errors are one line naming the culprit."""
 from __future__ import annotations
 
 import json
 import logging
 import sys
-from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import click
+from click.core import ParameterSource
 
 from .errors import OdsplatError
 
@@ -30,6 +32,40 @@ def main(verbose: int) -> None:
     """odsplat: motion-magnified 3D operational deflection shapes from impact tests."""
     level = logging.WARNING - 10 * min(verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+
+
+def _given(**fields: Any) -> dict[str, Any]:
+    """The settings the user gave on the command line, as a table for the stage: FIELD=VALUE for each option given
+    (not defaulted); a dotted FIELD sets a nested one (fit.iters_t0). A value may be a callable of the option's."""
+    ctx = click.get_current_context()
+    table: dict[str, Any] = {}
+    for param, target in fields.items():
+        if ctx.get_parameter_source(param) not in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT):
+            continue
+        names, convert = (target, None) if isinstance(target, (str, tuple)) else target
+        value = ctx.params[param]
+        value = convert(value) if convert else value
+        for name in (names,) if isinstance(names, str) else names:
+            *path, last = name.split(".")
+            node = table
+            for part in path:
+                node = node.setdefault(part, {})
+            node[last] = list(value) if isinstance(value, tuple) else value
+    return table
+
+
+def _stage(capture_dir: Path, stage: str, given: dict[str, Any]) -> tuple[Any, Any]:
+    """Run one stage through the pipeline's entry: the capture's configuration with the options given laid over.
+    Returns (capture, the stage's result)."""
+    from .config import load_config
+    from .pipeline import run_stage
+    from .store import Capture
+
+    cap = Capture.open(capture_dir)
+    config = load_config(cap)
+    if given:
+        config = config.updated({stage: given}, "the command line")
+    return cap, run_stage(cap, stage, config).result
 
 
 @main.command()
@@ -70,6 +106,66 @@ def recover(capture: Path) -> None:
         click.echo(f"{r.name}: {'recovered' if r.recovered else 'NOT recovered'}: {r.message}")
     if any(not r.recovered for r in reports):
         sys.exit(1)
+
+
+_STAGES = ("qc", "sync", "magnify", "poses", "reconstruct", "analyze", "report")  # odsplat.config.STAGES
+
+
+@main.command("run")
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--from", "start", type=click.Choice(_STAGES), default=None,
+              help="Run from this stage on, whether or not it is current.")
+@click.option("--to", "stop", type=click.Choice(_STAGES), default=None, help="Stop after this stage.")
+@click.option("--force", "force", type=click.Choice(_STAGES), multiple=True,
+              help="Run this stage even if it is current (repeatable); what depends on it follows.")
+@click.option("--config", "config_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Configuration file (default: CAPTURE_DIR/odsplat.toml when it exists).")
+@click.option("--set", "sets", multiple=True, metavar="STAGE.FIELD=VALUE",
+              help="Override one setting, e.g. magnify.alpha=30 (repeatable; VALUE in TOML syntax).")
+def run_(capture_dir: Path, start: str | None, stop: str | None, force: tuple[str, ...], config_path: Path | None,
+         sets: tuple[str, ...]) -> None:
+    """Run the pipeline on CAPTURE_DIR, from the raw takes to the report; stages whose outputs are current are
+    skipped, stale ones rerun with everything downstream (docs/config.md)."""
+    from .config import load_config
+    from .pipeline import run
+    from .store import Capture
+
+    cap = Capture.open(capture_dir)
+    config = load_config(cap, path=config_path, sets=sets)
+    result = run(cap, config, start=start, stop=stop, force=force, echo=click.echo)
+    click.echo(result.text())
+
+
+@main.command("config")
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--config", "config_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Configuration file (default: CAPTURE_DIR/odsplat.toml when it exists).")
+@click.option("--set", "sets", multiple=True, metavar="STAGE.FIELD=VALUE", help="Override one setting (repeatable).")
+@click.option("--status", is_flag=True, help="Also say which stages are current.")
+def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], status: bool) -> None:
+    """Print the effective configuration of CAPTURE_DIR (defaults, its odsplat.toml, --set) as TOML."""
+    from .config import load_config
+    from .store import Capture
+
+    cap = Capture.open(capture_dir)
+    config = load_config(cap, path=config_path, sets=sets)
+    click.echo(config.to_toml(), nl=False)
+    if status:
+        from .pipeline import status as stage_status
+
+        click.echo("")
+        for name, current, why in stage_status(cap, config):
+            click.echo(f"# {name:<12} {'current' if current else 'stale'}: {why}")
+
+
+@main.command()
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--force-band", "force_band_n", type=(float, float), default=None,
+              help="Planned peak force (N); takes outside are rejected (default: any).")
+def qc(capture_dir: Path, force_band_n: tuple[float, float] | None) -> None:
+    """Check every take's hit from its file (impacts, force band, lost samples, dropped frames): derived/qc.json."""
+    _, result = _stage(capture_dir, "qc", _given(force_band_n="force_band_n"))
+    click.echo(result.summary())
 
 
 @main.command()
@@ -118,33 +214,19 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
     """Guided multi-view capture into OUT: place the camera at each planned view, hit, QC, accept or redo.
 
     Stop at any time (even by a crash) and run the same command again to resume."""
-    from .acquisition.live import PlotFeedback, TextFeedback, display_available
-    from .acquisition.plan import PlanSettings
-    from .acquisition.qc import QCLimits
-    from .acquisition.session import CaptureSession, LabBench, SessionSettings
-    from .acquisition.trigger import HammerTrigger
+    from .acquisition import (CaptureSession, HammerTrigger, LabBench, PlanSettings, PlotFeedback, QCLimits,
+                              SessionSettings, TextFeedback, choose_hammer, display_available, load_lab_config)
     from .errors import InputError
 
     if sim == (config_path is not None):
         raise InputError("odsplat capture", "give exactly one of --sim or --config LAB.toml")
     if auto and not sim:
         raise InputError("odsplat capture", "--auto needs --sim: in the lab a person places the camera and hits")
-    from .acquisition.session import AutoHammerSettings
-
-    lab = None
-    if config_path is not None:
-        from .acquisition.lab import load_lab_config
-
-        lab = load_lab_config(config_path)
-    if hammer is None:
-        hammer = "auto" if (sim and auto) or (lab is not None and lab.hammer is not None) else "manual"
-    hammer_settings = None
-    if hammer == "auto":
-        base = (lab.hammer_settings() if lab is not None else None) or AutoHammerSettings()
-        hammer_settings = replace(base, **{k: v for k, v in (("force_n", hammer_force_n), ("tolerance", hammer_tolerance))
-                                           if v is not None})
-        if lab is not None and lab.hammer is None:
-            raise InputError(str(config_path), "--hammer auto needs a [hammer] section (url or can) in the lab file")
+    lab = load_lab_config(config_path) if config_path is not None else None
+    hammer_settings = choose_hammer(hammer, simulated_engineer=sim and auto,
+                                    lab_settings=lab.hammer_settings() if lab is not None else None,
+                                    has_lab=lab is not None, force_n=hammer_force_n, tolerance=hammer_tolerance,
+                                    where=str(config_path))
     settings = SessionSettings(
         name=out.name, plan=PlanSettings(views, radius_m, elevation_deg, target_m), n_frames=n_frames,
         pretrigger_frames=pretrigger_frames, fps=fps,
@@ -152,22 +234,21 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
         limits=QCLimits(force_band_n=force_band), max_attempts=max_attempts, static_photos=static_photos,
         hammer=hammer_settings)
     if sim:
-        from .hil_sim.bench import SimBench, SimBenchSettings, parse_faults
-        from .hil_sim.rig import RigConfig, SimRig
+        from .hil_sim import RigConfig, SimBench, SimBenchSettings, SimRig, parse_faults
 
         try:
             w, h = (int(v) for v in size.lower().split("x"))
         except ValueError:
             raise InputError("--size", f"expected WxH in pixels, e.g. 400x300; got {size!r}") from None
         bench = SimBench(SimRig(config=RigConfig(seed=seed)), SimBenchSettings(width_px=w, height_px=h, seed=seed),
-                         faults=parse_faults(sim_faults), hammer=hammer_link if hammer == "auto" else None)
+                         faults=parse_faults(sim_faults), hammer=hammer_link if hammer_settings else None)
         if not auto:
             bench.place_camera = _asking_place(bench.place_camera)
             bench.decide = _asking_decide
     else:
         bench = LabBench(lab.open_camera(), lab.daq_url, lab.channels, lab.sample_rate_hz, lab.tags,
                          ask=lambda q: click.prompt(q, default="", show_default=False), tell=click.echo,
-                         hammer=lab.open_hammer() if hammer == "auto" else None)
+                         hammer=lab.open_hammer() if hammer_settings else None)
     if window is None:
         window = display_available() and not auto
     feedback = PlotFeedback(click.echo, settings and _plan(settings)) if window else TextFeedback(click.echo)
@@ -197,19 +278,11 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
 def sync(capture_dir: Path, method: str, all_takes: bool, normalize_impulse: bool, frames: bool, image_check: bool,
          trigger_delay_s: float, max_memory_mb: float, plot: bool) -> None:
     """Put the takes of CAPTURE_DIR on one impact-locked timeline: derived/sync.json and the aligned frames."""
-    from .store import Capture
-    from .sync import SyncSettings, sync_capture
-
-    cap = Capture.open(capture_dir)
-    settings = SyncSettings(method=method, takes="all" if all_takes else "accepted", normalize_impulse=normalize_impulse,
-                            write_frames=frames, check_with_image=image_check, camera_trigger_delay_s=trigger_delay_s,
-                            max_memory_mb=max_memory_mb)
-    result = sync_capture(cap, settings)
+    _, result = _stage(capture_dir, "sync", _given(
+        method="method", all_takes=("takes", lambda v: "all" if v else "accepted"),
+        normalize_impulse="normalize_impulse", frames="write_frames", image_check="check_with_image",
+        trigger_delay_s="camera_trigger_delay_s", max_memory_mb="max_memory_mb", plot="plot"))
     click.echo(result.summary())
-    if plot:
-        from .sync.plot import plot_sync
-
-        click.echo(f"plot: {plot_sync(cap, result)}")
     if not result.ok:
         sys.exit(1)
 
@@ -233,13 +306,12 @@ def sync(capture_dir: Path, method: str, all_takes: bool, normalize_impulse: boo
 def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: str | None, mode: str, source: str,
             workers: int | None, takes: tuple[str, ...], options: tuple[str, ...]) -> None:
     """Magnify the motion in every view of CAPTURE_DIR into derived/magnified/METHOD/."""
-    from .processing.run import MagnifySettings, magnify_capture, parse_options
-    from .store import Capture
+    from .processing import parse_options
 
-    settings = MagnifySettings(method=method, alpha=alpha, band_hz=tuple(band_hz) if band_hz else None,
-                               filter=filter_kind, mode=mode, source=source, workers=workers, takes=takes,
-                               options=parse_options(options))
-    click.echo(magnify_capture(Capture.open(capture_dir), settings).summary())
+    _, result = _stage(capture_dir, "magnify", _given(
+        method="method", alpha="alpha", band_hz="band_hz", filter_kind="filter", mode="mode", source="source",
+        workers="workers", takes="takes", options=("options", lambda v: [list(kv) for kv in parse_options(v)])))
+    click.echo(result.summary())
 
 
 @main.command()
@@ -253,17 +325,12 @@ def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: 
 def poses(capture_dir: Path, no_static: bool, estimate_intrinsics: bool, masks_dir: Path | None,
           min_registered: int) -> None:
     """Camera poses of every view of CAPTURE_DIR in metres, floor z = 0: derived/poses.json, derived/points.npz."""
-    from .reconstruction.poses import PoseSettings, estimate_poses
-    from .store import Capture
-
-    cap = Capture.open(capture_dir)
-    settings = PoseSettings(use_static=not no_static, fixed_intrinsics=False if estimate_intrinsics else None,
-                            masks_dir=masks_dir, min_registered=min_registered)
-    result = estimate_poses(cap, settings)
-    result.save(cap)
+    cap, result = _stage(capture_dir, "poses", _given(
+        no_static=("use_static", lambda v: not v), estimate_intrinsics=("fixed_intrinsics", lambda v: False if v else None),
+        masks_dir=("masks_dir", str), min_registered="min_registered"))
     for line in result.report_lines():
         click.echo(line)
-    click.echo(f"wrote {cap.derived_dir / 'poses.json'} and {cap.derived_dir / 'points.npz'}")
+    click.echo(f"wrote {cap.paths.poses_json} and {cap.paths.points_npz}")
 
 
 @main.command("train-mm")
@@ -281,7 +348,7 @@ def poses(capture_dir: Path, no_static: bool, estimate_intrinsics: bool, masks_d
 def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, crop: int, lr: float, channels: int,
              threads: int, seed: int, resume: bool) -> None:
     """Train the learned motion magnifier (Oh et al. 2018) on procedural synthetic data (docs/magnification-learned.md)."""
-    from .processing.learned.train import TrainConfig, train
+    from .processing import TrainConfig, train
 
     report = train(TrainConfig(out=out, steps=steps, max_minutes=max_minutes, batch_size=batch_size, crop=crop, lr=lr,
                                channels=channels, threads=threads, seed=seed, resume=resume))
@@ -317,18 +384,12 @@ def reconstruct(capture_dir: Path, source: str | None, width_px: int, n_timestep
                 holdout: tuple[str, ...], no_static: bool, motion: str, iters_t0: int, iters_modal: int,
                 components: int, iters_per_step: int, threads: int | None, seed: int) -> None:
     """Train dynamic 3D Gaussians on CAPTURE_DIR's posed views into derived/reconstruction/ (docs/reconstruction.md)."""
-    from .reconstruction.dynamic import FitSettings
-    from .reconstruction.modal import ModalSettings
-    from .reconstruction.run import ReconstructSettings, default_source, reconstruct as run
-    from .store import Capture
-
-    fit = FitSettings(iters_t0=iters_t0, iters_per_step=iters_per_step, seed=seed)
-    modal = ModalSettings(iters=iters_modal, n_components=components, seed=seed)
-    source = source or default_source(motion)
-    settings = ReconstructSettings(source=source, width_px=width_px, n_timesteps=n_timesteps, step=step, start=start,
-                                   holdout=holdout, use_static=not no_static, threads=threads, motion=motion,
-                                   fit=fit, modal=modal)
-    click.echo(run(Capture.open(capture_dir), settings).summary())
+    _, result = _stage(capture_dir, "reconstruct", _given(
+        source="source", width_px="width_px", n_timesteps="n_timesteps", step="step", start="start",
+        holdout="holdout", no_static=("use_static", lambda v: not v), motion="motion", iters_t0="fit.iters_t0",
+        iters_modal="modal.iters", components="modal.n_components", iters_per_step="fit.iters_per_step",
+        threads="threads", seed=("fit.seed", "modal.seed")))
+    click.echo(result.summary())
 
 
 @main.command()
@@ -349,30 +410,16 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
            alpha: float | None, fps: float, no_mp4: bool) -> None:
     """Render the reconstruction of CAPTURE_DIR from any camera path over any time range."""
     from .errors import InputError
-    from .reconstruction.poses import PoseResult
-    from .reconstruction.run import (DynamicScene, cameras_from_json, orbit, out_dir, parse_times, pose_camera,
-                                     render_sequence)
+    from .reconstruction import DynamicScene, camera_path, parse_times, render_sequence
     from .store import Capture
 
     cap = Capture.open(capture_dir)
     scene = DynamicScene.load(cap)
     times = parse_times(times_spec, scene.times_s)
-    if camera_spec.endswith(".json"):
-        cameras = cameras_from_json(Path(camera_spec), width_px)
-    elif camera_spec.split(":")[0] == "orbit":
-        parts = camera_spec.split(":")[1:]
-        try:
-            n = int(parts[0]) if parts else max(2, len(times))
-            elev = float(parts[1]) if len(parts) > 1 else 30.0
-            dist = float(parts[2]) if len(parts) > 2 else None
-        except ValueError:
-            raise InputError("--camera", f"expected orbit[:N[:ELEVATION_DEG[:DISTANCE_M]]], got {camera_spec!r}") from None
-        cameras = orbit(PoseResult.load(cap), n, elevation_deg=elev, distance_m=dist, width_px=width_px)
-    else:
-        cameras = [pose_camera(PoseResult.load(cap), camera_spec, width_px)]
+    cameras = camera_path(cap, camera_spec, len(times), width_px)
     if alpha is not None and not 0 <= alpha < float("inf"):
         raise InputError("--alpha", f"expected a magnification >= 0, got {alpha}")
-    paths = render_sequence(scene, cameras, times, out or out_dir(cap) / "render", alpha=alpha, fps=fps,
+    paths = render_sequence(scene, cameras, times, out or cap.paths.render_dir, alpha=alpha, fps=fps,
                             mp4=not no_mp4)
     click.echo(f"{sum(p.suffix == '.png' for p in paths)} frames -> {paths[0].parent}"
                + (f" (and {paths[-1].name})" if paths and paths[-1].suffix == ".mp4" else ""))
@@ -406,38 +453,32 @@ def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, 
             image_poles: bool, with_report: bool) -> None:
     """FRFs, modes, the video's 3D shapes and their correlation for CAPTURE_DIR, into derived/analysis/
     (docs/analysis.md)."""
-    from .analysis.frf import FRFSettings
-    from .analysis.run import AnalyzeSettings, analyze_capture
     from .errors import InputError
-    from .store import Capture
 
     if not 0 <= exp_end < 1:
         raise InputError("--exp-end", f"expected 0 (rectangular) up to below 1; got {exp_end}")
-    settings = AnalyzeSettings(force_channel=force_channel, response_channels=responses or None,
-                               takes="all" if all_takes else "accepted",
-                               frf=FRFSettings(exponential_end=exp_end or None), record_s=record_s,
-                               fmin_hz=fmin_hz, fmax_hz=fmax_hz, max_order=max_order,
-                               approx_freq_hz=approx_freq_hz or None, ods_freq_hz=ods_freq_hz or None,
-                               video=not no_video, image_poles=image_poles)
-    cap = Capture.open(capture_dir)
-    result = analyze_capture(cap, settings)
+    cap, result = _stage(capture_dir, "analyze", _given(
+        force_channel="force_channel", responses="response_channels",
+        all_takes=("takes", lambda v: "all" if v else "accepted"), fmin_hz="fmin_hz", fmax_hz="fmax_hz",
+        max_order="max_order", approx_freq_hz="approx_freq_hz", ods_freq_hz="ods_freq_hz",
+        exp_end=("frf.exponential_end", lambda v: v or None), record_s="record_s",
+        no_video=("video", lambda v: not v), image_poles="image_poles"))
     click.echo(result.text())
     if with_report:
-        from .analysis.report import write_report
-
-        click.echo(f"report -> {write_report(cap.root)}")
+        _, path = _stage(capture_dir, "report", {})
+        click.echo(f"report -> {path}")
 
 
 @main.command()
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 def report(capture_dir: Path) -> None:
     """Write derived/analysis/report.html from the last `odsplat analyze` of CAPTURE_DIR."""
-    from .analysis.report import write_report
+    _, path = _stage(capture_dir, "report", {})
+    click.echo(path)
 
-    click.echo(write_report(capture_dir))
 
 def _plan(settings):
-    from .acquisition.plan import plan_views
+    from .acquisition import plan_views
 
     return plan_views(settings.plan)
 

@@ -1,0 +1,336 @@
+"""The pipeline: the stage graph from raw takes to the report, each stage run through its one entry, skipped
+when its outputs are current and rerun, with everything downstream, when they are stale.
+
+A stage is current when its stamp, `derived/pipeline/STAGE.json`, records the fingerprint the stage would have
+now (a hash of its settings, the capture and its inputs' identities: the raw takes for the first stages, the
+run id of each upstream stage's last run for the others) and its output files are as the stamp lists them.
+The stamp is removed before a stage runs and written, atomically, after its outputs: a stage killed at any
+point leaves no stamp, and the next run does it again. Every run of a stage gets a new run id, so a rerun
+upstream makes the stages downstream stale.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .config import STAGES, Config, load_config
+from .contract import Provenance, check, describe, digest, plain
+from .errors import InputError, OdsplatError
+from .manifest import load_json
+from .store import Capture, atomic_write_text, fsync_path
+
+log = logging.getLogger(__name__)
+
+STAMP_KIND = "odsplat.stage"
+STAMP_SCHEMA = 1
+
+
+# ------------------------------------------------------------------------------------------ the stage graph
+
+@dataclass(frozen=True)
+class Stage:
+    """One node of the graph: its entry, what it reads and what it writes."""
+
+    name: str
+    entry: Callable[[Capture, Any], Any]               # run(capture, settings) -> result; saves its own outputs
+    upstream: Callable[[Config], tuple[str, ...]]      # the stages whose outputs it reads, under this configuration
+    outputs: Callable[[Capture, Any], list[Path]]      # the files and folders it writes
+    summary: Callable[[Any], str]                      # its result in a few lines
+    volatile: tuple[str, ...] = ()                     # settings that do not change the result (threads, memory)
+    raw: bool = False                                  # reads the raw takes themselves
+
+
+def _qc(capture: Capture, settings: Any) -> Any:
+    from .acquisition import run_qc
+
+    return run_qc(capture, settings)
+
+
+def _sync(capture: Capture, settings: Any) -> Any:
+    from .sync import run
+
+    return run(capture, settings)
+
+
+def _magnify(capture: Capture, settings: Any) -> Any:
+    from .processing import run
+
+    return run(capture, settings)
+
+
+def _poses(capture: Capture, settings: Any) -> Any:
+    from .reconstruction import run_poses
+
+    return run_poses(capture, settings)
+
+
+def _reconstruct(capture: Capture, settings: Any) -> Any:
+    from .reconstruction import run
+
+    return run(capture, settings)
+
+
+def _analyze(capture: Capture, settings: Any) -> Any:
+    from .analysis import run
+
+    return run(capture, settings)
+
+
+def _report(capture: Capture, settings: Any) -> Path:
+    from .analysis import write_report
+
+    return write_report(capture)
+
+
+def _magnify_upstream(c: Config) -> tuple[str, ...]:
+    return ("qc",) if c.magnify.source == "raw" else ("qc", "sync")
+
+
+def _reconstruct_upstream(c: Config) -> tuple[str, ...]:
+    return ("poses", "sync") if c.reconstruct.source == "sync" else ("poses", "magnify")
+
+
+def _analyze_upstream(c: Config) -> tuple[str, ...]:
+    return ("qc", "sync", "reconstruct") if c.analyze.video else ("qc",)
+
+
+def _lines(text: Any) -> str:
+    return "\n".join(text) if isinstance(text, (list, tuple)) else str(text)
+
+
+GRAPH: tuple[Stage, ...] = (
+    Stage("qc", _qc, lambda c: (), lambda cap, s: [cap.paths.qc_json], lambda r: r.summary(), raw=True),
+    Stage("sync", _sync, lambda c: ("qc",),
+          lambda cap, s: [cap.paths.sync_json] + ([cap.paths.sync_png] if s.plot else [])
+          + ([cap.paths.aligned_dir] if s.write_frames else []),
+          lambda r: r.summary(), volatile=("max_memory_mb",), raw=True),
+    Stage("magnify", _magnify, _magnify_upstream, lambda cap, s: [cap.paths.magnified_dir(s.method)],
+          lambda r: r.summary(), volatile=("workers",), raw=True),
+    Stage("poses", _poses, lambda c: ("qc",), lambda cap, s: [cap.paths.poses_json, cap.paths.points_npz],
+          lambda r: _lines(r.report_lines()), volatile=("threads",), raw=True),
+    Stage("reconstruct", _reconstruct, _reconstruct_upstream,
+          lambda cap, s: [cap.paths.reconstruction_json, cap.paths.gaussians_ply, cap.paths.trajectories_npz,
+                          cap.paths.measured_motion_npz],
+          lambda r: r.summary(), volatile=("threads",)),
+    Stage("analyze", _analyze, _analyze_upstream,
+          lambda cap, s: [p for p in _walk(cap.paths.analysis_dir) if p != cap.paths.report_html],
+          lambda r: r.text()),
+    Stage("report", _report, lambda c: ("analyze",), lambda cap, s: [cap.paths.report_html], lambda p: str(p)),
+)
+BY_NAME = {s.name: s for s in GRAPH}
+assert tuple(BY_NAME) == STAGES, "the graph and the configuration must name the same stages in the same order"
+
+
+def stage(name: str) -> Stage:
+    try:
+        return BY_NAME[name]
+    except KeyError:
+        raise InputError("stage", f"expected one of {', '.join(STAGES)}; got {name!r}") from None
+
+
+# ------------------------------------------------------------------------------------------ identities
+
+def _walk(path: Path) -> list[Path]:
+    if path.is_dir():
+        return sorted(p for p in path.rglob("*") if p.is_file() and not p.name.startswith("."))
+    return [path]
+
+
+def output_identity(capture: Capture, paths: Iterable[Path]) -> dict[str, list[int]]:
+    """Every output file (folders walked) with its size and modification time: what the stamp vouches for."""
+    out = {}
+    for p in paths:
+        for f in _walk(p):
+            try:
+                st = f.stat()
+            except FileNotFoundError:
+                continue
+            out[os.path.relpath(f, capture.paths.root)] = [st.st_size, st.st_mtime_ns]
+    return out
+
+
+def takes_identity(capture: Capture) -> str:
+    """The raw takes as the manifest lists them (name, file, status, QC, size) and the static photos."""
+    takes = [[t.name, t.file, t.status, t.qc, t.n_frames, t.n_samples, t.created_utc] for t in capture.manifest.takes]
+    static = [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in sorted(capture.static_dir.glob("*"))
+              if p.is_file()] if capture.static_dir.is_dir() else []
+    return digest([takes, static])
+
+
+def stage_settings(name: str, settings: Any) -> dict[str, Any]:
+    """A stage's settings as recorded and hashed: its volatile ones left out."""
+    d = plain(settings) if settings is not None else {}
+    for key in stage(name).volatile:
+        d.pop(key, None)
+    return d
+
+
+@dataclass(frozen=True)
+class Stamp:
+    """A stage's last complete run: its provenance and the outputs it left."""
+
+    provenance: Provenance
+    outputs: dict[str, list[int]]
+    seconds: float
+    summary: str
+
+    @classmethod
+    def read(cls, capture: Capture, name: str) -> Stamp | None:
+        path = capture.paths.stamp(name)
+        if not path.exists():
+            return None
+        doc = load_json(path, missing="no stamp")
+        prov = check(doc, path, kind=STAMP_KIND, schema_version=STAMP_SCHEMA, capture_id=capture.id)
+        if doc.get("stage") != name or not isinstance(doc.get("outputs"), dict):
+            raise InputError(path, f"not the stamp of stage {name!r}")
+        return cls(prov, doc["outputs"], float(doc.get("seconds", 0.0)), str(doc.get("summary", "")))
+
+    def write(self, capture: Capture, name: str) -> None:
+        path = capture.paths.stamp(name)
+        capture.paths.ensure(path.parent)
+        doc = {**self.provenance.header(), "stage": name, "outputs": self.outputs, "seconds": self.seconds,
+               "summary": self.summary}
+        atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
+
+
+def _inputs(capture: Capture, name: str, config: Config) -> dict[str, str]:
+    st = stage(name)
+    inputs = {"takes": takes_identity(capture)} if st.raw else {}
+    for up in st.upstream(config):
+        stamp = Stamp.read(capture, up)
+        inputs[up] = stamp.provenance.run_id if stamp else "missing"
+    return inputs
+
+
+def expected(capture: Capture, name: str, config: Config) -> Provenance:
+    """The provenance a run of stage `name` would record now."""
+    return describe(capture.id, STAMP_KIND, STAMP_SCHEMA, stage_settings(name, config.settings(name)),
+                    _inputs(capture, name, config))
+
+
+def is_current(capture: Capture, name: str, config: Config) -> tuple[bool, str]:
+    """Whether the stage's outputs are current, and if not, why (one phrase)."""
+    stamp = Stamp.read(capture, name)
+    if stamp is None:
+        return False, "not run yet"
+    want = expected(capture, name, config)
+    if stamp.provenance.fingerprint != want.fingerprint:
+        old = stamp.provenance
+        if old.settings != want.settings:
+            changed = sorted(k for k in set(old.settings) | set(want.settings)
+                             if old.settings.get(k) != want.settings.get(k))
+            return False, f"settings changed ({', '.join(changed)})"
+        changed = sorted(k for k in set(old.inputs) | set(want.inputs) if old.inputs.get(k) != want.inputs.get(k))
+        return False, f"inputs changed ({', '.join(changed)})"
+    st = stage(name)
+    now = output_identity(capture, st.outputs(capture, config.settings(name)))
+    if now != stamp.outputs:
+        return False, "its outputs changed on disk"
+    return True, "current"
+
+
+# ------------------------------------------------------------------------------------------ running
+
+@dataclass
+class StageRun:
+    stage: str
+    status: str            # "ran" or "current"
+    seconds: float
+    summary: str
+    reason: str = ""
+    result: Any = None
+
+
+def run_stage(capture: Capture, name: str, config: Config | None = None, settings: Any = None) -> StageRun:
+    """Run one stage now (whether or not it is current) and stamp it; `settings` replace the configuration's.
+
+    This is what the single-stage commands call, so their outputs are recorded like the pipeline's."""
+    config = config or load_config(capture)
+    if settings is not None:
+        config = config.replace(name, settings)
+    st = stage(name)
+    prov = expected(capture, name, config)
+    stamp = capture.paths.stamp(name)
+    if stamp.exists():  # first: a run killed from here on leaves the stage stale, never current
+        stamp.unlink()
+        fsync_path(stamp.parent)
+    started = time.perf_counter()
+    s = config.settings(name)
+    result = st.entry(capture, s)
+    seconds = time.perf_counter() - started
+    summary = st.summary(result)
+    outputs = output_identity(capture, st.outputs(capture, s))
+    Stamp(prov, outputs, seconds, summary).write(capture, name)
+    log.info("%s: ran in %.1f s", name, seconds)
+    return StageRun(name, "ran", seconds, summary, result=result)
+
+
+@dataclass
+class PipelineResult:
+    capture: Path
+    stages: list[StageRun] = field(default_factory=list)
+    report: Path | None = None
+
+    def text(self) -> str:
+        lines = [f"{'stage':<12} {'status':<8} {'seconds':>8}"]
+        for r in self.stages:
+            lines.append(f"{r.stage:<12} {r.status:<8} {r.seconds:8.1f}" + (f"  ({r.reason})" if r.reason else ""))
+        if self.report is not None:
+            lines.append(f"report: {self.report}")
+        return "\n".join(lines)
+
+
+def _span(start: str | None, stop: str | None) -> Sequence[str]:
+    i = STAGES.index(stage(start).name) if start else 0
+    j = STAGES.index(stage(stop).name) if stop else len(STAGES) - 1
+    if i > j:
+        raise InputError("--from/--to", f"{start} comes after {stop} in the pipeline ({' -> '.join(STAGES)})")
+    return STAGES[i:j + 1]
+
+
+def run(capture: Capture, config: Config | None = None, *, start: str | None = None, stop: str | None = None,
+        force: Iterable[str] = (), echo: Callable[[str], None] | None = None) -> PipelineResult:
+    """Run the stages from `start` to `stop` (default: all), each only when it is stale or forced; a stage from
+    `start` on is always run (`--from`). `echo` gets a line as each stage begins and ends."""
+    config = config or load_config(capture)
+    say = echo or (lambda line: log.info("%s", line))
+    forced = {stage(n).name for n in force}
+    span = _span(start, stop)
+    if start:
+        forced.add(span[0])
+    out = PipelineResult(capture.root)
+    for name in span:
+        current, why = is_current(capture, name, config)
+        if current and name not in forced:
+            stamp = Stamp.read(capture, name)
+            out.stages.append(StageRun(name, "current", 0.0, stamp.summary if stamp else ""))
+            say(f"[{name}] current, skipped")
+            continue
+        why = "forced" if name in forced else why
+        say(f"[{name}] running ({why})")
+        try:
+            done = run_stage(capture, name, config)
+        except OdsplatError as exc:
+            raise OdsplatError(f"stage {name}: {exc}") from None
+        done.reason = why
+        out.stages.append(done)
+        say(f"[{name}] done in {done.seconds:.1f} s")
+    if capture.paths.report_html.exists() and "report" in span:
+        out.report = capture.paths.report_html
+    return out
+
+
+def status(capture: Capture, config: Config | None = None) -> list[tuple[str, bool, str]]:
+    """(stage, current, why) for every stage, in order."""
+    config = config or load_config(capture)
+    return [(name, *is_current(capture, name, config)) for name in STAGES]
+
+
+__all__ = ["GRAPH", "PipelineResult", "Stage", "StageRun", "Stamp", "expected", "is_current", "output_identity",
+           "run", "run_stage", "stage", "stage_settings", "status", "takes_identity"]
