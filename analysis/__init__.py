@@ -5,11 +5,19 @@ Public surface: `analyze_capture(capture, AnalyzeSettings) -> AnalysisResult` (a
 pieces it is made of for use on their own."""
 from .correlation import Correlation, comac, correlate, mac, modal_scale_factor
 from .ema import LSFDResult, ModalFit, StabilisationChart, fit_modes, lscf, lsfd, select_poles, stabilisation
-from .export import FRFRecord, Geometry, ResultSet, ShapeRecord, TimeSeries, read_results_h5, read_uff, \
-    write_results_h5, write_uff
+from .export import (
+           FRFRecord,
+           Geometry,
+           ResultSet,
+           ShapeRecord,
+           TimeSeries,
+           read_results_h5,
+           read_uff,
+           write_results_h5,
+           write_uff,
+)
 from .frf import FRFResult, FRFSettings, HitCheck, check_hit, estimate_frf, split_hits
-from .ods import DecayFit, SurfaceMotion, fit_decay, force_transform, lsce_poles, pencil_poles, \
-    receptance, stable_poles
+from .ods import DecayFit, SurfaceMotion, fit_decay, force_transform, lsce_poles, pencil_poles, receptance, stable_poles
 from .run import AnalysisResult, AnalyzeSettings, Sensor, VideoModes, analyze_capture
 from .tracking import Tracks, good_points, project_displacement, track_points
 

@@ -22,13 +22,13 @@ import itertools
 import logging
 import threading
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
-from odsplat.errors import InputError, OdsplatError
 from odsplat.acquisition.daq import DAQChannel
+from odsplat.errors import InputError, OdsplatError
 from odsplat.manifest import CameraInfo, Intrinsics
 from odsplat.store import atomic_open
 

@@ -319,7 +319,8 @@ def reconstruct(capture_dir: Path, source: str | None, width_px: int, n_timestep
     """Train dynamic 3D Gaussians on CAPTURE_DIR's posed views into derived/reconstruction/ (docs/reconstruction.md)."""
     from .reconstruction.dynamic import FitSettings
     from .reconstruction.modal import ModalSettings
-    from .reconstruction.run import ReconstructSettings, default_source, reconstruct as run
+    from .reconstruction.run import ReconstructSettings, default_source
+    from .reconstruction.run import reconstruct as run
     from .store import Capture
 
     fit = FitSettings(iters_t0=iters_t0, iters_per_step=iters_per_step, seed=seed)
@@ -350,8 +351,15 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
     """Render the reconstruction of CAPTURE_DIR from any camera path over any time range."""
     from .errors import InputError
     from .reconstruction.poses import PoseResult
-    from .reconstruction.run import (DynamicScene, cameras_from_json, orbit, out_dir, parse_times, pose_camera,
-                                     render_sequence)
+    from .reconstruction.run import (
+        DynamicScene,
+        cameras_from_json,
+        orbit,
+        out_dir,
+        parse_times,
+        pose_camera,
+        render_sequence,
+    )
     from .store import Capture
 
     cap = Capture.open(capture_dir)

@@ -20,8 +20,17 @@ from tqdm import tqdm
 from .errors import InputError
 from .io.signals import SignalSet, read_signals
 from .io.video import VideoSource, open_video
-from .manifest import (CHANNEL_KINDS, CameraInfo, ChannelInfo, Intrinsics, Manifest, TagLayout, Viewpoint, from_plain,
-                       load_toml)
+from .manifest import (
+    CHANNEL_KINDS,
+    CameraInfo,
+    ChannelInfo,
+    Intrinsics,
+    Manifest,
+    TagLayout,
+    Viewpoint,
+    from_plain,
+    load_toml,
+)
 from .store import Capture, QCInfo, TriggerInfo, fsync_path
 
 log = logging.getLogger(__name__)

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import tomllib
 import types
 import typing
 from dataclasses import dataclass, field
@@ -12,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomllib
 
 from .errors import InputError, SchemaError
 from .units import SI_UNITS

@@ -16,7 +16,7 @@ import pytest
 
 from odsplat.errors import IncompleteTakeError, InputError, SchemaError
 from odsplat.manifest import CameraInfo, ChannelInfo, Manifest
-from odsplat.store import Capture, QCInfo, TakeReader, TakeWriter, TriggerInfo
+from odsplat.store import Capture, QCInfo, TakeReader, TriggerInfo
 
 CHANNELS = [
     ChannelInfo("force", "force", "N", sensitivity_v_per_unit=2.25e-3, position_m=[0.1, 0.0, 0.5], direction=[0, 0, -1]),

@@ -16,11 +16,24 @@ import pytest
 from odsplat.acquisition import photron
 from odsplat.acquisition.camera import CameraTimeout, TriggerSettings
 from odsplat.acquisition.photron import (
-    LIBRARY_ENV, PDC, SIGNATURES, PdcError, PhotronCamera, RecordingWindow, choose_record_rate, choose_shutter,
-    error_message, frame_bytes, ip_to_pdc, plan_trigger, select_window, status_name, unpack_12bit, unpack_frame,
+    LIBRARY_ENV,
+    PDC,
+    SIGNATURES,
+    PdcError,
+    PhotronCamera,
+    RecordingWindow,
+    choose_record_rate,
+    choose_shutter,
+    error_message,
+    frame_bytes,
+    ip_to_pdc,
+    plan_trigger,
+    select_window,
+    status_name,
+    unpack_12bit,
+    unpack_frame,
 )
 from odsplat.errors import InputError
-
 
 # -------------------------------------------------------------------- no SDK
 

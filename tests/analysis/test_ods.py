@@ -5,8 +5,16 @@ import numpy as np
 import pytest
 
 from odsplat.analysis.correlation import comac, correlate, mac, modal_scale_factor
-from odsplat.analysis.ods import SurfaceMotion, explained_share, fit_decay, force_transform, lsce_poles, pencil_poles, \
-    receptance, stable_poles
+from odsplat.analysis.ods import (
+    SurfaceMotion,
+    explained_share,
+    fit_decay,
+    force_transform,
+    lsce_poles,
+    pencil_poles,
+    receptance,
+    stable_poles,
+)
 from odsplat.errors import InputError
 from odsplat.hil_sim.structure import Impact, ModalStructure
 

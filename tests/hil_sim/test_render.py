@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 
 from odsplat.errors import InputError
-from odsplat.hil_sim.render import (PinholeCamera, TexturedMesh, expose, lambert_shade, render, render_reference,
-                                    to_mono)
+from odsplat.hil_sim.render import PinholeCamera, TexturedMesh, expose, lambert_shade, render, render_reference, to_mono
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -17,8 +17,14 @@ import serial
 
 from odsplat import hammerproto as hp
 from odsplat.errors import InputError
-from odsplat.hil_sim.hammer import (HammerFaults, SimAutoHammer, SimHammerCAN, SimHammerSettings, hammer_url,
-                                    model_from_url)
+from odsplat.hil_sim.hammer import (
+    HammerFaults,
+    SimAutoHammer,
+    SimHammerCAN,
+    SimHammerSettings,
+    hammer_url,
+    model_from_url,
+)
 from odsplat.hil_sim.rig import SimRig
 from odsplat.hil_sim.structure import Impact
 

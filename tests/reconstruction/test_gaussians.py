@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from odsplat.errors import InputError, SchemaError
-from odsplat.reconstruction.gaussians import SH_C0, Gaussians, load_ply, save_ply
 from odsplat.processing.metrics import ssim as metric_ssim
+from odsplat.reconstruction.gaussians import SH_C0, Gaussians, load_ply, save_ply
 from odsplat.reconstruction.losses import Neighbours, image_loss, ssim
 from odsplat.reconstruction.quaternion import quat_multiply, quat_to_matrix
 

@@ -8,13 +8,13 @@ import torch
 
 from odsplat.errors import InputError
 from odsplat.geometry import look_at
+from odsplat.manifest import Manifest
 from odsplat.reconstruction.dynamic import render
 from odsplat.reconstruction.gaussians import Gaussians
 from odsplat.reconstruction.linear import LinearSettings, NodeGraph, fit_linear
 from odsplat.reconstruction.poses import PoseResult, ViewPose
 from odsplat.reconstruction.run import ReconstructSettings
 from odsplat.reconstruction.views import Camera, load_views
-from odsplat.manifest import Manifest
 from odsplat.store import Capture
 from odsplat.sync.aligned import write_aligned
 
