@@ -66,7 +66,7 @@ def test_arguments_are_checked_before_the_sdk_is_looked_for():
 def test_every_sdk_function_the_driver_calls_has_a_signature():
     called = set(re.findall(r'"(PDC_\w+)"', inspect.getsource(photron.PhotronCamera)))
     assert called and called <= set(SIGNATURES), called - set(SIGNATURES)
-    for name, argtypes in SIGNATURES.items():
+    for argtypes in SIGNATURES.values():
         ctypes.CFUNCTYPE(ctypes.c_ulong, *argtypes, ctypes.POINTER(ctypes.c_ulong))  # valid ctypes types
 
 
