@@ -48,7 +48,8 @@ def parse_faults(spec: str) -> dict[int, str]:
     for item in filter(None, (p.strip() for p in spec.split(","))):
         take, _, kind = item.partition(":")
         if not take.strip().isdigit() or kind not in FAULTS:
-            raise InputError("--sim-faults", f"expected TAKE:FAULT items with FAULT one of {', '.join(FAULTS)}; got {item!r}")
+            raise InputError("--sim-faults",
+                             f"expected TAKE:FAULT items with FAULT one of {', '.join(FAULTS)}; got {item!r}")
         out[int(take)] = kind
     return out
 
@@ -102,12 +103,14 @@ class SimBench:
         self._hammer_device: SimHammerSerial | SimHammerCAN | None = None
         if hammer is not None:
             if "overload" in self.faults.values():
-                raise InputError("SimBench.faults", "'overload' is the engineer's hit; the automatic hammer fires its set level")
+                raise InputError("SimBench.faults",
+                                 "'overload' is the engineer's hit; the automatic hammer fires its set level")
             # the automatic hammer's double hit is its rebound
             self.faults = {k: "rebound" if v == "double_hit" else v for k, v in self.faults.items()}
             self._open_hammer(hammer)
         elif any(k in HAMMER_FAULTS for k in self.faults.values()):
-            raise InputError("SimBench.faults", f"{sorted(HAMMER_FAULTS)} need the automatic hammer (hammer='serial' or 'can')")
+            raise InputError("SimBench.faults",
+                             f"{sorted(HAMMER_FAULTS)} need the automatic hammer (hammer='serial' or 'can')")
 
     def _open_hammer(self, link: str) -> None:
         # An injected "not ready" lasts a little longer than one fire timeout: that fire expires, the redo fires.
@@ -165,8 +168,8 @@ class SimBench:
         az, el, dist = view.azimuth_deg, view.elevation_deg, view.distance_m
         # A person puts the camera a little off: a random direction on the sphere, about placement_error_deg off.
         d_az, d_el = self._rng.normal(0.0, s.placement_error_deg / np.sqrt(2), 2)
-        eye = spherical_eye(az + d_az / max(np.cos(np.radians(el)), 0.2), el + d_el, dist * (1 + 0.01 * self._rng.normal()),
-                            view.target_m)
+        eye = spherical_eye(az + d_az / max(np.cos(np.radians(el)), 0.2), el + d_el,
+                            dist * (1 + 0.01 * self._rng.normal()), view.target_m)
         cam = PinholeCamera.look_at(eye, view.target_m, fov_deg=s.fov_deg, width_px=s.width_px, height_px=s.height_px)
         self.rig.new_take()  # carrying the camera takes a while: the structure is at rest again
         self.rig.place_camera(cam)
