@@ -104,7 +104,8 @@ class ChannelInfo:
         if self.unit not in SI_UNITS:
             raise InputError(f"{where}.unit", f"expected an SI unit ({', '.join(SI_UNITS)}); got {self.unit!r}")
         if self.unit != CHANNEL_KINDS[self.kind]:
-            raise InputError(f"{where}.unit", f"a {self.kind} channel is stored in {CHANNEL_KINDS[self.kind]}, got {self.unit!r}")
+            raise InputError(f"{where}.unit",
+                             f"a {self.kind} channel is stored in {CHANNEL_KINDS[self.kind]}, got {self.unit!r}")
         for name in ("position_m", "direction"):
             value = getattr(self, name)
             if value is not None and len(value) != 3:
