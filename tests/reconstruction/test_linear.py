@@ -65,8 +65,9 @@ def _beam(rng) -> Gaussians:
     pts = np.concatenate(pts)
     n = len(pts)
     t = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
-    return Gaussians(means=t(pts), quats=t(np.tile([1.0, 0, 0, 0], (n, 1))), log_scales=t(np.full((n, 3), np.log(2.5e-3))),
-                     opacity_logits=t(np.full(n, 4.0)), color_logits=t(rng.normal(0, 1.5, (n, 1))))
+    return Gaussians(means=t(pts), quats=t(np.tile([1.0, 0, 0, 0], (n, 1))),
+                     log_scales=t(np.full((n, 3), np.log(2.5e-3))), opacity_logits=t(np.full(n, 4.0)),
+                     color_logits=t(rng.normal(0, 1.5, (n, 1))))
 
 
 def _shape(x: np.ndarray) -> np.ndarray:
