@@ -18,12 +18,17 @@ from pathlib import Path
 import can
 import numpy as np
 
-from odsplat.acquisition.daq import SerialDAQ
-from odsplat.acquisition.hammer import AutoHammer, CANHammerLink, SerialHammerLink
-from odsplat.acquisition.plan import view_eye_m
-from odsplat.acquisition.qc import HitQC
-from odsplat.acquisition.session import AutoHammerSettings, SessionReport
-from odsplat.acquisition.trigger import TriggeredRecord
+from odsplat.acquisition import (
+    AutoHammer,
+    AutoHammerSettings,
+    CANHammerLink,
+    HitQC,
+    SerialDAQ,
+    SerialHammerLink,
+    SessionReport,
+    TriggeredRecord,
+    view_eye_m,
+)
 from odsplat.errors import InputError
 from odsplat.geometry import spherical_eye, viewing_angle_deg
 from odsplat.manifest import Viewpoint
@@ -213,9 +218,7 @@ def simulate_capture(out: str | Path, *, n_views: int = 27, n_frames: int = 100,
     engineer (`odsplat capture --sim --auto` without the command line). For tests, benches and the demo.
 
     `hammer`: fire the simulated automatic hammer over `hammer_link` at these settings; None: the engineer hits."""
-    from odsplat.acquisition.plan import PlanSettings
-    from odsplat.acquisition.session import CaptureSession, SessionSettings
-    from odsplat.acquisition.trigger import HammerTrigger
+    from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
 
     with SimBench(rig, settings, faults=faults, hammer=hammer_link if hammer is not None else None) as bench:
         session = SessionSettings(name=Path(out).name, plan=PlanSettings(n_views=n_views), n_frames=n_frames,

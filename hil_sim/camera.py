@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from odsplat.acquisition.camera import CameraTimeout, Frame, RecordingStatus, TriggerSettings
+from odsplat.acquisition import CameraTimeout, Frame, RecordingStatus, TriggerSettings
 from odsplat.errors import InputError, OdsplatError
 from odsplat.manifest import CameraInfo, Intrinsics
 

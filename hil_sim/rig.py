@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from odsplat.acquisition.daq import DAQChannel
+from odsplat.acquisition import DAQChannel
 from odsplat.errors import InputError, OdsplatError
 from odsplat.manifest import CameraInfo, Intrinsics
 from odsplat.store import atomic_open
