@@ -1,22 +1,44 @@
 """Acquisition: camera, hammer and DAQ drivers, triggering, hit QC and the guided capture session.
 
-The public surface; drivers for particular hardware (`opencv_camera`, `photron`) and the session's
-internals are imported from their modules."""
+The public surface, which the other stages (hil_sim's simulated bench) and the command line import: the drivers,
+the capture session, and the qc stage's entry `run_qc(capture, QCSettings) -> QCReport` (derived/qc.json).
+Drivers for particular hardware (`opencv_camera`, `photron`) and the session's internals are imported from their
+modules."""
 from .camera import CameraDriver, CameraTimeout, Frame, RecordingStatus, TriggerSettings
 from .daq import DAQChannel, DAQError, SerialDAQ
-from .plan import PlanSettings, PoseCheck, check_pose, coverage, describe_view, plan_views, top_view_map, view_pose
-from .qc import HitQC, QCLimits, QCReport, QCSettings, TakeQC, check_hit, run_qc
-from .trigger import HammerTrigger, NoTrigger, TriggeredRecord, wait_for_hit
-from .session import AutoHammerSettings, CaptureSession, LabBench, SessionReport, SessionSettings, choose_hammer
+from .hammer import AutoHammer, CANHammerLink, SerialHammerLink
 from .lab import LabConfig, load_lab_config
 from .live import PlotFeedback, TextFeedback, display_available
+from .plan import (
+    PlanSettings,
+    PoseCheck,
+    check_pose,
+    coverage,
+    describe_view,
+    plan_views,
+    top_view_map,
+    view_eye_m,
+    view_pose,
+)
+from .qc import HitQC, QCLimits, QCReport, QCSettings, TakeQC, check_hit, run_qc
+from .session import (
+    AutoHammerSettings,
+    CaptureSession,
+    LabBench,
+    SessionReport,
+    SessionSettings,
+    choose_hammer,
+)
+from .trigger import HammerTrigger, NoTrigger, TriggeredRecord, wait_for_hit
 
 __all__ = [
     "CameraDriver", "CameraTimeout", "Frame", "RecordingStatus", "TriggerSettings",
     "DAQChannel", "DAQError", "SerialDAQ",
-    "PlanSettings", "PoseCheck", "check_pose", "coverage", "describe_view", "plan_views", "top_view_map", "view_pose",
-    "HitQC", "QCLimits", "QCReport", "QCSettings", "TakeQC", "check_hit", "run_qc",
-    "HammerTrigger", "NoTrigger", "TriggeredRecord", "wait_for_hit",
-    "AutoHammerSettings", "CaptureSession", "LabBench", "SessionReport", "SessionSettings", "choose_hammer",
+    "AutoHammer", "CANHammerLink", "SerialHammerLink",
     "LabConfig", "load_lab_config", "PlotFeedback", "TextFeedback", "display_available",
+    "PlanSettings", "PoseCheck", "check_pose", "coverage", "describe_view", "plan_views", "top_view_map",
+    "view_eye_m", "view_pose",
+    "HitQC", "QCLimits", "QCReport", "QCSettings", "TakeQC", "check_hit", "run_qc",
+    "AutoHammerSettings", "CaptureSession", "LabBench", "SessionReport", "SessionSettings", "choose_hammer",
+    "HammerTrigger", "NoTrigger", "TriggeredRecord", "wait_for_hit",
 ]

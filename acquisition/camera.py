@@ -45,7 +45,8 @@ class TriggerSettings:
                 raise InputError("TriggerSettings.pretrigger",
                                  f"expected one of {PRETRIGGER_MODES} or a frame count, got {self.pretrigger!r}")
         elif not 0 <= int(self.pretrigger) < self.n_frames:
-            raise InputError("TriggerSettings.pretrigger", f"must lie in 0..{self.n_frames - 1} frames, got {self.pretrigger}")
+            raise InputError("TriggerSettings.pretrigger",
+                             f"must lie in 0..{self.n_frames - 1} frames, got {self.pretrigger}")
         if self.fps is not None and self.fps <= 0:
             raise InputError("TriggerSettings.fps", f"must be positive, got {self.fps}")
         if self.exposure_s is not None and self.exposure_s <= 0:

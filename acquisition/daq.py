@@ -38,9 +38,11 @@ class DAQChannel:
 
     def __post_init__(self) -> None:
         if self.kind not in CHANNEL_KINDS:
-            raise InputError(f"DAQ channel {self.name!r}.kind", f"expected one of {', '.join(CHANNEL_KINDS)}; got {self.kind!r}")
+            raise InputError(f"DAQ channel {self.name!r}.kind",
+                             f"expected one of {', '.join(CHANNEL_KINDS)}; got {self.kind!r}")
         if not self.sensitivity_v_per_unit > 0:
-            raise InputError(f"DAQ channel {self.name!r}.sensitivity_v_per_unit", f"must be positive, got {self.sensitivity_v_per_unit}")
+            raise InputError(f"DAQ channel {self.name!r}.sensitivity_v_per_unit",
+                             f"must be positive, got {self.sensitivity_v_per_unit}")
         if self.input < 0:
             raise InputError(f"DAQ channel {self.name!r}.input", f"must be >= 0, got {self.input}")
 
@@ -149,7 +151,8 @@ class SerialDAQ:
             if not any(abs(r - c.range_v) <= 1e-6 * r for r in self.info.ranges_v):
                 raise InputError(f"{self.name}: channel {c.name!r}", f"range +-{c.range_v:g} V not offered; the device "
                                  f"offers {list(self.info.ranges_v)}")
-        request = dp.Configure(self.requested_rate_hz, tuple(dp.ChannelConfig(c.input, c.range_v, c.name) for c in self.channels))
+        request = dp.Configure(self.requested_rate_hz,
+                               tuple(dp.ChannelConfig(c.input, c.range_v, c.name) for c in self.channels))
         ack = self._request(request).message
         dp.verify_config(request, ack, device=self.name)
         self.sample_rate_hz = ack.sample_rate_hz
@@ -257,7 +260,8 @@ class SerialDAQ:
             if ref is not None:
                 self._replies[ref] = packet
             if isinstance(msg, dp.Ack) and ref == self._start_seq and msg.ref_type == dp.MsgType.START:
-                self.checker = dp.DataStreamChecker(len(self.channels), device=self.name, next_seq=(packet.seq + 1) & 0xFFFF)
+                self.checker = dp.DataStreamChecker(len(self.channels), device=self.name,
+                                                    next_seq=(packet.seq + 1) & 0xFFFF)
             elif self.checker is not None:
                 for event in self.checker.feed(packet):
                     self._on_event(event)
@@ -292,4 +296,5 @@ class SerialDAQ:
         """Counts of what went wrong on the link: CRC failures (bit errors), bad frames, lost packets."""
         s = self.decoder.stats
         lost = sum(g.lost_packets for g in self.gaps)
-        return {"crc_errors": s.crc_errors, "cobs_errors": s.cobs_errors, "malformed": s.malformed, "lost_packets": lost}
+        return {"crc_errors": s.crc_errors, "cobs_errors": s.cobs_errors, "malformed": s.malformed,
+                "lost_packets": lost}

@@ -344,14 +344,18 @@ class AutoHammer:
         self._request(hp.Reset())
         self._estopped = False
 
-    def fire(self, *, force_n: float | None = None, energy_j: float | None = None, timeout_s: float = 1.0) -> FireRecord:
+    def fire(self, *, force_n: float | None = None, energy_j: float | None = None,
+             timeout_s: float = 1.0) -> FireRecord:
         """Fire once at a force (N) or an energy (J); returns the record of a shot that FIRED.
 
         Raises InterlockError (nothing sent), HammerRefused (NAK), ShotFailed (expired, aborted, fault) or
         HammerNoResponse (then ESTOP is sent). Every outcome is logged and recorded."""
         if (force_n is None) == (energy_j is None):
             raise InputError(f"{self.name}: fire()", "give exactly one of force_n or energy_j")
-        mode, level = (hp.LevelMode.FORCE_N, float(force_n)) if force_n is not None else (hp.LevelMode.ENERGY_J, float(energy_j))
+        if force_n is not None:
+            mode, level = hp.LevelMode.FORCE_N, float(force_n)
+        else:
+            mode, level = hp.LevelMode.ENERGY_J, float(energy_j)
         shot_id = self._shot_id
         self._shot_id = (self._shot_id + 1) % self.link.seq_modulus
         base = dict(shot_id=shot_id, mode=mode.name.lower(), level=level)
@@ -373,7 +377,8 @@ class AutoHammer:
             self._safe_estop()
             raise HammerNoResponse(str(e), record) from None
         try:
-            shot = self._wait(f"SHOT {shot_id}", lambda: self._shots.pop(shot_id, None), timeout_s + self.reply_timeout_s)
+            shot = self._wait(f"SHOT {shot_id}", lambda: self._shots.pop(shot_id, None),
+                              timeout_s + self.reply_timeout_s)
         except HammerNoResponse as e:
             record = self._record(FireRecord(time_s=t_sent, outcome="no_response", detail=str(e), **base))
             self._safe_estop()
@@ -387,7 +392,8 @@ class AutoHammer:
             except HammerError as e:
                 detail = f"fault (status unavailable: {e})"
         record = self._record(FireRecord(
-            time_s=t_sent, outcome=outcome, peak_force_n=shot.peak_force_n if shot.outcome is hp.Outcome.FIRED else None,
+            time_s=t_sent, outcome=outcome,
+            peak_force_n=shot.peak_force_n if shot.outcome is hp.Outcome.FIRED else None,
             delay_s=shot.delay_s, shot_count=shot.shot_count, rebound=bool(shot.flags & hp.ShotFlag.REBOUND),
             detail=detail, **base))
         if shot.outcome is not hp.Outcome.FIRED:

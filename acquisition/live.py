@@ -30,7 +30,8 @@ class TextFeedback:
         else:
             line = f"{outcome.name}: REJECTED ({outcome.error})"
         if outcome.pose is not None:
-            line += f"; camera {outcome.pose.angular_error_deg:.1f} deg, {outcome.pose.distance_error_m:+.2f} m off the plan"
+            pose = outcome.pose
+            line += f"; camera {pose.angular_error_deg:.1f} deg, {pose.distance_error_m:+.2f} m off the plan"
         self._write(line + f"; coverage {coverage:.0%}")
 
 
@@ -87,7 +88,8 @@ class PlotFeedback(TextFeedback):
             self.force_plot.plot(t, np.nan_to_num(record.channel(force_name)), pen=pg.mkPen("y"))
             accel = list((outcome.qc.accel_peak if outcome.qc else {}).keys())
             for k, name in enumerate(accel):
-                self.accel_plot.plot(t, np.nan_to_num(record.channel(name)), pen=pg.intColor(k, max(1, len(accel))), name=name)
+                self.accel_plot.plot(t, np.nan_to_num(record.channel(name)), pen=pg.intColor(k, max(1, len(accel))),
+                                     name=name)
         verdict = "accepted" if outcome.accepted else "rejected"
         self.force_plot.setTitle(f"{outcome.name}: {verdict}; force [N]")
         if outcome.accepted:

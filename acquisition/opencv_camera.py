@@ -75,7 +75,8 @@ class OpenCVCamera:
     def __init__(self, source: int | str | PathLike, *, fps: float | None = None, name: str | None = None,
                  rgb: bool = False, realtime: bool = True):
         if isinstance(source, bool) or not isinstance(source, (int, str, PathLike)):
-            raise InputError("OpenCVCamera.source", f"expected a device index (int) or a video file path, got {source!r}")
+            raise InputError("OpenCVCamera.source",
+                             f"expected a device index (int) or a video file path, got {source!r}")
         if fps is not None and not fps > 0:
             raise InputError("OpenCVCamera.fps", f"must be positive, got {fps}")
         self._is_file = not isinstance(source, int)
@@ -302,7 +303,8 @@ class OpenCVCamera:
                     break
                 image = self._convert(frame)
                 if image.shape != self._shape:
-                    raise InputError(self._label, f"frame {rec.frames_read} is {image.shape}, the first was {self._shape}")
+                    raise InputError(self._label,
+                                     f"frame {rec.frames_read} is {image.shape}, the first was {self._shape}")
                 with self._lock:
                     if self._take(rec, image):
                         break

@@ -190,7 +190,8 @@ def choose_shutter(exposure_s: float, supported_fps: Sequence[int], record_rate:
                                                        f"this camera, 1/{shutters[-1]} s = {1.0 / shutters[-1]:.3g} s")
     best = fitting[0]
     if abs(1.0 / best - exposure_s) > 1e-6 * exposure_s:
-        log.info("exposure %g s -> 1/%d s = %.4g s, the longest the camera offers within it", exposure_s, best, 1.0 / best)
+        log.info("exposure %g s -> 1/%d s = %.4g s, the longest the camera offers within it",
+                 exposure_s, best, 1.0 / best)
     return best
 
 
@@ -259,7 +260,8 @@ def select_window(start: int, end: int, trigger: int, pretrigger: int, post_fram
     fewer pretrigger frames when the camera was armed too shortly before the trigger, fewer after it
     when the recording stopped early. Never padded."""
     if not start <= trigger <= end:
-        raise InputError("PDC_GetMemFrameInfo", f"trigger frame {trigger} lies outside the recorded frames {start}..{end}")
+        raise InputError("PDC_GetMemFrameInfo",
+                         f"trigger frame {trigger} lies outside the recorded frames {start}..{end}")
     return RecordingWindow(trigger_frame=trigger, first_frame=max(start, trigger - pretrigger),
                            last_frame=min(end, trigger + post_frames - 1))
 
@@ -283,7 +285,10 @@ def frame_bytes(width: int, height: int, bits: int) -> int:
 def unpack_12bit(raw: np.ndarray | bytes) -> np.ndarray:
     """Packed 12-bit, as in Photron's .mraw: 3 bytes hold 2 pixels, big-endian
     (AAAAAAAA AAAABBBB BBBBBBBB). Returns uint16 values 0..4095, one per pixel."""
-    b = np.frombuffer(raw, dtype=np.uint8) if isinstance(raw, (bytes, bytearray, memoryview)) else np.asarray(raw, np.uint8)
+    if isinstance(raw, (bytes, bytearray, memoryview)):
+        b = np.frombuffer(raw, dtype=np.uint8)
+    else:
+        b = np.asarray(raw, np.uint8)
     if b.size % 3:
         raise InputError("packed 12-bit data", f"{b.size} bytes is not a whole number of 3-byte pixel pairs")
     b = b.reshape(-1, 3).astype(np.uint16)
@@ -726,5 +731,6 @@ class PhotronCamera:
             if bits == 16 and memory.bit_depth < 16 and not warned and int(image.max()) >> memory.bit_depth:
                 warned = True
                 log.warning("%s: values above %d bits in a %d-bit recording: the SDK may align pixels high; "
-                            "see SdkAssumptions.deep_transfer_low_aligned", self.name, memory.bit_depth, memory.bit_depth)
+                            "see SdkAssumptions.deep_transfer_low_aligned",
+                            self.name, memory.bit_depth, memory.bit_depth)
             yield Frame(counter=counter, time_s=counter / memory.record_rate, image=image)

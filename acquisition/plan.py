@@ -9,8 +9,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from odsplat.errors import InputError
-from odsplat.geometry import (camera_center_m, look_at, rotation_angle_deg, spherical_coords, spherical_eye,
-                              viewing_angle_deg)
+from odsplat.geometry import (
+    camera_center_m,
+    look_at,
+    rotation_angle_deg,
+    spherical_coords,
+    spherical_eye,
+    viewing_angle_deg,
+)
 from odsplat.manifest import Viewpoint
 
 GOLDEN_ANGLE_DEG = 180.0 * (3.0 - math.sqrt(5.0))  # 137.507...: successive spiral points never line up

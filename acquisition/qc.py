@@ -113,7 +113,8 @@ def check_hit(record: TriggeredRecord, channels: Sequence[DAQChannel], *, limits
         if over and name == force_channel:
             fail("force_overload", f"force overload: {name!r} reached its +-{c.full_scale:.4g} N full scale")
         elif over and c.kind == "acceleration":
-            fail("accel_overload", f"accelerometer overload: {name!r} reached its +-{c.full_scale:.4g} m/s^2 full scale")
+            fail("accel_overload",
+                 f"accelerometer overload: {name!r} reached its +-{c.full_scale:.4g} m/s^2 full scale")
     if record.lost_samples:
         fail("dropped_samples", f"{record.lost_samples} DAQ samples lost in {len(record.gaps)} gap(s)")
     if dropped_frames:

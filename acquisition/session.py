@@ -118,7 +118,8 @@ class SessionSettings:
 
     def __post_init__(self) -> None:
         if not 0 <= self.pretrigger_frames < self.n_frames:
-            raise InputError("SessionSettings.pretrigger_frames", f"must lie in 0..{self.n_frames - 1}, got {self.pretrigger_frames}")
+            raise InputError("SessionSettings.pretrigger_frames",
+                             f"must lie in 0..{self.n_frames - 1}, got {self.pretrigger_frames}")
         if self.max_attempts < 1:
             raise InputError("SessionSettings.max_attempts", f"must be at least 1, got {self.max_attempts}")
 
@@ -152,8 +153,8 @@ class SessionReport:
         rejected = [o for o in self.outcomes if not o.accepted]
         reasons: dict[str, int] = {}
         for o in rejected:
-            for r in (o.qc.reasons if o.qc else ()) or ((f"hammer_{o.fire.outcome}",) if o.fire and not o.fire.fired else
-                                                       ("daq_error",)):
+            fallback = (f"hammer_{o.fire.outcome}",) if o.fire and not o.fire.fired else ("daq_error",)
+            for r in (o.qc.reasons if o.qc else ()) or fallback:
                 reasons[r] = reasons.get(r, 0) + 1
         why = ", ".join(f"{k} x{v}" for k, v in sorted(reasons.items())) or "none"
         return (f"{self.root}: {len(self.done_views)}/{self.n_views} views accepted, coverage {self.coverage:.0%}; "
@@ -165,7 +166,8 @@ class SessionReport:
 class Feedback(Protocol):
     def show_view(self, view: Viewpoint, n_views: int, instructions: str) -> None: ...
 
-    def show_take(self, outcome: TakeOutcome, record: TriggeredRecord | None, coverage: float, plan_map: str) -> None: ...
+    def show_take(self, outcome: TakeOutcome, record: TriggeredRecord | None, coverage: float,
+                  plan_map: str) -> None: ...
 
 
 class CaptureSession:
@@ -182,7 +184,8 @@ class CaptureSession:
         if settings.hammer is not None:
             self.hammer = getattr(bench, "hammer", None)
             if self.hammer is None:
-                raise InputError("odsplat capture", "the session is set to fire an automatic hammer, but the bench has none")
+                raise InputError("odsplat capture",
+                             "the session is set to fire an automatic hammer, but the bench has none")
             self.settings = replace(settings, limits=replace(settings.limits, force_band_n=settings.hammer.band_n))
         self._gains: list[float] = []      # DAQ peak / commanded level, of recent clean shots
         self._hammer_reset_due = False     # the session itself faulted or e-stopped the hammer: reset before firing
@@ -201,7 +204,8 @@ class CaptureSession:
             recovered = [r.name for r in reports]
             for r in reports:
                 log.warning("resume: %s", r.message)
-            log.info("resuming %s: %d takes, %d views accepted", self.root, len(cap.manifest.takes), len(self._done(cap)))
+            log.info("resuming %s: %d takes, %d views accepted", self.root, len(cap.manifest.takes),
+                     len(self._done(cap)))
             return cap, recovered
         cam = self.bench.camera.describe()
         channels = [c.info() for c in self.bench.channels]
@@ -255,20 +259,23 @@ class CaptureSession:
                 tries.append(outcome)
                 accepted = outcome.accepted and self.bench.decide(outcome.qc, outcome.pose)
                 if outcome.accepted and not accepted:  # the engineer redoes a take QC passed: mark it so
-                    outcome = TakeOutcome(outcome.name, view.index, False, outcome.qc, outcome.pose, "redone by the engineer")
+                    outcome = TakeOutcome(outcome.name, view.index, False, outcome.qc, outcome.pose,
+                                          "redone by the engineer")
                     self._remark(cap, outcome.name, "rejected", ("redone_by_engineer",))
                 self.outcomes.append(outcome)
                 if self.feedback is not None:
                     done = sorted(self._done(cap))
-                    self.feedback.show_take(outcome, record, coverage([self.views[i] for i in done], self.settings.plan),
-                                            top_view_map(self.views, self.settings.plan, done=done, current=view.index))
+                    self.feedback.show_take(
+                        outcome, record, coverage([self.views[i] for i in done], self.settings.plan),
+                        top_view_map(self.views, self.settings.plan, done=done, current=view.index))
                 if accepted:
                     break
                 log.warning("view %d: take %s rejected (%s); redo %d/%d", view.index, outcome.name or "(none)",
                             outcome.error or "; ".join(outcome.qc.details), attempt, self.settings.max_attempts)
         done = self._done(cap)
         return SessionReport(self.root, n, sorted(done), [v.index for v in self.views if v.index not in done],
-                             self.outcomes, recovered, coverage([self.views[i] for i in sorted(done)], self.settings.plan))
+                             self.outcomes, recovered,
+                             coverage([self.views[i] for i in sorted(done)], self.settings.plan))
 
     def _static_photo(self, cap: Capture, view: Viewpoint) -> Path:
         """A still of the structure at rest from this view (internal trigger, one frame), as a PNG in static/."""
@@ -307,7 +314,8 @@ class CaptureSession:
         s = self.settings
         camera = self.bench.camera
         name = cap.next_take_name(view.index)
-        camera.configure(TriggerSettings(n_frames=s.n_frames, mode="external", pretrigger=s.pretrigger_frames, fps=s.fps))
+        camera.configure(TriggerSettings(n_frames=s.n_frames, mode="external", pretrigger=s.pretrigger_frames,
+                                         fps=s.fps))
         daq = self.bench.open_daq()
         record: TriggeredRecord | None = None
         fire: FireRecord | None = None
@@ -403,12 +411,13 @@ class CaptureSession:
         stop = daq.next_sample
         if stop == 0 or daq.sample_rate_hz is None:
             return None
-        first = max(0, stop - self.settings.trigger.samples(daq.sample_rate_hz)[1], stop - int(daq.buffer_s * daq.sample_rate_hz) + 1)
+        first = max(0, stop - self.settings.trigger.samples(daq.sample_rate_hz)[1],
+                    stop - int(daq.buffer_s * daq.sample_rate_hz) + 1)
         return TriggeredRecord(first, first, stop, daq.sample_rate_hz, tuple(c.name for c in daq.channels),
                                daq.read(first, stop), daq.gaps_in(first, stop))
 
-    def _write(self, cap: Capture, name: str, view: Viewpoint, record: TriggeredRecord | None, status, clipped: set[str],
-               error: str | None, channels: Sequence[DAQChannel], camera_error: str | None = None,
+    def _write(self, cap: Capture, name: str, view: Viewpoint, record: TriggeredRecord | None, status,
+               clipped: set[str], error: str | None, channels: Sequence[DAQChannel], camera_error: str | None = None,
                fire: FireRecord | None = None) -> TakeOutcome:
         camera = self.bench.camera
         info = camera.describe()
@@ -449,14 +458,16 @@ class CaptureSession:
                 qc = None
                 flags = ("daq_error",) + (("camera_timeout",) if camera_error else ())
                 writer.set_trigger(TriggerInfo(camera_trigger_frame=trigger_index))
-                writer.set_qc(QCInfo("rejected", flags, "; ".join(filter(None, (error or "no DAQ data", camera_error)))))
+                detail = "; ".join(filter(None, (error or "no DAQ data", camera_error)))
+                writer.set_qc(QCInfo("rejected", flags, detail))
             self.bench.take_written(writer.final_path, record)
             writer.finalize()
         accepted = qc is not None and qc.accepted
         log.info("take %s (view %d): %s", name, view.index, qc.summary() if qc else f"REJECTED ({error})")
         return TakeOutcome(name, view.index, accepted, qc, pose, error, fire)
 
-    def _pose(self, image: np.ndarray | None, info: CameraInfo, view: Viewpoint) -> tuple[PoseCheck | None, tuple[int, ...] | None]:
+    def _pose(self, image: np.ndarray | None, info: CameraInfo,
+              view: Viewpoint) -> tuple[PoseCheck | None, tuple[int, ...] | None]:
         """Floor tags seen in the first frame, and the pose they give checked against the plan."""
         layout = self.bench.tags
         if image is None or layout is None:

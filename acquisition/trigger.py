@@ -29,7 +29,8 @@ class HammerTrigger:
         if not self.level_n > 0:
             raise InputError("HammerTrigger.level_n", f"must be positive, got {self.level_n}")
         if not 0 <= self.pretrigger_s < self.record_s:
-            raise InputError("HammerTrigger.pretrigger_s", f"must lie in [0, record_s = {self.record_s:g} s), got {self.pretrigger_s}")
+            raise InputError("HammerTrigger.pretrigger_s",
+                             f"must lie in [0, record_s = {self.record_s:g} s), got {self.pretrigger_s}")
 
     def samples(self, sample_rate_hz: float) -> tuple[int, int]:
         """(pretrigger samples, record samples) at this rate."""
@@ -96,7 +97,8 @@ def wait_for_hit(daq: SerialDAQ, trigger: HammerTrigger, timeout_s: float, *, st
     crossing = None
     while crossing is None:
         if time.monotonic() > deadline:
-            raise NoTrigger(f"{daq.name}: {trigger.channel!r} did not reach {trigger.level_n:g} N within {timeout_s:g} s")
+            raise NoTrigger(
+                f"{daq.name}: {trigger.channel!r} did not reach {trigger.level_n:g} N within {timeout_s:g} s")
         try:
             daq.wait_for(pos + 1, timeout_s=poll_s)
         except DAQError:

@@ -4,18 +4,35 @@ Gaussians, 2D tracking as a cross-check, correlation (MAC, CoMAC), exports (UFF,
 Public surface: two stage entries, `run(capture, AnalyzeSettings) -> AnalysisResult` (alias `analyze_capture`;
 saved to derived/analysis/) and `write_report(capture)` (derived/analysis/report.html), and the pieces they are
 made of for use on their own."""
+from .analyze import AnalysisResult, AnalyzeSettings, Sensor, VideoModes, analyze_capture
 from .correlation import Correlation, comac, correlate, mac, modal_scale_factor
 from .ema import LSFDResult, ModalFit, StabilisationChart, fit_modes, lscf, lsfd, select_poles, stabilisation
-from .export import FRFRecord, Geometry, ResultSet, ShapeRecord, TimeSeries, read_results_h5, read_uff, \
-    write_results_h5, write_uff
+from .export import (
+    FRFRecord,
+    Geometry,
+    ResultSet,
+    ShapeRecord,
+    TimeSeries,
+    read_results_h5,
+    read_uff,
+    write_results_h5,
+    write_uff,
+)
 from .frf import FRFResult, FRFSettings, HitCheck, check_hit, estimate_frf, split_hits
-from .ods import DecayFit, SurfaceMotion, fit_decay, force_transform, lsce_poles, pencil_poles, \
-    receptance, stable_poles
+from .ods import (
+    DecayFit,
+    SurfaceMotion,
+    fit_decay,
+    force_transform,
+    lsce_poles,
+    pencil_poles,
+    receptance,
+    stable_poles,
+)
 from .report import write_report
-from .run import AnalysisResult, AnalyzeSettings, Sensor, VideoModes, analyze_capture
+from .tracking import Tracks, good_points, project_displacement, track_points
 
 run = analyze_capture  # the analyze stage's entry
-from .tracking import Tracks, good_points, project_displacement, track_points
 
 __all__ = ["AnalysisResult", "AnalyzeSettings", "Correlation", "DecayFit", "FRFRecord", "FRFResult", "FRFSettings",
            "Geometry", "HitCheck", "LSFDResult", "ModalFit", "ResultSet", "Sensor", "ShapeRecord",

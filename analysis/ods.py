@@ -59,7 +59,8 @@ class SurfaceMotion:
             opacity = 1.0 / (1.0 + np.exp(-np.asarray(z["opacity_logits"], float).reshape(-1)))
             alpha = float(z["source_alpha"]) if "source_alpha" in z.files else 1.0
         if disp.shape != (len(times), len(rest), 3):
-            raise InputError(f"{path}: displacement_m", f"expected shape {(len(times), len(rest), 3)}; got {disp.shape}")
+            raise InputError(f"{path}: displacement_m",
+                             f"expected shape {(len(times), len(rest), 3)}; got {disp.shape}")
         if alpha <= 0:
             raise InputError(f"{path}: source_alpha", f"expected a positive magnification; got {alpha}")
         keep = opacity >= min_opacity

@@ -11,7 +11,7 @@ from .export import FRFRecord, Geometry, ShapeRecord, write_results_h5, write_uf
 from .ods import receptance
 
 if TYPE_CHECKING:
-    from .run import AnalysisResult
+    from .analyze import AnalysisResult
 
 log = logging.getLogger(__name__)
 

@@ -19,10 +19,10 @@ from .correlation import mac
 from .ods import receptance
 
 if TYPE_CHECKING:
+    from .analyze import AnalysisResult
     from .correlation import Correlation
     from .ema import ModalFit, StabilisationChart
     from .frf import FRFResult
-    from .run import AnalysisResult
 
 log = logging.getLogger(__name__)
 

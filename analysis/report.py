@@ -10,12 +10,12 @@ from pathlib import Path
 
 import numpy as np
 
-from odsplat.errors import InputError
 from odsplat.contract import check
+from odsplat.errors import InputError
 from odsplat.manifest import load_json
 from odsplat.store import Capture, atomic_write_text
 
-from .run import KIND, SCHEMA
+from .analyze import KIND, SCHEMA
 
 log = logging.getLogger(__name__)
 

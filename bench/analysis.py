@@ -44,20 +44,20 @@ from scipy.spatial import cKDTree
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from odsplat.analysis.analyze import AnalysisResult, AnalyzeSettings, analyze_capture  # noqa: E402
 from odsplat.analysis.correlation import mac, modal_scale_factor  # noqa: E402
 from odsplat.analysis.ods import MEASURED, TRAJECTORIES, SurfaceMotion, stable_poles  # noqa: E402
-from odsplat.analysis.run import AnalysisResult, AnalyzeSettings, analyze_capture  # noqa: E402
 from odsplat.errors import InputError  # noqa: E402
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
 from odsplat.hil_sim.camera import SimCameraConfig  # noqa: E402
 from odsplat.hil_sim.rig import TakeTruth, truth_path  # noqa: E402
 from odsplat.hil_sim.structure import ModalStructure  # noqa: E402
-from odsplat.processing.run import MagnifySettings, magnify_capture, parse_options  # noqa: E402
+from odsplat.processing.magnify import MagnifySettings, magnify_capture, parse_options  # noqa: E402
 from odsplat.reconstruction.dynamic import FitSettings  # noqa: E402
 from odsplat.reconstruction.linear import LinearSettings  # noqa: E402
 from odsplat.reconstruction.modal import ModalSettings  # noqa: E402
+from odsplat.reconstruction.model import ReconstructSettings, default_source, reconstruct  # noqa: E402
 from odsplat.reconstruction.poses import estimate_poses  # noqa: E402
-from odsplat.reconstruction.run import ReconstructSettings, default_source, reconstruct  # noqa: E402
 from odsplat.reconstruction.views import select_frames  # noqa: E402
 from odsplat.store import Capture  # noqa: E402
 from odsplat.sync import SyncSettings, load_sync, sync_capture  # noqa: E402

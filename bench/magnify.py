@@ -35,8 +35,8 @@ sys.path.insert(0, str(REPO))
 from odsplat.hil_sim.render import PinholeCamera  # noqa: E402
 from odsplat.hil_sim.rig import SimRig  # noqa: E402
 from odsplat.hil_sim.scene import STRUCTURE, STRUCTURE_TAG  # noqa: E402
+from odsplat.processing.magnify import MagnifySettings, make_magnifier  # noqa: E402
 from odsplat.processing.metrics import psnr, ssim  # noqa: E402
-from odsplat.processing.run import MagnifySettings, make_magnifier  # noqa: E402
 
 log = logging.getLogger("bench.magnify")
 
@@ -181,7 +181,8 @@ def main() -> None:
             key = "band" if band else "static"
             r[key] = {f"alpha_{a:g}": quality(m, a, inputs, truths, mask, band=band) for a in ALPHAS}
             print(f"{m} {key}: {r[key]}", file=sys.stderr)
-        r["noise_alpha_10"] = {f"sigma_{s:g}": quality(m, 10.0, inputs, truths, mask, band=False, noise=s) for s in NOISE}
+        r["noise_alpha_10"] = {f"sigma_{s:g}": quality(m, 10.0, inputs, truths, mask, band=False, noise=s)
+                               for s in NOISE}
         gains = [quality(m, 10.0, inputs, truths, mask, band=False)["gain"]]
         gains += [quality(m, 10.0, v[0], v[1], v[2], band=False)["gain"] for v in views]
         r["multiview_gain_alpha_10"] = {"gains": gains, "spread_rel": round(float(np.std(gains) / np.mean(gains)), 4)}

@@ -43,19 +43,19 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from odsplat.analysis.analyze import AnalyzeSettings  # noqa: E402
 from odsplat.analysis.ods import SurfaceMotion  # noqa: E402
-from odsplat.analysis.run import AnalyzeSettings  # noqa: E402
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
 from odsplat.hil_sim.camera import SimCameraConfig  # noqa: E402
 from odsplat.hil_sim.render import PinholeCamera, render, to_mono  # noqa: E402
 from odsplat.hil_sim.rig import SimRig, TakeTruth, truth_path  # noqa: E402
 from odsplat.hil_sim.scene import STRUCTURE, STRUCTURE_TAG  # noqa: E402
+from odsplat.processing.magnify import MagnifySettings, magnify_capture, parse_options  # noqa: E402
 from odsplat.processing.metrics import psnr, ssim  # noqa: E402
-from odsplat.processing.run import MagnifySettings, magnify_capture, parse_options  # noqa: E402
 from odsplat.reconstruction.dynamic import FitSettings  # noqa: E402
 from odsplat.reconstruction.modal import ModalSettings  # noqa: E402
+from odsplat.reconstruction.model import ReconstructSettings, pose_camera, train  # noqa: E402
 from odsplat.reconstruction.poses import PoseResult, compare_poses, estimate_poses  # noqa: E402
-from odsplat.reconstruction.run import ReconstructSettings, pose_camera, train  # noqa: E402
 from odsplat.reconstruction.views import load_views  # noqa: E402
 from odsplat.store import Capture  # noqa: E402
 from odsplat.sync import SyncSettings, sync_capture  # noqa: E402

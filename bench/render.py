@@ -1,9 +1,10 @@
 """Benchmark of the hil_sim software renderer: frames/s of `render` against its 1-thread run and the numpy reference.
 
 Prints one JSON line on stdout; progress goes to stderr. The scene is built by `synthetic_scene` (a bent, subdivided
-textured column on a textured floor board) or, with --scene rig, the simulated rig's default scene (hil_sim.scene); frames/s are after JIT warm-up (median
-frame time), each frame a slightly different deformation (as in a vibration take), `supersample` 3. compile_s is
-the first call of a fresh process with an empty numba cache (a subprocess); first_call_s the first call here.
+textured column on a textured floor board) or, with --scene rig, the simulated rig's default scene (hil_sim.scene);
+frames/s are after JIT warm-up (median frame time), each frame a slightly different deformation (as in a vibration
+take), `supersample` 3. compile_s is the first call of a fresh process with an empty numba cache (a subprocess);
+first_call_s the first call here.
 """
 from __future__ import annotations
 
@@ -45,10 +46,12 @@ class Scene(NamedTuple):
     def frame(self, k: int) -> TexturedMesh:
         v = self.mesh.vertices_m + 0.01 * np.sin(0.7 * k) * self.bend_m  # up to 1 cm, a few px
         light = (-0.4, 1.0, -1.2)  # travelling away from a light above, left and in front of the camera
-        return TexturedMesh(v, self.mesh.faces, self.mesh.uv_px, self.mesh.object_id, lambert_shade(v, self.mesh.faces, light))
+        return TexturedMesh(v, self.mesh.faces, self.mesh.uv_px, self.mesh.object_id,
+                            lambert_shade(v, self.mesh.faces, light))
 
     def camera(self, size_px: int) -> PinholeCamera:
-        return PinholeCamera.look_at(self.eye_m, self.target_m, fov_deg=self.fov_deg, width_px=size_px, height_px=size_px)
+        return PinholeCamera.look_at(self.eye_m, self.target_m, fov_deg=self.fov_deg, width_px=size_px,
+                                     height_px=size_px)
 
 
 def _speckle(size: int, grain_px: float, rng: np.random.Generator) -> np.ndarray:
@@ -90,7 +93,8 @@ def synthetic_scene(n_triangles: int = 10_000, *, seed: int = 0) -> Scene:
     ]
     verts, faces, uvs, ids = [], [], [], []
     n = 0
-    for k, (origin, du, dv, uv0, uv_du, uv_dv) in enumerate(groups + [((-0.8, -0.8, 0), (1.6, 0, 0), (0, 1.6, 0), (0, 0), (511, 0), (0, 511))]):
+    floor = ((-0.8, -0.8, 0), (1.6, 0, 0), (0, 1.6, 0), (0, 0), (511, 0), (0, 511))
+    for k, (origin, du, dv, uv0, uv_du, uv_dv) in enumerate(groups + [floor]):
         nu_k, nv_k = (nf, nf) if k == 5 else (nu, nu if k == 4 else nv)
         v, f, uv = _grid(origin, du, dv, nu_k, nv_k, uv0, uv_du, uv_dv)
         verts.append(v), faces.append(f + n), uvs.append(uv), ids.append(np.full(len(f), 2 if k == 5 else 1))
@@ -153,11 +157,14 @@ def _cold_compile_s() -> float:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", choices=sorted(SCENES), default="synthetic", help="scene to render (default synthetic)")
-    parser.add_argument("--triangles", type=int, default=10_000, help="approximate triangle count of the synthetic scene")
+    parser.add_argument("--scene", choices=sorted(SCENES), default="synthetic",
+                        help="scene to render (default synthetic)")
+    parser.add_argument("--triangles", type=int, default=10_000,
+                        help="approximate triangle count of the synthetic scene")
     parser.add_argument("--sizes", type=int, nargs="+", default=list(SIZES), help="square image sizes in px")
     parser.add_argument("--no-reference", action="store_true", help="skip the slow numpy reference baseline")
-    parser.add_argument("--no-cold-compile", action="store_true", help="skip timing a compile with an empty numba cache")
+    parser.add_argument("--no-cold-compile", action="store_true",
+                        help="skip timing a compile with an empty numba cache")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(name)s: %(message)s")
 

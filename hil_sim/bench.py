@@ -18,12 +18,17 @@ from pathlib import Path
 import can
 import numpy as np
 
-from odsplat.acquisition.daq import SerialDAQ
-from odsplat.acquisition.hammer import AutoHammer, CANHammerLink, SerialHammerLink
-from odsplat.acquisition.plan import view_eye_m
-from odsplat.acquisition.qc import HitQC
-from odsplat.acquisition.session import AutoHammerSettings, SessionReport
-from odsplat.acquisition.trigger import TriggeredRecord
+from odsplat.acquisition import (
+    AutoHammer,
+    AutoHammerSettings,
+    CANHammerLink,
+    HitQC,
+    SerialDAQ,
+    SerialHammerLink,
+    SessionReport,
+    TriggeredRecord,
+    view_eye_m,
+)
 from odsplat.errors import InputError
 from odsplat.geometry import spherical_eye, viewing_angle_deg
 from odsplat.manifest import Viewpoint
@@ -48,7 +53,8 @@ def parse_faults(spec: str) -> dict[int, str]:
     for item in filter(None, (p.strip() for p in spec.split(","))):
         take, _, kind = item.partition(":")
         if not take.strip().isdigit() or kind not in FAULTS:
-            raise InputError("--sim-faults", f"expected TAKE:FAULT items with FAULT one of {', '.join(FAULTS)}; got {item!r}")
+            raise InputError("--sim-faults",
+                             f"expected TAKE:FAULT items with FAULT one of {', '.join(FAULTS)}; got {item!r}")
         out[int(take)] = kind
     return out
 
@@ -102,12 +108,14 @@ class SimBench:
         self._hammer_device: SimHammerSerial | SimHammerCAN | None = None
         if hammer is not None:
             if "overload" in self.faults.values():
-                raise InputError("SimBench.faults", "'overload' is the engineer's hit; the automatic hammer fires its set level")
+                raise InputError("SimBench.faults",
+                                 "'overload' is the engineer's hit; the automatic hammer fires its set level")
             # the automatic hammer's double hit is its rebound
             self.faults = {k: "rebound" if v == "double_hit" else v for k, v in self.faults.items()}
             self._open_hammer(hammer)
         elif any(k in HAMMER_FAULTS for k in self.faults.values()):
-            raise InputError("SimBench.faults", f"{sorted(HAMMER_FAULTS)} need the automatic hammer (hammer='serial' or 'can')")
+            raise InputError("SimBench.faults",
+                             f"{sorted(HAMMER_FAULTS)} need the automatic hammer (hammer='serial' or 'can')")
 
     def _open_hammer(self, link: str) -> None:
         # An injected "not ready" lasts a little longer than one fire timeout: that fire expires, the redo fires.
@@ -165,8 +173,8 @@ class SimBench:
         az, el, dist = view.azimuth_deg, view.elevation_deg, view.distance_m
         # A person puts the camera a little off: a random direction on the sphere, about placement_error_deg off.
         d_az, d_el = self._rng.normal(0.0, s.placement_error_deg / np.sqrt(2), 2)
-        eye = spherical_eye(az + d_az / max(np.cos(np.radians(el)), 0.2), el + d_el, dist * (1 + 0.01 * self._rng.normal()),
-                            view.target_m)
+        eye = spherical_eye(az + d_az / max(np.cos(np.radians(el)), 0.2), el + d_el,
+                            dist * (1 + 0.01 * self._rng.normal()), view.target_m)
         cam = PinholeCamera.look_at(eye, view.target_m, fov_deg=s.fov_deg, width_px=s.width_px, height_px=s.height_px)
         self.rig.new_take()  # carrying the camera takes a while: the structure is at rest again
         self.rig.place_camera(cam)
@@ -210,9 +218,7 @@ def simulate_capture(out: str | Path, *, n_views: int = 27, n_frames: int = 100,
     engineer (`odsplat capture --sim --auto` without the command line). For tests, benches and the demo.
 
     `hammer`: fire the simulated automatic hammer over `hammer_link` at these settings; None: the engineer hits."""
-    from odsplat.acquisition.plan import PlanSettings
-    from odsplat.acquisition.session import CaptureSession, SessionSettings
-    from odsplat.acquisition.trigger import HammerTrigger
+    from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
 
     with SimBench(rig, settings, faults=faults, hammer=hammer_link if hammer is not None else None) as bench:
         session = SessionSettings(name=Path(out).name, plan=PlanSettings(n_views=n_views), n_frames=n_frames,

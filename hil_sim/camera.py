@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from odsplat.acquisition.camera import CameraTimeout, Frame, RecordingStatus, TriggerSettings
+from odsplat.acquisition import CameraTimeout, Frame, RecordingStatus, TriggerSettings
 from odsplat.errors import InputError, OdsplatError
 from odsplat.manifest import CameraInfo, Intrinsics
 
@@ -51,7 +51,8 @@ class SimCameraConfig:
         if self.fps <= 0:
             raise InputError("SimCameraConfig.fps", f"must be positive, got {self.fps}")
         if not 0 < self.exposure <= 1.0 / self.fps:
-            raise InputError("SimCameraConfig.exposure_s", f"must lie in (0, 1/fps = {1 / self.fps:.3g} s], got {self.exposure}")
+            raise InputError("SimCameraConfig.exposure_s",
+                             f"must lie in (0, 1/fps = {1 / self.fps:.3g} s], got {self.exposure}")
         if self.bit_depth not in (8, 12):
             raise InputError("SimCameraConfig.bit_depth", f"expected 8 or 12, got {self.bit_depth}")
         if self.trigger_delay_s < 0 or self.trigger_jitter_s < 0:
@@ -137,7 +138,8 @@ class SimCamera:
         if n_frames is None:
             if s is None:
                 raise OdsplatError(f"{self.name}: arm() without arguments needs configure() first")
-            n_frames, pretrigger, trigger = s.n_frames, s.pretrigger if pretrigger is None else pretrigger, trigger or s.mode
+            n_frames = s.n_frames
+            pretrigger, trigger = s.pretrigger if pretrigger is None else pretrigger, trigger or s.mode
         pretrigger = "start" if pretrigger is None else pretrigger
         trigger = trigger or "external"
         with self._lock:
@@ -150,7 +152,8 @@ class SimCamera:
             raise InputError("SimCamera.n_frames", f"must be at least 1, got {n_frames}")
         if isinstance(pretrigger, str):
             if pretrigger not in PRETRIGGER_MODES:
-                raise InputError("SimCamera.pretrigger", f"expected one of {PRETRIGGER_MODES} or a frame count, got {pretrigger!r}")
+                raise InputError("SimCamera.pretrigger",
+                                 f"expected one of {PRETRIGGER_MODES} or a frame count, got {pretrigger!r}")
             pre = {"start": 0, "center": n_frames // 2, "end": n_frames - 1}[pretrigger]
         else:
             pre = int(pretrigger)
@@ -211,7 +214,8 @@ class SimCamera:
         if not self._done.wait(timeout_s):
             raise CameraTimeout(self.name, f"no trigger within {timeout_s:g} s")
         rec = self.recording
-        return RecordingStatus(n_frames=len(rec.counters), first_counter=int(rec.counters[0]) if len(rec.counters) else 0,
+        return RecordingStatus(n_frames=len(rec.counters),
+                               first_counter=int(rec.counters[0]) if len(rec.counters) else 0,
                                pretrigger_available=rec.pretrigger_available,
                                dropped=tuple(int(c) for c in rec.dropped))
 

@@ -22,7 +22,8 @@ _HEARTBEAT_S = 1.0  # NODE_STATUS period while running, in node time
 
 class AccelSource(Protocol):
     def acceleration(self, node_id: int, start_sample: int, n: int, sample_rate_hz: float) -> np.ndarray:
-        """(n, 3) m/s^2 in the node's axes for samples start_sample.., taken at sample_rate_hz (the node's true rate)."""
+        """(n, 3) m/s^2 in the node's axes for samples start_sample.., taken at sample_rate_hz (the node's true
+        rate)."""
 
 
 @dataclass(frozen=True)

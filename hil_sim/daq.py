@@ -47,7 +47,8 @@ class SineSource:
     def default(cls, channels: int = 8, amp_v: float | None = None) -> SineSource:
         """Channel k: 117.0 * (k + 1) Hz, (0.5 + k) V (capped at 9.5) or amp_v for all, phase 0.3 k rad."""
         amps = [amp_v if amp_v is not None else min(0.5 + k, 9.5) for k in range(channels)]
-        return cls(tuple(amps), tuple(117.0 * (k + 1) for k in range(channels)), tuple(0.3 * k for k in range(channels)))
+        return cls(tuple(amps), tuple(117.0 * (k + 1) for k in range(channels)),
+                   tuple(0.3 * k for k in range(channels)))
 
     @property
     def channel_names(self) -> tuple[str, ...]:
@@ -331,7 +332,8 @@ _URL_OPTIONS: dict[str, tuple[str, Callable[[str], Any]]] = {
     "disconnect_after": ("disconnect_after_samples", int),
     "seed": ("seed", int),
 }
-_FAULT_FIELDS = {"drop_packet_every", "drop_packets", "bit_error_every", "clock_drift_ppm", "disconnect_after_samples", "seed"}
+_FAULT_FIELDS = {"drop_packet_every", "drop_packets", "bit_error_every", "clock_drift_ppm", "disconnect_after_samples",
+                 "seed"}
 
 
 def device_from_url(url: str) -> SimDAQDevice:

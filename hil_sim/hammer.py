@@ -77,7 +77,8 @@ class SimHammerSettings:
         need(0 <= self.rebound_probability <= 1, "rebound_probability", "must lie in [0, 1]")
         need(0 < self.rebound_ratio <= 1, "rebound_ratio", "must lie in (0, 1]")
         need(self.tip_mass_kg > 0, "tip_mass_kg", "must be > 0")
-        need(0 < self.min_force_n < self.max_force_n, "max_force_n", f"must exceed min_force_n ({self.min_force_n}) > 0")
+        need(0 < self.min_force_n < self.max_force_n, "max_force_n",
+             f"must exceed min_force_n ({self.min_force_n}) > 0")
         need(self.max_energy_j > 0, "max_energy_j", "must be > 0")
 
     def energy_force_n(self, energy_j: float) -> float:
@@ -276,7 +277,8 @@ class SimAutoHammer:
             if state in (hp.State.ESTOP, hp.State.FAULT):
                 if self._stuck and self.faults.stuck_persists:
                     self.state = hp.State.FAULT
-                    out.append(hp.Nak(seq, msg.TYPE, hp.NakReason.FAULTED, "STUCK persists: the plunger needs a person"))
+                    out.append(hp.Nak(seq, msg.TYPE, hp.NakReason.FAULTED,
+                                      "STUCK persists: the plunger needs a person"))
                     return
                 self._stuck = False
                 # A shot released before an ESTOP is still in flight: FIRING until its SHOT, as without the ESTOP.
@@ -402,7 +404,8 @@ class SimAutoHammer:
         rebound = "rebound" in p.faults or u_rebound < s.rebound_probability
         impacts = [Impact(0.0, self.point_m, self.direction, peak, s.duration_s)]
         if rebound:
-            impacts.append(Impact(s.rebound_delay_s, self.point_m, self.direction, peak * s.rebound_ratio, s.duration_s))
+            impacts.append(Impact(s.rebound_delay_s, self.point_m, self.direction, peak * s.rebound_ratio,
+                                  s.duration_s))
         struck = self.target.strike(impacts, delay_s=delay)
         measured = peak * (1.0 + s.load_cell_noise * z_cell)
         p.shot = SimShot(outcome=hp.Outcome.FIRED, true_peak_n=peak, measured_peak_n=measured, rebound=rebound,

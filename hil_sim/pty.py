@@ -115,7 +115,7 @@ class PtyDevice(abc.ABC):
     def _on_bytes(self, data: bytes) -> None:
         """What the host wrote (raw bytes, any chunking)."""
 
-    def _after_io(self) -> None:
+    def _after_io(self) -> None:  # noqa: B027  (an optional hook with a default, not abstract)
         """After each select's reads and writes (default: nothing)."""
 
     def _run(self) -> None:

@@ -55,7 +55,8 @@ class Projection(NamedTuple):
 
 @dataclass(frozen=True, eq=False)
 class PinholeCamera:
-    """Distortion-free pinhole camera, OpenCV/COLMAP convention: camera x right, y down, z forward, X_cam = R X_world + t.
+    """Distortion-free pinhole camera, OpenCV/COLMAP convention: camera x right, y down, z forward,
+    X_cam = R X_world + t.
 
     Image coordinates are OpenCV's: pixel (column 0, row 0) is centred at (0, 0) and covers [-0.5, 0.5]^2, so the
     image spans [-0.5, width_px - 0.5] x [-0.5, height_px - 0.5]. K = [[fx, skew, cx], [0, fy, cy], [0, 0, 1]] in px.
@@ -72,12 +73,14 @@ class PinholeCamera:
         R = _array("PinholeCamera.R", self.R, (3, 3), np.float64)
         t = _array("PinholeCamera.t", self.t, (3,), np.float64)
         if K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1 or K[0, 0] <= 0 or K[1, 1] <= 0:
-            raise InputError("PinholeCamera.K", f"expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}")
+            raise InputError("PinholeCamera.K",
+                             f"expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, got {K.tolist()}")
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
             raise InputError("PinholeCamera.R", "expected a rotation matrix (orthonormal, det +1)")
         if int(self.width_px) < 1 or int(self.height_px) < 1:
             raise InputError("PinholeCamera", f"image size must be >= 1 px, got {self.width_px}x{self.height_px}")
-        for name, value in (("K", K), ("R", R), ("t", t), ("width_px", int(self.width_px)), ("height_px", int(self.height_px))):
+        for name, value in (("K", K), ("R", R), ("t", t), ("width_px", int(self.width_px)),
+                            ("height_px", int(self.height_px))):
             object.__setattr__(self, name, value)
 
     @classmethod
@@ -133,7 +136,8 @@ class TexturedMesh:
         uv = _array("TexturedMesh.uv_px", self.uv_px, (len(v), 2), np.float32)
         oid = _array("TexturedMesh.object_id", self.object_id, (len(f),), np.int16)
         if f.size and (f.min() < 0 or f.max() >= len(v)):
-            raise InputError("TexturedMesh.faces", f"vertex indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]")
+            raise InputError("TexturedMesh.faces",
+                             f"vertex indices must lie in [0, {len(v)}), got [{f.min()}, {f.max()}]")
         if oid.size and oid.min() < 1:
             raise InputError("TexturedMesh.object_id", "ids must be >= 1 (0 is the background)")
         shade = None if self.shade is None else _array("TexturedMesh.shade", self.shade, (len(f),), np.float32)
@@ -250,7 +254,8 @@ def _setup_rows(P, UV, K, width, height, cull) -> tuple[np.ndarray, np.ndarray]:
         # Counter-clockwise-from-outside faces come out with area < 0 in (x right, y down) image coordinates.
         if not abs(area) > 1e-12 or not abs(area) < np.inf or (cull and area > 0):
             continue
-        xmin, xmax, ymin, ymax = min(x[0], x[1], x[2]), max(x[0], x[1], x[2]), min(y[0], y[1], y[2]), max(y[0], y[1], y[2])
+        xmin, xmax = min(x[0], x[1], x[2]), max(x[0], x[1], x[2])
+        ymin, ymax = min(y[0], y[1], y[2]), max(y[0], y[1], y[2])
         if xmax < -0.5 or xmin > width - 0.5 or ymax < -0.5 or ymin > height - 0.5:
             continue
         if area < 0:  # make it positive, so that inside means all three edge functions > 0
@@ -269,7 +274,9 @@ def _setup_rows(P, UV, K, width, height, cull) -> tuple[np.ndarray, np.ndarray]:
         dx1, dy1, dx2, dy2 = x[1] - x[0], y[1] - y[0], x[2] - x[0], y[2] - y[0]
         for col, f in ((_IZ, iz), (_UZ, u), (_VZ, v)):  # planes through vertex 0: value, d/dx, d/dy
             df1, df2 = f[1] - f[0], f[2] - f[0]
-            tri[n, col], tri[n, col + 1], tri[n, col + 2] = f[0], (df1 * dy2 - df2 * dy1) / area, (df2 * dx1 - df1 * dx2) / area
+            tri[n, col] = f[0]
+            tri[n, col + 1] = (df1 * dy2 - df2 * dy1) / area
+            tri[n, col + 2] = (df2 * dx1 - df1 * dx2) / area
         tri[n, _X0], tri[n, _Y0] = x[0], y[0]
         tri[n, _XMIN], tri[n, _XMAX] = max(xmin, -0.5), min(xmax, width - 0.5)
         tri[n, _YMIN], tri[n, _YMAX] = max(ymin, -0.5), min(ymax, height - 0.5)
@@ -335,7 +342,8 @@ def _sample_xy(g0: int, n: int, s: int) -> np.ndarray:
 @njit(cache=True)
 def _raster_grid(tri, tris, s, gx0, gy0, zb, tb) -> None:
     """Z-buffer the triangles `tris` into a block of the global sample grid (s x s samples per pixel), whose top-left
-    sample is (gx0, gy0); sample (i, j) sits at ((i + 0.5) / s - 0.5, (j + 0.5) / s - 0.5) px. zb holds 1/z (0 = empty)."""
+    sample is (gx0, gy0); sample (i, j) sits at ((i + 0.5) / s - 0.5, (j + 0.5) / s - 0.5) px. zb holds 1/z
+    (0 = empty)."""
     gh, gw = zb.shape
     xs, ys = _sample_xy(gx0, gw, s), _sample_xy(gy0, gh, s)
     for n in range(tris.size):
@@ -480,7 +488,8 @@ def render(mesh: TexturedMesh, camera: PinholeCamera, atlas: np.ndarray, *, supe
     tri, oid = _setup_triangles(mesh, camera, float(near_m), bool(cull_backfaces))
     H, W = camera.height_px, camera.width_px
     start, tris = _bin_tiles(tri, W, H, TILE_PX)
-    log.debug("render %dx%d, %d faces -> %d screen triangles, %d tile entries", W, H, len(mesh.faces), len(tri), len(tris))
+    log.debug("render %dx%d, %d faces -> %d screen triangles, %d tile entries", W, H, len(mesh.faces), len(tri),
+              len(tris))
     image = np.empty((H, W, nc), dtype=np.float32)
     coverage = np.empty((H, W), dtype=np.float32)
     depth = np.empty((H, W), dtype=np.float32)
@@ -555,7 +564,8 @@ def render_reference(mesh: TexturedMesh, camera: PinholeCamera, atlas: np.ndarra
     UV = mesh.uv_px.astype(np.float64)[mesh.faces]
     px, z = camera.project(mesh.vertices_m)
     fpx = px[mesh.faces]
-    bbox = np.stack([fpx[:, :, 0].min(1) - 1, fpx[:, :, 0].max(1) + 1, fpx[:, :, 1].min(1) - 1, fpx[:, :, 1].max(1) + 1], 1)
+    bbox = np.stack([fpx[:, :, 0].min(1) - 1, fpx[:, :, 0].max(1) + 1,
+                     fpx[:, :, 1].min(1) - 1, fpx[:, :, 1].max(1) + 1], 1)
     bbox[(z[mesh.faces] < near_m).any(1)] = np.nan  # crossing the near plane: test every sample
     Kinv = np.linalg.inv(camera.K)
     shade = np.ones(len(P)) if mesh.shade is None else mesh.shade.astype(np.float64)
@@ -567,8 +577,8 @@ def render_reference(mesh: TexturedMesh, camera: PinholeCamera, atlas: np.ndarra
     coverage = hit.reshape(H, s, W, s).mean(axis=(1, 3))
     depth_c, face_c, _ = _raycast(P, UV, Kinv, W, H, 1, bbox, near_m, cull_backfaces)
     ids = np.where(face_c >= 0, mesh.object_id[np.maximum(face_c, 0)], 0).reshape(H, W)
-    return RenderResult((image[:, :, 0] if nc == 1 else image).astype(np.float32), depth_c.reshape(H, W).astype(np.float32),
-                        ids.astype(np.int16), coverage.astype(np.float32))
+    return RenderResult((image[:, :, 0] if nc == 1 else image).astype(np.float32),
+                        depth_c.reshape(H, W).astype(np.float32), ids.astype(np.int16), coverage.astype(np.float32))
 
 
 # ------------------------------------------------------------------------------------------- sensor

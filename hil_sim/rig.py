@@ -22,13 +22,13 @@ import itertools
 import logging
 import threading
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numpy as np
 
+from odsplat.acquisition import DAQChannel
 from odsplat.errors import InputError, OdsplatError
-from odsplat.acquisition.daq import DAQChannel
 from odsplat.manifest import CameraInfo, Intrinsics
 from odsplat.store import atomic_open
 
@@ -134,8 +134,10 @@ class SimRig:
         self._acc_points = np.array([a.point_m for a in acc], float).reshape(-1, 3)
         self._acc_dirs = np.array([a.direction for a in acc], float).reshape(-1, 3)
         self._acc_dirs /= np.linalg.norm(self._acc_dirs, axis=1, keepdims=True) if len(acc) else 1.0
-        self._acc_phi = self.structure.mode_shapes(self._acc_points) if len(acc) else np.zeros((0, self.structure.n_modes, 3))
-        self._node_phi = {i: self.structure.mode_shapes(np.asarray(n.point_m, float)[None])[0] for i, n in self._nodes.items()}
+        self._acc_phi = (self.structure.mode_shapes(self._acc_points) if len(acc)
+                         else np.zeros((0, self.structure.n_modes, 3)))
+        self._node_phi = {i: self.structure.mode_shapes(np.asarray(n.point_m, float)[None])[0]
+                          for i, n in self._nodes.items()}
         rng = np.random.default_rng(self.config.seed)
         movers = self.scene.structure_vertices()
         pick = np.sort(rng.choice(len(movers), size=min(self.config.n_surface_points, len(movers)), replace=False))

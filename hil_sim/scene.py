@@ -19,7 +19,8 @@ from .structure import ModalStructure
 
 STRUCTURE, FLOOR, FLOOR_TAG, STRUCTURE_TAG = 1, 2, 3, 4
 # Colours for RGB scenes: a painted (orange) structure on a grey floor, black-and-white tags.
-_TINT = {STRUCTURE: (0.95, 0.55, 0.20), FLOOR: (0.80, 0.80, 0.78), FLOOR_TAG: (1.0, 1.0, 1.0), STRUCTURE_TAG: (1.0, 1.0, 1.0)}
+_TINT = {STRUCTURE: (0.95, 0.55, 0.20), FLOOR: (0.80, 0.80, 0.78),
+         FLOOR_TAG: (1.0, 1.0, 1.0), STRUCTURE_TAG: (1.0, 1.0, 1.0)}
 _TAG_CELLS = 10  # a tag36h11 image is 8 cells of black-bordered code plus a 1-cell white quiet zone each side
 
 
@@ -77,7 +78,8 @@ class _Builder:
         for tex, (ox, oy), uvs in zip(self.textures, offsets, self.uv):
             h, w = tex.shape[:2]
             # A one-texel border copied from the edge keeps bilinear lookups at the rim honest.
-            atlas[oy - 1:oy + h + 1, ox - 1:ox + w + 1] = np.pad(tex, ((1, 1), (1, 1)) + ((0, 0),) * (tex.ndim - 2), mode="edge")
+            pad = ((1, 1), (1, 1)) + ((0, 0),) * (tex.ndim - 2)
+            atlas[oy - 1:oy + h + 1, ox - 1:ox + w + 1] = np.pad(tex, pad, mode="edge")
             uv.append(uvs + np.array([ox, oy], np.float32))
         return atlas, np.concatenate(uv)
 

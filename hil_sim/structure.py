@@ -64,7 +64,8 @@ class Geometry:
         g = self
         z0, z1 = g.arm_z_range_m
         return {
-            "base": (np.array([-g.base_half_m, -g.base_half_m, 0.0]), np.array([g.base_half_m, g.base_half_m, g.base_height_m])),
+            "base": (np.array([-g.base_half_m, -g.base_half_m, 0.0]),
+                     np.array([g.base_half_m, g.base_half_m, g.base_height_m])),
             "column": (np.array([-g.column_half_m, -g.column_half_m, g.base_height_m]),
                        np.array([g.column_half_m, g.column_half_m, g.column_top_m])),
             "arm": (np.array([g.arm_root_x_m, -g.arm_half_width_m, z0]),

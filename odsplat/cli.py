@@ -195,14 +195,16 @@ def qc(capture_dir: Path, force_band_n: tuple[float, float] | None) -> None:
               help="Fire an automatic hammer on every take, or let the engineer hit. Default: auto with --sim --auto "
                    "or a [hammer] section in the lab file, else manual.")
 @click.option("--hammer-force-n", type=float, default=None,
-              help="Automatic hammer: the set force (N; default 200, or the lab file's). Its band replaces --force-band.")
+              help="Automatic hammer: the set force (N; default 200, or the lab file's). "
+                   "Its band replaces --force-band.")
 @click.option("--hammer-tolerance", type=float, default=None,
               help="Automatic hammer: QC accepts a peak within force * (1 +- this) (default 0.03).")
 @click.option("--hammer-link", type=click.Choice(["serial", "can"]), default="serial", show_default=True,
               help="With --sim: the simulated automatic hammer's link.")
-@click.option("--sim-faults", default="", help="With --sim: faults on takes of this run, e.g. '2:double_hit,5:disconnect' "
-              "(double_hit, overload, dropped_packet, disconnect, dropped_frames; with the automatic hammer also "
-              "rebound, hammer_not_ready, hammer_stuck, hammer_no_response).")
+@click.option("--sim-faults", default="",
+              help="With --sim: faults on takes of this run, e.g. '2:double_hit,5:disconnect' "
+                   "(double_hit, overload, dropped_packet, disconnect, dropped_frames; with the automatic hammer also "
+                   "rebound, hammer_not_ready, hammer_stuck, hammer_no_response).")
 @click.option("--seed", type=int, default=0, show_default=True, help="With --sim: random seed of the rig and engineer.")
 @click.option("--window/--no-window", default=None, help="Live plots in a window (default: when a display exists).")
 def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: int, radius_m: float,
@@ -214,8 +216,19 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
     """Guided multi-view capture into OUT: place the camera at each planned view, hit, QC, accept or redo.
 
     Stop at any time (even by a crash) and run the same command again to resume."""
-    from .acquisition import (CaptureSession, HammerTrigger, LabBench, PlanSettings, PlotFeedback, QCLimits,
-                              SessionSettings, TextFeedback, choose_hammer, display_available, load_lab_config)
+    from .acquisition import (
+        CaptureSession,
+        HammerTrigger,
+        LabBench,
+        PlanSettings,
+        PlotFeedback,
+        QCLimits,
+        SessionSettings,
+        TextFeedback,
+        choose_hammer,
+        display_available,
+        load_lab_config,
+    )
     from .errors import InputError
 
     if sim == (config_path is not None):
@@ -265,10 +278,12 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
 @main.command()
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--method", type=click.Choice(["auto", "ttl", "image"]), default="auto", show_default=True,
-              help="Frame timing: the exposure strobe (ttl), the trigger frame refined by the images, or ttl where recorded.")
+              help="Frame timing: the exposure strobe (ttl), the trigger frame refined by the images, "
+                   "or ttl where recorded.")
 @click.option("--all-takes", is_flag=True, help="Sync rejected takes too (default: those QC accepted).")
 @click.option("--normalize-impulse", is_flag=True, help="Scale each take's motion to the median hammer impulse.")
-@click.option("--frames/--no-frames", default=True, show_default=True, help="Write the aligned frames to derived/sync/.")
+@click.option("--frames/--no-frames", default=True, show_default=True,
+              help="Write the aligned frames to derived/sync/.")
 @click.option("--image-check/--no-image-check", default=True, show_default=True,
               help="Date strobe-timed takes from the images too, as a check.")
 @click.option("--trigger-delay-s", type=float, default=0.0, show_default=True,
@@ -293,8 +308,8 @@ def sync(capture_dir: Path, method: str, all_takes: bool, normalize_impulse: boo
 @click.option("--alpha", type=float, default=20.0, show_default=True, help="Output motion = alpha x input motion.")
 @click.option("--band", "band_hz", type=float, nargs=2, default=None, metavar="LOW HIGH",
               help="Temporal band in Hz (default: static, against the first frame).")
-@click.option("--filter", "filter_kind", type=click.Choice(["ideal", "fir", "butter", "diff_iir", "none"]), default=None,
-              help="Temporal filter for the band (default: butter).")
+@click.option("--filter", "filter_kind", type=click.Choice(["ideal", "fir", "butter", "diff_iir", "none"]),
+              default=None, help="Temporal filter for the band (default: butter).")
 @click.option("--mode", type=click.Choice(["static", "dynamic"]), default="static", show_default=True,
               help="Learned method without a band: against the first frame, or the previous one.")
 @click.option("--source", type=click.Choice(["auto", "aligned", "raw"]), default="auto", show_default=True,
@@ -317,7 +332,8 @@ def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: 
 @main.command()
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--no-static", is_flag=True, help="Leave out the still photos in static/.")
-@click.option("--estimate-intrinsics", is_flag=True, help="Refine the manifest's intrinsics instead of holding them fixed.")
+@click.option("--estimate-intrinsics", is_flag=True,
+              help="Refine the manifest's intrinsics instead of holding them fixed.")
 @click.option("--masks", "masks_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="Folder of mask PNGs, TAKE.png and static/PHOTO.png; black = no features there.")
 @click.option("--min-registered", type=int, default=3, show_default=True,
@@ -326,7 +342,8 @@ def poses(capture_dir: Path, no_static: bool, estimate_intrinsics: bool, masks_d
           min_registered: int) -> None:
     """Camera poses of every view of CAPTURE_DIR in metres, floor z = 0: derived/poses.json, derived/points.npz."""
     cap, result = _stage(capture_dir, "poses", _given(
-        no_static=("use_static", lambda v: not v), estimate_intrinsics=("fixed_intrinsics", lambda v: False if v else None),
+        no_static=("use_static", lambda v: not v),
+        estimate_intrinsics=("fixed_intrinsics", lambda v: False if v else None),
         masks_dir=("masks_dir", str), min_registered="min_registered"))
     for line in result.report_lines():
         click.echo(line)
@@ -347,13 +364,15 @@ def poses(capture_dir: Path, no_static: bool, estimate_intrinsics: bool, masks_d
 @click.option("--resume", is_flag=True, help="Continue from OUT.ckpt.")
 def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, crop: int, lr: float, channels: int,
              threads: int, seed: int, resume: bool) -> None:
-    """Train the learned motion magnifier (Oh et al. 2018) on procedural synthetic data (docs/magnification-learned.md)."""
+    """Train the learned motion magnifier (Oh et al. 2018) on procedural synthetic data
+    (docs/magnification-learned.md)."""
     from .processing import TrainConfig, train
 
     report = train(TrainConfig(out=out, steps=steps, max_minutes=max_minutes, batch_size=batch_size, crop=crop, lr=lr,
                                channels=channels, threads=threads, seed=seed, resume=resume))
     click.echo(f"{report.steps} steps in {report.wall_s:.0f} s: validation SSIM {report.val_ssim:.3f} "
-               f"(do nothing {report.val_ssim_frame_b:.3f}), PSNR {report.val_psnr:.2f} dB, gain {report.val_gain:.2f}; "
+               f"(do nothing {report.val_ssim_frame_b:.3f}), PSNR {report.val_psnr:.2f} dB, "
+               f"gain {report.val_gain:.2f}; "
                f"weights {report.out}")
 
 
@@ -427,7 +446,8 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
 
 @main.command()
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--force", "force_channel", default=None, help="Force channel (default: the capture's one force channel).")
+@click.option("--force", "force_channel", default=None,
+              help="Force channel (default: the capture's one force channel).")
 @click.option("--response", "responses", multiple=True,
               help="Response channel (repeatable; default: every acceleration channel placed on the structure).")
 @click.option("--all-takes", is_flag=True, help="Use every complete take, not only those QC accepted.")

@@ -366,7 +366,8 @@ class Status:
 
 
 Message = Union[Hello, Configure, Start, Stop, Info, ConfigAck, Ack, Nak, Data, Status]
-_MESSAGES: dict[int, type] = {m.TYPE: m for m in (Hello, Configure, Start, Stop, Info, ConfigAck, Ack, Nak, Data, Status)}
+_MESSAGES: dict[int, type] = {m.TYPE: m for m in (Hello, Configure, Start, Stop, Info, ConfigAck, Ack, Nak, Data,
+                                                   Status)}
 
 
 # ----------------------------------------------------------------------------------- packets
@@ -613,15 +614,18 @@ class DataStreamChecker:
         if not isinstance(msg, Data):
             return []
         if msg.counts.shape[0] != self.n_channels:
-            raise DAQProtocolError(self.device, f"DATA with {msg.counts.shape[0]} channels, configured {self.n_channels}")
+            raise DAQProtocolError(self.device,
+                                   f"DATA with {msg.counts.shape[0]} channels, configured {self.n_channels}")
         if msg.first_sample < self.next_sample:
             raise DAQProtocolError(
-                self.device, f"sample counter went back: DATA starts at {msg.first_sample}, expected {self.next_sample}")
+                self.device,
+                f"sample counter went back: DATA starts at {msg.first_sample}, expected {self.next_sample}")
         events: list[SampleBlock | SampleGap] = []
         if msg.first_sample > self.next_sample:
             events.append(self._gap(msg.first_sample))
         elif self._lost_since_data:
-            log.warning("%s: %d packet(s) without samples lost before seq %d", self.device, self._lost_since_data, packet.seq)
+            log.warning("%s: %d packet(s) without samples lost before seq %d", self.device, self._lost_since_data,
+                        packet.seq)
         self._lost_since_data = 0
         block = SampleBlock(msg.first_sample, msg.counts)
         self.stats.data_packets += 1
@@ -633,7 +637,8 @@ class DataStreamChecker:
     def finish(self, sample_counter: int) -> list[SampleGap]:
         """Close the stream with the counter from the final STATUS: samples after the last DATA are a gap too."""
         if sample_counter < self.next_sample:
-            raise DAQProtocolError(self.device, f"final sample counter {sample_counter} < samples received {self.next_sample}")
+            raise DAQProtocolError(self.device,
+                                   f"final sample counter {sample_counter} < samples received {self.next_sample}")
         return [self._gap(sample_counter)] if sample_counter > self.next_sample else []
 
     def _gap(self, stop: int) -> SampleGap:

@@ -167,7 +167,8 @@ class Info:
     max_energy_j: float
 
     def _body(self) -> bytes:
-        return (struct.pack("<H", self.ref_seq) + dp._text(self.device_id, "device id") + dp._text(self.firmware, "firmware")
+        return (struct.pack("<H", self.ref_seq) + dp._text(self.device_id, "device id")
+                + dp._text(self.firmware, "firmware")
                 + struct.pack("<fff", self.min_force_n, self.max_force_n, self.max_energy_j))
 
     @classmethod
@@ -193,7 +194,8 @@ class Nak(dp.Nak):
 
     def error(self, device: str) -> HammerProtocolError:
         what = MsgType(self.ref_type).name if self.ref_type in MsgType._value2member_map_ else hex(self.ref_type)
-        err = HammerProtocolError(device, f"refused {what}: {self.reason_name}" + (f" ({self.text})" if self.text else ""))
+        detail = f" ({self.text})" if self.text else ""
+        err = HammerProtocolError(device, f"refused {what}: {self.reason_name}{detail}")
         err.reason = self.reason
         return err
 

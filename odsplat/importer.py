@@ -20,8 +20,17 @@ from tqdm import tqdm
 from .errors import InputError
 from .io.signals import SignalSet, read_signals
 from .io.video import VideoSource, open_video
-from .manifest import (CHANNEL_KINDS, CameraInfo, ChannelInfo, Intrinsics, Manifest, TagLayout, Viewpoint, from_plain,
-                       load_toml)
+from .manifest import (
+    CHANNEL_KINDS,
+    CameraInfo,
+    ChannelInfo,
+    Intrinsics,
+    Manifest,
+    TagLayout,
+    Viewpoint,
+    from_plain,
+    load_toml,
+)
 from .store import Capture, QCInfo, TriggerInfo, fsync_path
 
 log = logging.getLogger(__name__)
@@ -101,7 +110,8 @@ class Rig:
 
 def import_capture(rig_path: str | Path, out: str | Path, *, data_dir: str | Path | None = None,
                    chunk_frames: int = 64) -> Capture:
-    """Build the capture `out` from the rig file; relative paths resolve against `data_dir` (default: the rig's folder)."""
+    """Build the capture `out` from the rig file; relative paths resolve against `data_dir` (default: the rig's
+    folder)."""
     rig_path = Path(rig_path)
     rig = Rig.load(rig_path)
     base = Path(data_dir) if data_dir is not None else rig_path.parent
@@ -179,7 +189,8 @@ def _camera_info(rig: Rig, rig_path: Path, videos: list[VideoSource | None]) -> 
     for v in present[1:]:
         if (v.frame_shape, v.fps, v.bit_depth) != (first.frame_shape, first.fps, first.bit_depth):
             raise InputError(v.path, f"{v.frame_shape} at {v.fps} fps, {v.bit_depth} bit differs from the first "
-                                     f"take's {first.frame_shape} at {first.fps} fps, {first.bit_depth} bit ({first.path.name})")
+                                     f"take's {first.frame_shape} at {first.fps} fps, {first.bit_depth} bit "
+                                     f"({first.path.name})")
     return CameraInfo(
         model=rig.camera.model or first.camera_model or "unknown",
         width_px=first.width_px,

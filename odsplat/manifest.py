@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import tomllib
 import types
 import typing
 from dataclasses import dataclass, field
@@ -12,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomllib
 
 from .errors import InputError, SchemaError
 from .units import SI_UNITS
@@ -104,7 +104,8 @@ class ChannelInfo:
         if self.unit not in SI_UNITS:
             raise InputError(f"{where}.unit", f"expected an SI unit ({', '.join(SI_UNITS)}); got {self.unit!r}")
         if self.unit != CHANNEL_KINDS[self.kind]:
-            raise InputError(f"{where}.unit", f"a {self.kind} channel is stored in {CHANNEL_KINDS[self.kind]}, got {self.unit!r}")
+            raise InputError(f"{where}.unit",
+                             f"a {self.kind} channel is stored in {CHANNEL_KINDS[self.kind]}, got {self.unit!r}")
         for name in ("position_m", "direction"):
             value = getattr(self, name)
             if value is not None and len(value) != 3:

@@ -24,7 +24,7 @@ import os
 import shutil
 import uuid
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO, Any
 
@@ -255,7 +255,8 @@ class TakeWriter:
             raise InputError(self.name, f"sample block has channels {sorted(block)}; expected {sorted(self._daq)}")
         lengths = {len(v) for v in block.values()}
         if len(lengths) != 1:
-            raise InputError(self.name, f"sample block channels differ in length: { {k: len(v) for k, v in block.items()} }")
+            by_channel = {k: len(v) for k, v in block.items()}
+            raise InputError(self.name, f"sample block channels differ in length: {by_channel}")
         for name, values in block.items():
             ds = self._daq[name]
             k = self._n_samples[name]
@@ -524,7 +525,8 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
         try:
             check_schema(src.attrs.get("odsplat_schema", "missing"), where=str(partial_path))
             has_frames = "frames" in src
-            n_frames = min(src["frames"].shape[0], src["frame_counter"].shape[0], src["frame_times_s"].shape[0]) if has_frames else 0
+            n_frames = (min(src["frames"].shape[0], src["frame_counter"].shape[0], src["frame_times_s"].shape[0])
+                        if has_frames else 0)
             daq = src["daq"]
             names = json.loads(daq.attrs["channel_order"])
             n_samples = min((daq[n].shape[0] for n in names), default=0)
@@ -551,7 +553,8 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
                 writer.append_samples({n: daq[n][:n_samples] for n in names})
         except (OSError, KeyError, ValueError) as exc:
             return RecoveryReport(name, False, 0, 0, f"{partial_path}: could not be recovered, left in place ({exc})")
-    message = f"recovered after a crash: {n_frames} frames and {n_samples} samples were flushed before the writer stopped"
+    message = (f"recovered after a crash: {n_frames} frames and {n_samples} samples were flushed before the writer "
+               "stopped")
     writer.set_qc(QCInfo(status="unchecked", flags=("recovered",), notes=message))
     writer.finalize(recovered=True)
     os.replace(partial_path, partial_path.with_name(name + CRASHED_SUFFIX))
@@ -653,7 +656,8 @@ class Capture:
         if name in self.take_names():
             raise OdsplatError(f"{self.root}: take {name!r} exists already; raw takes are written once")
         channels = self.manifest.channels if channels is None else channels
-        all_attrs = {"view": -1 if view is None else view, "fps": np.nan if fps is None else fps, "capture": self.manifest.name}
+        all_attrs = {"view": -1 if view is None else view, "fps": np.nan if fps is None else fps,
+                     "capture": self.manifest.name}
         all_attrs.update(attrs or {})
         return TakeWriter(
             self.takes_dir / f"{name}.h5",

@@ -54,7 +54,8 @@ class CaptureSummary:
             where = f" at {ch['position_m']} dir {ch['direction']}" if ch.get("position_m") else ""
             lines.append(f"  {ch['name']:<12} {ch['kind']:<13} [{ch['unit']}]{where}")
         lines.append(f"takes   {len(self.takes)}, {self.total_bytes / 1e6:.1f} MB")
-        header = f"  {'name':<12} {'view':>4} {'frames':>7} {'shape':<12} {'bit':>3} {'dur_s':>8} {'samples':>8} {'MB':>8}  status/QC"
+        header = (f"  {'name':<12} {'view':>4} {'frames':>7} {'shape':<12} {'bit':>3} {'dur_s':>8} {'samples':>8} "
+                  f"{'MB':>8}  status/QC")
         lines.append(header)
         for t in self.takes:
             shape = "x".join(map(str, t.frame_shape)) or "-"

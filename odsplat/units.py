@@ -62,5 +62,6 @@ def to_si(values: np.ndarray, unit: str, *, where: str) -> tuple[np.ndarray, str
 def quantity_of(si_unit: str, *, where: str) -> str:
     """The physical quantity of an SI unit name that odsplat stores."""
     if si_unit not in SI_UNITS:
-        raise InputError(where, f"unit {si_unit!r} is not an SI unit odsplat stores; expected one of {sorted(SI_UNITS)}")
+        raise InputError(where,
+                         f"unit {si_unit!r} is not an SI unit odsplat stores; expected one of {sorted(SI_UNITS)}")
     return SI_UNITS[si_unit]

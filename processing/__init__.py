@@ -4,8 +4,15 @@ Public surface: `run(capture, MagnifySettings)` (alias `magnify_capture`) -> `Ma
 `derived/magnified/METHOD/`; `MagnifiedVideo` reads a magnified take. Magnifiers and filters for use on their
 own are in their modules."""
 from .learned import TrainConfig, train
-from .run import METHODS, MagnifiedTake, MagnifiedVideo, MagnifyResult, MagnifySettings, magnify_capture, \
-    parse_options
+from .magnify import (
+           METHODS,
+           MagnifiedTake,
+           MagnifiedVideo,
+           MagnifyResult,
+           MagnifySettings,
+           magnify_capture,
+           parse_options,
+)
 
 run = magnify_capture  # the stage's entry
 

@@ -82,7 +82,7 @@ class SOSFilter(TemporalFilter):
         if self._z is None:
             self._z = [torch.zeros((2, *x.shape[1:]), dtype=x.dtype, device=x.device) for _ in self._sos]
         y = x
-        for s, (b0, b1, b2, a0, a1, a2) in enumerate(self._sos):
+        for s, (b0, b1, b2, _a0, a1, a2) in enumerate(self._sos):
             z = self._z[s]
             out = torch.empty_like(y)
             for n in range(y.shape[0]):

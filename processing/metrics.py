@@ -43,7 +43,8 @@ def estimate_translation(a: torch.Tensor, b: torch.Tensor, *, border: int = 8, i
     y = _as_nchw(b).double().mean(dim=1, keepdim=True)
     h, w = x.shape[-2:]
     # Coarse: the circular cross-correlation's peak of the Hann-windowed, mean-free images.
-    win = torch.hann_window(h, periodic=False, dtype=torch.float64)[:, None] * torch.hann_window(w, periodic=False, dtype=torch.float64)[None]
+    win = (torch.hann_window(h, periodic=False, dtype=torch.float64)[:, None]
+           * torch.hann_window(w, periodic=False, dtype=torch.float64)[None])
     fa = torch.fft.fft2((x[0, 0] - x.mean()) * win)
     fb = torch.fft.fft2((y[0, 0] - y.mean()) * win)
     cc = torch.fft.ifft2(fb * fa.conj()).real

@@ -1,4 +1,5 @@
-"""Dynamic 3D Gaussians after Luiten et al. 2023: a t=0 fit with densification, then per-timestep fits of means and rotations.
+"""Dynamic 3D Gaussians after Luiten et al. 2023: a t=0 fit with densification, then per-timestep fits of means and
+rotations.
 
 Written from the paper's description. Scale, opacity and colour are fitted at t=0 (on the rest frames and, when
 there are any, the static photos) and frozen; each later timestep starts from a constant-velocity extrapolation
@@ -61,8 +62,10 @@ class FitSettings:
     rot_weight: float = 4.0
     iso_weight: float = 2.0
     k_neighbours: int = 20
-    average_last: float = 0.5              # per timestep: the mean iterate over this last fraction of the iterations (0: the last one)
-    prior_fraction: float = 0.25            # of the neighbourhoods each iteration evaluates (a random subset; bench: 3.2x faster, same PSNR)
+    average_last: float = 0.5              # per timestep: the mean iterate over this last fraction of the iterations
+                                           # (0: the last one)
+    prior_fraction: float = 0.25            # of the neighbourhoods each iteration evaluates (a random subset;
+                                            # bench: 3.2x faster, same PSNR)
     neighbour_width: float = 2.0            # weight width, x the median neighbour distance
     background: float | None = None         # None: learned at t = 0 (one value per channel), then frozen
     backend: str = "auto"
@@ -85,7 +88,10 @@ def render(g: Gaussians, camera: Camera, *, means: torch.Tensor | None = None, q
            background: float | torch.Tensor = 0.0, backend: str = "auto", extras: torch.Tensor | None = None):
     """Rasterize Gaussians (optionally with other means/quats, e.g. a later timestep) seen by `camera`."""
     dt = g.means.dtype
-    bg = background.to(dt) if isinstance(background, torch.Tensor) else torch.full((g.n_colors,), float(background), dtype=dt)
+    if isinstance(background, torch.Tensor):
+        bg = background.to(dt)
+    else:
+        bg = torch.full((g.n_colors,), float(background), dtype=dt)
     return rasterize(g.means if means is None else means, g.quats if quats is None else quats, g.scales,
                      g.opacities, g.colors, camera.viewmat(dt), camera.K_tensor(dt), camera.width_px,
                      camera.height_px, background=bg, extras=extras, backend=backend)
@@ -236,7 +242,8 @@ def fit_static(g: Gaussians, views: list[tuple[Camera, torch.Tensor]], s: FitSet
             bar.set_postfix(loss=f"{np.mean(losses[-50:]):.4f}", n=len(fit.params["means"]))
     bar.close()
     out_g = fit.gaussians().detached()
-    stats = dict(background=fit.background.detach().tolist(), iterations=s.iters_t0, seconds=time.perf_counter() - t0, n_gaussians=len(out_g),
+    stats = dict(background=fit.background.detach().tolist(), iterations=s.iters_t0,
+                 seconds=time.perf_counter() - t0, n_gaussians=len(out_g),
                  loss_first=float(np.mean(losses[:20])) if losses else None,
                  loss_last=float(np.mean(losses[-20:])) if losses else None)
     return out_g, stats

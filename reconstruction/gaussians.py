@@ -96,8 +96,9 @@ class Gaussians:
     def transformed(self, scale: float, offset: np.ndarray | torch.Tensor) -> Gaussians:
         """The same Gaussians in coordinates x' = scale * x + offset (scene normalisation and back)."""
         offset = torch.as_tensor(np.asarray(offset), dtype=self.means.dtype)
-        return Gaussians(means=self.means * scale + offset, quats=self.quats, log_scales=self.log_scales + np.log(scale),
-                         opacity_logits=self.opacity_logits, color_logits=self.color_logits)
+        return Gaussians(means=self.means * scale + offset, quats=self.quats,
+                         log_scales=self.log_scales + np.log(scale), opacity_logits=self.opacity_logits,
+                         color_logits=self.color_logits)
 
 
 # ---------------------------------------------------------------------------------------------------- INRIA .ply

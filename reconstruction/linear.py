@@ -254,8 +254,12 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
             if frames.max() >= len(times) or not np.allclose(times[frames], vs.times_s, atol=1e-9):
                 raise InputError(path, "times_s differ from the training grid's")
             full = 2.0 ** int(ff.attrs["bit_depth"]) - 1
-            read = lambda a, b: np.asarray(ff.read_frames(a, b), np.float64).reshape(b - a, *ff.frame_shape[:2], -1)\
-                .mean(axis=-1) / full  # noqa: E731  (colour: the mean of the channels)
+
+            def read(a, b, ff=ff, full=full):
+                """Frames a..b as grey levels in [0, 1] (colour: the mean of the channels)."""
+                x = np.asarray(ff.read_frames(a, b), np.float64).reshape(b - a, *ff.frame_shape[:2], -1)
+                return x.mean(axis=-1) / full
+
             before = times < 0
             if not before.any():
                 raise InputError(path, "no frame before the impact to take the rest image from")

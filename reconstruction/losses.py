@@ -1,4 +1,5 @@
-"""Training losses: L1 + D-SSIM on images, and the neighbour priors of Luiten et al. 2023 (rigidity, rotation, isometry).
+"""Training losses: L1 + D-SSIM on images, and the neighbour priors of Luiten et al. 2023 (rigidity, rotation,
+isometry).
 
 The priors are written from the paper's equations. Neighbours are the k nearest Gaussians at t=0, weighted by an
 isotropic Gaussian of their distance; its width is a multiple of the median neighbour distance, so the weights

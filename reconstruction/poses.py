@@ -21,9 +21,9 @@ import numpy as np
 from tqdm import tqdm
 
 from odsplat._deps import import_pycolmap
+from odsplat.contract import check, describe, plain
 from odsplat.errors import InputError, OdsplatError
 from odsplat.geometry import camera_center_m, rotation_angle_deg
-from odsplat.contract import check, describe, plain
 from odsplat.manifest import TagLayout, load_json
 from odsplat.store import Capture, atomic_open, atomic_write_text
 from odsplat.tags import TagDetection, camera_pose_from_tags, detect_tags

@@ -400,7 +400,7 @@ def _project_one(i, means, quats, scales, view, cam, clip, near, eps2d, b_mat, m
     """Rules 1-3 for Gaussian i in float64: camera point, clamped x/z and y/z, J's entries, B = W R_q S and
     M = J B (written to the scratch arrays b_mat (3, 3) and m_mat (2, 3)), the dilated Sigma2 entries (a, b, c)
     and what the backward pass needs of them."""
-    fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3]
+    fx, fy = cam[0], cam[1]
     m0, m1, m2 = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
     x = view[0, 0] * m0 + view[0, 1] * m1 + view[0, 2] * m2 + view[0, 3]
     y = view[1, 0] * m0 + view[1, 1] * m1 + view[1, 2] * m2 + view[1, 3]

@@ -155,7 +155,8 @@ def select_frames(times_s: np.ndarray, n_timesteps: int, step: int = 1, start: i
         raise InputError("timesteps", f"expected n_timesteps >= 1 and step >= 1, got {n_timesteps} and {step}")
     idx = start + step * np.arange(n_timesteps)
     if start < 0 or idx[-1] >= len(times_s):
-        raise InputError("timesteps", f"frames {start}..{idx[-1]} (step {step}) run past the grid's {len(times_s)} frames")
+        raise InputError("timesteps",
+                         f"frames {start}..{idx[-1]} (step {step}) run past the grid's {len(times_s)} frames")
     return idx
 
 
@@ -213,7 +214,8 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
             static.append(TrainView(cam, torch.as_tensor(_resize(img, cam.width_px, cam.height_px)[None], dtype=dtype),
                                     kind="static"))
     if len(alphas) > 1:
-        raise InputError(capture.paths.frames_dir(source), f"the takes were magnified by different factors: {sorted(alphas)}")
+        raise InputError(capture.paths.frames_dir(source),
+                         f"the takes were magnified by different factors: {sorted(alphas)}")
     scene = SceneFrame.fit(np.array([v.camera.center for v in views + static]))
     for v in views + static:
         v.camera = v.camera.in_scene(scene)

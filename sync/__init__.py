@@ -1,9 +1,9 @@
 """Sync: puts the sequential takes of a capture on one impact-locked timeline.
 
-Public surface: `run(capture, SyncSettings)` (alias `sync_capture`) -> `SyncResult` (also `derived/sync.json`, `sync.png`), and
-`AlignedTake` to read a take's frames on the common grid (`derived/sync/NAME.h5`)."""
-from .aligned import AlignedTake
+Public surface: `run(capture, SyncSettings)` (alias `sync_capture`) -> `SyncResult` (also `derived/sync.json` and
+`sync.png`), and `AlignedTake` to read a take's frames on the common grid (`derived/sync/NAME.h5`)."""
 from .align import SyncResult, SyncSettings, TakeSync, load_sync, sync_capture
+from .aligned import AlignedTake
 
 run = sync_capture  # the stage's entry: run(capture, SyncSettings) -> SyncResult, saved to derived/
 

@@ -13,7 +13,7 @@ import json
 import logging
 import math
 import os
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -219,7 +219,8 @@ class _TakeAnalysis:
             raise InputError(force_name, f"no hit found: the force peaks at {peak:.3g} N, below {s.min_peak_n:g} N")
         if hits.size > 1:
             gaps = ", ".join(f"{1e3 * (b - a) / fs:.2f}" for a, b in zip(hits, hits[1:]))
-            raise InputError(force_name, f"{hits.size} hits found ({gaps} ms apart): a double hit cannot be locked to one impact")
+            raise InputError(force_name,
+                             f"{hits.size} hits found ({gaps} ms apart): a double hit cannot be locked to one impact")
         pulse = fit_pulse(force, fs, peak_index=int(hits[0]), source=force_name)
         resp = _response(r, pulse.onset_sample, pulse.impulse_n_s, int(RESPONSE_S * fs))
         self.response = None if resp is None else (resp, fs)
@@ -255,7 +256,8 @@ class _TakeAnalysis:
             out.fps_error_ppm = (1.0 / (st.period_s * r.fps) - 1.0) * 1e6
             out.flags += list(st.flags)
             out.notes += list(st.notes)
-        prior = trigger_time + s.camera_trigger_delay_s + 0.5 * period - 0.5 / fs  # counter 0 starts within a frame after
+        # Counter 0 starts within a frame after the trigger.
+        prior = trigger_time + s.camera_trigger_delay_s + 0.5 * period - 0.5 / fs
         start_guess = out.frame0_daq_time_s if method == "ttl" else prior
         rest_image, rest_std, rest = self._rest(counters, start_guess, period, method == "ttl")
         self._check_tags(rest_image)
@@ -263,11 +265,13 @@ class _TakeAnalysis:
             timing = self._image_timing(counters, rest, rest_image, rest_std, period, start_guess)
             if method == "image":
                 if timing is None:
-                    raise InputError(r.path, "image timing needs accelerometer channels (kind 'acceleration') in the take")
+                    raise InputError(r.path,
+                                     "image timing needs accelerometer channels (kind 'acceleration') in the take")
                 if (not np.isfinite(timing.sigma_frames) or timing.sigma_frames > 0.3 or timing.motion_z < 10
                         or "image_fit_at_window_edge" in timing.flags):
-                    raise InputError(r.path, f"the images do not date the frames (sigma {timing.sigma_frames:.3g} frame, "
-                                             f"motion {timing.motion_z:.1f} sd above noise; {'; '.join(timing.notes)})")
+                    raise InputError(r.path,
+                                     f"the images do not date the frames (sigma {timing.sigma_frames:.3g} frame, "
+                                     f"motion {timing.motion_z:.1f} sd above noise; {'; '.join(timing.notes)})")
                 out.frame0_daq_time_s, out.period_s = timing.frame0_start_s, period
                 out.exposure_s = self._exposure(period)
                 out.residual_frames = timing.sigma_frames
@@ -295,8 +299,9 @@ class _TakeAnalysis:
         ends = start_guess + (counters + margin) * period + (self.cam_exposure_s or period)
         rest = ends < self.out.hit_daq_time_s
         if rest.sum() < 3:
-            raise InputError(self.r.path, f"{int(rest.sum())} frame(s) before the hit; sync needs 3 to see the structure at "
-                                          "rest (record with more pretrigger frames)")
+            raise InputError(self.r.path,
+                             f"{int(rest.sum())} frame(s) before the hit; sync needs 3 to see the structure at "
+                             "rest (record with more pretrigger frames)")
         idx = np.flatnonzero(rest)
         acc = acc2 = None
         for k in idx:  # pretrigger frames come first and are few
@@ -333,7 +338,8 @@ class _TakeAnalysis:
 # ---------------------------------------------------------------------------------------------- across takes
 
 def _response(reader: TakeReader, onset_sample: float, impulse: float, n: int) -> np.ndarray | None:
-    """The accelerometers' response from 1 ms before the onset, locked to it to a fraction of a sample, per unit impulse."""
+    """The accelerometers' response from 1 ms before the onset, locked to it to a fraction of a sample, per unit
+    impulse."""
     accels = reader.channels_of_kind("acceleration")
     if not accels:
         return None

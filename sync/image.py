@@ -54,7 +54,8 @@ class DisplacementBasis:
         v = cumulative_trapezoid(a, dx=1.0 / fs, axis=1, initial=0.0)
         d = cumulative_trapezoid(v, dx=1.0 / fs, axis=1, initial=0.0)
         self._cum = np.concatenate([np.zeros((d.shape[0], 1)), np.cumsum(d, axis=1)], axis=1) / fs  # integral of d
-        self._t = t0_s + np.arange(n + 1) / fs - 0.5 / fs  # the integral's knots: sample k covers [t_k - dt/2, t_k + dt/2]
+        # The integral's knots: sample k covers [t_k - dt/2, t_k + dt/2].
+        self._t = t0_s + np.arange(n + 1) / fs - 0.5 / fs
         self.exposure_s = float(exposure_s)
         self.n_channels = d.shape[0]
 

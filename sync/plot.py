@@ -35,7 +35,8 @@ def plot_sync(capture: Capture, result: SyncResult, path: Path | None = None) ->
                   label=f"half sine fitted to {t.name}")
         ax_f.legend(loc="upper right")
     ax_f.axvline(0.0, color="k", lw=0.5)
-    ax_f.set(xlabel="time after the impact onset [ms]", ylabel="force [N]", title="hammer pulses, locked to their onsets")
+    ax_f.set(xlabel="time after the impact onset [ms]", ylabel="force [N]",
+             title="hammer pulses, locked to their onsets")
 
     names = [t.name for t in result.takes]
     x = np.arange(len(names))

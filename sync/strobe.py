@@ -24,7 +24,8 @@ class StrobeTiming:
     exposure_s: float
     n_pulses: int
     residual_frames: float          # rms misfit of the edges to the straight line, in frame periods
-    anchor: str                     # how counter 0 was found: "end" (the strobe stops after the last frame) or "trigger"
+    anchor: str                     # how counter 0 was found: "end" (the strobe stops after the last frame)
+                                    # or "trigger"
     flags: tuple[str, ...] = ()
     notes: tuple[str, ...] = ()
 

@@ -1,4 +1,5 @@
-"""bench/store.py runs as a script, prints one JSON line, and the store's compression holds on synthetic and real frames."""
+"""bench/store.py runs as a script, prints one JSON line, and the store's compression holds on synthetic and real
+frames."""
 from __future__ import annotations
 
 import json

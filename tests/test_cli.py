@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from odsplat.manifest import ChannelInfo, Manifest
-
 from odsplat.store import Capture
 
 

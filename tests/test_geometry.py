@@ -9,8 +9,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from odsplat.errors import InputError
-from odsplat.geometry import (camera_center_m, direction, look_at, rotation_angle_deg, spherical_coords,
-                              spherical_eye, viewing_angle_deg)
+from odsplat.geometry import (
+    camera_center_m,
+    direction,
+    look_at,
+    rotation_angle_deg,
+    spherical_coords,
+    spherical_eye,
+    viewing_angle_deg,
+)
 from odsplat.hil_sim.render import PinholeCamera
 
 

@@ -16,10 +16,11 @@ import pytest
 
 from odsplat.errors import IncompleteTakeError, InputError, SchemaError
 from odsplat.manifest import CameraInfo, ChannelInfo, Manifest
-from odsplat.store import Capture, QCInfo, TakeReader, TakeWriter, TriggerInfo
+from odsplat.store import Capture, QCInfo, TakeReader, TriggerInfo
 
 CHANNELS = [
-    ChannelInfo("force", "force", "N", sensitivity_v_per_unit=2.25e-3, position_m=[0.1, 0.0, 0.5], direction=[0, 0, -1]),
+    ChannelInfo("force", "force", "N", sensitivity_v_per_unit=2.25e-3, position_m=[0.1, 0.0, 0.5],
+                direction=[0, 0, -1]),
     ChannelInfo("acc1", "acceleration", "m/s^2", position_m=[0.3, 0.0, 0.5], direction=[0, 1, 0]),
 ]
 
@@ -44,7 +45,8 @@ def test_take_round_trip(tmp_path):
             w.append_frames(_frame(k), times_s=[times[k]], counter=[k - 5])
         w.append_samples({"force": force[:1024], "acc1": np.zeros(1024)})
         w.append_samples({"force": force[1024:], "acc1": np.ones(1024)})
-        w.set_trigger(TriggerInfo(trigger_sample=256, pretrigger_samples=256, camera_trigger_frame=5, trigger_time_s=0.0))
+        w.set_trigger(TriggerInfo(trigger_sample=256, pretrigger_samples=256, camera_trigger_frame=5,
+                                  trigger_time_s=0.0))
         w.set_qc(QCInfo("accepted", ("ok",), "fine"))
         record = w.finalize()
     assert record.name == "v03_000" and record.view == 3 and record.n_frames == 20 and record.n_samples == 2048

@@ -213,7 +213,7 @@ def test_an_image_without_tags_gives_no_detections_and_no_pose(scene):
 @pytest.mark.parametrize("refinement", list(REFINEMENTS))
 def test_camera_pose_from_tags_recovers_the_known_pose(scene, views, detections, refinement):
     max_rot_deg, max_centre_mm = POSE_TOL[refinement]
-    for (cam, _, visible), found in zip(views, detections[refinement]):
+    for (cam, _, _), found in zip(views, detections[refinement]):
         pose = camera_pose_from_tags(found, scene.tags, cam.K)
         assert isinstance(pose, CameraPose)
         assert set(pose.tag_ids) == {d.id for d in found if d.id < 100}  # structure tags are left out

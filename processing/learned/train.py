@@ -89,7 +89,8 @@ def _atomic_save(obj, path: Path) -> None:
 
 
 def weights_payload(net: MagNet) -> dict:
-    return {"config": dict(net.config), "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}}
+    return {"config": dict(net.config),
+            "state_dict": {k: v.detach().cpu().clone() for k, v in net.state_dict().items()}}
 
 
 @torch.no_grad()
@@ -99,7 +100,8 @@ def validate(net: MagNet, cfg: SynthConfig, n: int) -> dict[str, float]:
     b = make_batch(VAL_SEED, 0, n, cfg)
     out = []
     for i in range(0, n, 16):
-        out.append(from_net(net(to_net(b["frame_a"][i:i + 16]), to_net(b["frame_b"][i:i + 16]), b["alpha"][i:i + 16]), 3))
+        pred = net(to_net(b["frame_a"][i:i + 16]), to_net(b["frame_b"][i:i + 16]), b["alpha"][i:i + 16])
+        out.append(from_net(pred, 3))
     y = torch.cat(out)
     res = {"ssim": ssim(y, b["target"]), "psnr": psnr(y, b["target"]),
            "ssim_frame_b": ssim(b["frame_b"], b["target"]), "psnr_frame_b": psnr(b["frame_b"], b["target"])}

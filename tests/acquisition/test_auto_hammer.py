@@ -17,8 +17,15 @@ import numpy as np
 import pytest
 
 from odsplat import hammerproto as hp
-from odsplat.acquisition.hammer import (AutoHammer, CANHammerLink, HammerNoResponse, HammerRefused, InterlockError,
-                                        SerialHammerLink, ShotFailed)
+from odsplat.acquisition.hammer import (
+    AutoHammer,
+    CANHammerLink,
+    HammerNoResponse,
+    HammerRefused,
+    InterlockError,
+    SerialHammerLink,
+    ShotFailed,
+)
 from odsplat.acquisition.lab import load_lab_config
 from odsplat.acquisition.session import AutoHammerSettings
 from odsplat.errors import InputError

@@ -8,12 +8,12 @@ import pytest
 
 from odsplat.acquisition.daq import DAQChannel, DAQError, SerialDAQ
 from odsplat.acquisition.qc import QCLimits, check_hit
-from odsplat.impulse import find_impacts
 from odsplat.acquisition.trigger import HammerTrigger, NoTrigger, TriggeredRecord, first_crossing, wait_for_hit
 from odsplat.errors import InputError
 from odsplat.hil_sim.daq import register_url_handler
 from odsplat.hil_sim.rig import RigConfig, SimRig
 from odsplat.hil_sim.structure import Hammer
+from odsplat.impulse import find_impacts
 
 pytestmark = pytest.mark.timeout(60)
 FS = 25_600
@@ -135,7 +135,10 @@ def test_first_crossing_and_find_impacts_on_plain_arrays():
     assert first_crossing(x, 10, previous=20) == 3  # previous above: x[0] is not a crossing, x[3] is
     assert first_crossing(np.array([11.0, 12.0]), 10, previous=11) is None
     t = np.arange(0, 0.01, 1 / FS)
-    pulse = lambda t0, d, p: np.where((t >= t0) & (t <= t0 + d), p * np.sin(np.pi * np.clip(t - t0, 0, d) / d), 0)
+
+    def pulse(t0, d, p):
+        return np.where((t >= t0) & (t <= t0 + d), p * np.sin(np.pi * np.clip(t - t0, 0, d) / d), 0)
+
     one = pulse(0.002, 1e-3, 200) + 0.5 * np.random.default_rng(0).standard_normal(t.size)
     assert len(find_impacts(one)) == 1
     assert len(find_impacts(pulse(0.002, 1e-3, 200) + pulse(0.003, 1e-3, 60))) == 2

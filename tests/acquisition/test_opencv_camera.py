@@ -80,7 +80,8 @@ def test_internal_trigger_records_from_the_arm_and_each_arm_replays_the_file(vid
     with _camera(video) as cam:
         for _ in range(2):
             status, frames = _record(cam, TriggerSettings(n_frames=10, mode="internal"))
-            assert (status.n_frames, status.first_counter, status.pretrigger_available, status.dropped) == (10, 0, 0, ())
+            assert (status.n_frames, status.first_counter, status.pretrigger_available, status.dropped) == \
+                (10, 0, 0, ())
             assert [f.counter for f in frames] == list(range(10))
             assert [_index(f.image) for f in frames] == list(range(10))
             assert [f.time_s for f in frames] == pytest.approx([c / FILE_FPS for c in range(10)])

@@ -16,11 +16,24 @@ import pytest
 from odsplat.acquisition import photron
 from odsplat.acquisition.camera import CameraTimeout, TriggerSettings
 from odsplat.acquisition.photron import (
-    LIBRARY_ENV, PDC, SIGNATURES, PdcError, PhotronCamera, RecordingWindow, choose_record_rate, choose_shutter,
-    error_message, frame_bytes, ip_to_pdc, plan_trigger, select_window, status_name, unpack_12bit, unpack_frame,
+    LIBRARY_ENV,
+    PDC,
+    SIGNATURES,
+    PdcError,
+    PhotronCamera,
+    RecordingWindow,
+    choose_record_rate,
+    choose_shutter,
+    error_message,
+    frame_bytes,
+    ip_to_pdc,
+    plan_trigger,
+    select_window,
+    status_name,
+    unpack_12bit,
+    unpack_frame,
 )
 from odsplat.errors import InputError
-
 
 # -------------------------------------------------------------------- no SDK
 
@@ -53,7 +66,7 @@ def test_arguments_are_checked_before_the_sdk_is_looked_for():
 def test_every_sdk_function_the_driver_calls_has_a_signature():
     called = set(re.findall(r'"(PDC_\w+)"', inspect.getsource(photron.PhotronCamera)))
     assert called and called <= set(SIGNATURES), called - set(SIGNATURES)
-    for name, argtypes in SIGNATURES.items():
+    for argtypes in SIGNATURES.values():
         ctypes.CFUNCTYPE(ctypes.c_ulong, *argtypes, ctypes.POINTER(ctypes.c_ulong))  # valid ctypes types
 
 
@@ -89,7 +102,8 @@ def test_shutter_is_the_longest_exposure_within_the_request():
     assert choose_shutter(1.5e-4, SHUTTERS, 2000) == 8000       # 1/8000 s = 125 us, never the longer 1/4000
     assert choose_shutter(1 / 2000, SHUTTERS, 2000) == 2000     # a whole frame period
     assert choose_shutter(1 / 1000, SHUTTERS, 1000) == 1000
-    with pytest.raises(InputError, match="TriggerSettings.exposure_s: 0.0006 s is longer than the frame period 1/2000 s"):
+    with pytest.raises(InputError,
+                       match="TriggerSettings.exposure_s: 0.0006 s is longer than the frame period 1/2000 s"):
         choose_shutter(6e-4, SHUTTERS, 2000)
     with pytest.raises(InputError, match="shorter than the shortest shutter of this camera, 1/100000 s"):
         choose_shutter(5e-6, SHUTTERS, 2000)
@@ -98,7 +112,8 @@ def test_shutter_is_the_longest_exposure_within_the_request():
 @pytest.mark.parametrize("pretrigger,pre,after", [("start", 0, 100), ("center", 50, 50), ("end", 99, 1), (30, 30, 70)])
 def test_short_recordings_use_manual_with_after_frames(pretrigger, pre, after):
     plan = plan_trigger(TriggerSettings(n_frames=100, pretrigger=pretrigger), max_frames=21_000)
-    assert (plan.mode_code, plan.mode_name, plan.after_frames, plan.endless) == (PDC.TRIGGER_MANUAL, "manual", after, True)
+    assert (plan.mode_code, plan.mode_name, plan.after_frames, plan.endless) == \
+        (PDC.TRIGGER_MANUAL, "manual", after, True)
     assert (plan.pretrigger_frames, plan.post_frames, plan.n_frames) == (pre, 100 - pre, 100)
 
 
@@ -120,7 +135,8 @@ def test_trigger_mode_encoding_matches_a_real_cameras_file(shared_data):
     text = (shared_data / "pymraw-samples" / "ball_12bit.cihx").read_bytes().decode("utf-8", "ignore")
     pdc_mode = int(re.search(r"<pdcMode>(\d+)</pdcMode>", text).group(1))
     assert pdc_mode == 0x07 << 24  # PDC_TRIGGER_RANDOM_MANUAL in PDCVALUE.h
-    assert [PDC.TRIGGER_START, PDC.TRIGGER_CENTER, PDC.TRIGGER_END, PDC.TRIGGER_MANUAL] == [m << 24 for m in (0, 1, 2, 4)]
+    modes = [PDC.TRIGGER_START, PDC.TRIGGER_CENTER, PDC.TRIGGER_END, PDC.TRIGGER_MANUAL]
+    assert modes == [m << 24 for m in (0, 1, 2, 4)]
 
 
 # -------------------------------------------------------------------- the recording window
@@ -139,7 +155,8 @@ def test_window_is_short_never_padded():
     stopped_early = select_window(start=-50, end=20, trigger=0, pretrigger=50, post_frames=50)
     assert (stopped_early.last_frame, stopped_early.n_frames) == (20, 71)
     assert RecordingWindow(trigger_frame=0, first_frame=0, last_frame=-1).n_frames == 0
-    with pytest.raises(InputError, match="PDC_GetMemFrameInfo: trigger frame 200 lies outside the recorded frames 0..99"):
+    with pytest.raises(InputError,
+                       match="PDC_GetMemFrameInfo: trigger frame 200 lies outside the recorded frames 0..99"):
         select_window(start=0, end=99, trigger=200, pretrigger=0, post_frames=10)
 
 

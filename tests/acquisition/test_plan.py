@@ -8,8 +8,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from odsplat.acquisition.plan import (PlanSettings, check_pose, coverage, default_coverage_radius_deg, describe_view,
-                                      neighbour_spacing_deg, plan_views, top_view_map, view_eye_m, view_pose)
+from odsplat.acquisition.plan import (
+    PlanSettings,
+    check_pose,
+    coverage,
+    default_coverage_radius_deg,
+    describe_view,
+    neighbour_spacing_deg,
+    plan_views,
+    top_view_map,
+    view_eye_m,
+    view_pose,
+)
 from odsplat.errors import InputError
 from odsplat.geometry import camera_center_m, look_at, spherical_eye
 from odsplat.manifest import Viewpoint

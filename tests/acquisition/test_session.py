@@ -89,7 +89,8 @@ def _accepted_hashes(out: Path) -> dict[str, str]:
 @pytest.mark.timeout(300)
 def test_sigkill_mid_session_then_resume_loses_nothing(tmp_path):
     out = tmp_path / "cap"
-    proc = subprocess.Popen(_capture_cmd(out), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_env(), cwd=REPO)
+    proc = subprocess.Popen(_capture_cmd(out), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=_env(),
+                            cwd=REPO)
     deadline = time.monotonic() + 200
     try:
         while time.monotonic() < deadline:

@@ -6,8 +6,18 @@ import dataclasses
 import numpy as np
 import pytest
 
-from odsplat.analysis.ema import (LSFDResult, PolesAtOrder, fit_modes, lscf, lsfd, pole_damping,
-                                  pole_freq_hz, pole_from_freq_damping, select_poles, stabilisation)
+from odsplat.analysis.ema import (
+    LSFDResult,
+    PolesAtOrder,
+    fit_modes,
+    lscf,
+    lsfd,
+    pole_damping,
+    pole_freq_hz,
+    pole_from_freq_damping,
+    select_poles,
+    stabilisation,
+)
 from odsplat.errors import InputError
 from odsplat.hil_sim.structure import ModalStructure
 

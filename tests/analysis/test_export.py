@@ -7,8 +7,16 @@ import numpy as np
 import pytest
 import pyuff
 
-from odsplat.analysis.export import (FRFRecord, Geometry, ShapeRecord, TimeSeries, read_results_h5, read_uff,
-                                     write_results_h5, write_uff)
+from odsplat.analysis.export import (
+    FRFRecord,
+    Geometry,
+    ShapeRecord,
+    TimeSeries,
+    read_results_h5,
+    read_uff,
+    write_results_h5,
+    write_uff,
+)
 from odsplat.errors import InputError, OdsplatError
 
 DT_S = 1 / 51200          # not representable in the 6 digits of a UFF 58 header: exercises its rounding

@@ -7,8 +7,16 @@ import logging
 import numpy as np
 import pytest
 
-from odsplat.analysis.frf import (FRFSettings, check_hit, correct_damping, correct_poles, estimate_frf,
-                                  exponential_window, force_window, split_hits)
+from odsplat.analysis.frf import (
+    FRFSettings,
+    check_hit,
+    correct_damping,
+    correct_poles,
+    estimate_frf,
+    exponential_window,
+    force_window,
+    split_hits,
+)
 from odsplat.errors import InputError
 from odsplat.hil_sim.structure import Impact, ModalStructure
 

@@ -5,8 +5,16 @@ import numpy as np
 import pytest
 
 from odsplat.analysis.correlation import comac, correlate, mac, modal_scale_factor
-from odsplat.analysis.ods import SurfaceMotion, explained_share, fit_decay, force_transform, lsce_poles, pencil_poles, \
-    receptance, stable_poles
+from odsplat.analysis.ods import (
+    SurfaceMotion,
+    explained_share,
+    fit_decay,
+    force_transform,
+    lsce_poles,
+    pencil_poles,
+    receptance,
+    stable_poles,
+)
 from odsplat.errors import InputError
 from odsplat.hil_sim.structure import Impact, ModalStructure
 
@@ -31,8 +39,9 @@ def _true_residues(s: ModalStructure, points, dirs) -> np.ndarray:
 def _surface(s: ModalStructure, fps: float = 2000.0, n: int = 64):
     """Points on the column and arm, their exact response to one half-sine hit at t = 0 (the onset)."""
     rng = np.random.default_rng(0)
-    pts = np.concatenate([np.c_[rng.uniform(-0.04, 0.04, 40), rng.uniform(-0.04, 0.04, 40), rng.uniform(0.1, 0.6, 40)],
-                          np.c_[rng.uniform(0.05, 0.45, 40), rng.uniform(-0.02, 0.02, 40), rng.uniform(0.57, 0.63, 40)]])
+    column = np.c_[rng.uniform(-0.04, 0.04, 40), rng.uniform(-0.04, 0.04, 40), rng.uniform(0.1, 0.6, 40)]
+    arm = np.c_[rng.uniform(0.05, 0.45, 40), rng.uniform(-0.02, 0.02, 40), rng.uniform(0.57, 0.63, 40)]
+    pts = np.concatenate([column, arm])
     t = np.arange(-2, n - 2) / fps
     hit = Impact(0.0, IMPACT_POINT, IMPACT_DIR, peak_n=200.0, duration_s=1e-3)
     disp = s.response(pts, [hit], t)                             # (T, P, 3)
@@ -71,7 +80,8 @@ def test_lsce_finds_the_poles_from_a_short_noisy_window():
     x = x + rng.normal(0, 1e-3 * np.abs(x).max(), x.shape)
     lam = lsce_poles(t, x, order=24, t_min_s=1.5e-3)
     f = np.abs(lam) / (2 * np.pi)
-    excited = np.abs(s.participation(IMPACT_POINT, IMPACT_DIR)) > 0.1 * np.abs(s.participation(IMPACT_POINT, IMPACT_DIR)).max()
+    participation = np.abs(s.participation(IMPACT_POINT, IMPACT_DIR))
+    excited = participation > 0.1 * participation.max()
     assert excited.sum() == 4                   # a vertical hit leaves the lateral modes (31, 142 Hz) quiet
     for f0 in s.freqs_hz[excited]:
         assert np.min(np.abs(f - f0)) / f0 < 0.005

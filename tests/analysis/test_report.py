@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from odsplat.analysis.analyze import AnalysisResult, Sensor, VideoModes
 from odsplat.analysis.correlation import correlate
 from odsplat.analysis.ema import fit_modes
 from odsplat.analysis.frf import FRFResult, HitCheck
 from odsplat.analysis.ods import receptance
 from odsplat.analysis.plots import ODS_SCALE, plot_frf, plot_mac, plot_ods, write_plots
 from odsplat.analysis.report import write_report
-from odsplat.analysis.run import AnalysisResult, Sensor, VideoModes
 from odsplat.errors import InputError
 from odsplat.hil_sim.structure import ModalStructure
 

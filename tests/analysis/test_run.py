@@ -11,8 +11,8 @@ import pytest
 import pyuff
 from click.testing import CliRunner
 
+from odsplat.analysis.analyze import AnalyzeSettings, analyze_capture
 from odsplat.analysis.correlation import mac, modal_scale_factor
-from odsplat.analysis.run import AnalyzeSettings, analyze_capture
 from odsplat.cli import main
 from odsplat.errors import InputError
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture

@@ -76,8 +76,8 @@ class DAQHost:
         ack = self.request(request).message
         dp.verify_config(request, ack, device=self.port.portstr)
         started = self.request(dp.Start())
-        take = DAQTake(info, ack, dp.DataStreamChecker(len(channels), device=self.port.portstr, next_seq=started.seq + 1),
-                     self.decoder)
+        checker = dp.DataStreamChecker(len(channels), device=self.port.portstr, next_seq=started.seq + 1)
+        take = DAQTake(info, ack, checker, self.decoder)
         t0 = time.monotonic()
         time.sleep(pause_s)  # a host that falls behind
         deadline = t0 + self.timeout_s

@@ -12,8 +12,10 @@ import serial
 
 from odsplat import daqproto as dp
 from odsplat.errors import InputError
-from tests.hil_sim.daqhost import DAQHost as _Host, channels as _channels, open_port as _open
 from odsplat.hil_sim.daq import CLOCK_HZ, DAQFaults, SimDAQDevice, SineSource, register_source, register_url_handler
+from tests.hil_sim.daqhost import DAQHost as _Host
+from tests.hil_sim.daqhost import channels as _channels
+from tests.hil_sim.daqhost import open_port as _open
 
 log = logging.getLogger(__name__)
 pytestmark = pytest.mark.timeout(30)

@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 
 from odsplat.errors import InputError
-from odsplat.hil_sim.render import (PinholeCamera, TexturedMesh, expose, lambert_shade, render, render_reference,
-                                    to_mono)
+from odsplat.hil_sim.render import PinholeCamera, TexturedMesh, expose, lambert_shade, render, render_reference, to_mono
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -172,7 +171,8 @@ def test_depth_id_and_coverage_of_planes():
     zs = lambda px: z0 / (1 - g * (px[0] - cam.K[0, 2]) / cam.K[0, 0])  # noqa: E731  depth of the ray through px
     corners_px = [(-5.0, -40.0), (60.0, -40.0), (60.0, 60.0), (-5.0, 60.0)]
     tilted = _unproject(cam, corners_px, [zs(p) for p in corners_px])
-    tilted[0] = _unproject(cam, [(31.3, -40.0)], [zs((31.3, -40.0))])[0]  # slanted left edge from (31.3, -40) to (-5, 60)
+    # A slanted left edge from (31.3, -40) to (-5, 60).
+    tilted[0] = _unproject(cam, [(31.3, -40.0)], [zs((31.3, -40.0))])[0]
     res = render(_quads([tilted], [np.zeros((4, 2))], [2]), cam, np.ones((2, 2), np.float32), supersample=s)
     ys, xs = np.mgrid[:30, :40].astype(float)
     hit = res.object_id == 2
@@ -181,7 +181,8 @@ def test_depth_id_and_coverage_of_planes():
     # Exact pixel areas right of the line through (31.3, -40) and (-5, 60): x_edge(y) is linear, so integrate it.
     x_at = lambda y: 31.3 + (y + 40.0) * (-36.3 / 100.0)  # noqa: E731
     fine = np.linspace(-0.5, 0.5, 401)[:, None]  # x_edge varies linearly: the midpoint rule on 400 rows is exact
-    frac = np.clip(xs[None] + 0.5 - np.maximum(x_at(ys[None] + (fine[:-1, :, None] + fine[1:, :, None]) / 2), xs[None] - 0.5), 0, 1).mean(0)
+    x_edge = x_at(ys[None] + (fine[:-1, :, None] + fine[1:, :, None]) / 2)
+    frac = np.clip(xs[None] + 0.5 - np.maximum(x_edge, xs[None] - 0.5), 0, 1).mean(0)
     err = np.abs(res.coverage - frac)[(frac > 0) & (frac < 1)]
     assert err.size > 20 and err.max() <= 1 / (2 * s) + 1e-6 and err.mean() <= 1 / s**2
 
@@ -229,9 +230,11 @@ def test_backface_culling_and_lambert_shade():
     front = _unproject(cam, px, [2.0] * 3)
     # light_dir is the direction of travel: a light at the camera shines along +z onto the face turned towards it.
     assert lambert_shade(front, [[0, 1, 2]], light_dir=(0, 0, 1))[0] == pytest.approx(1.0, abs=0.01)
-    np.testing.assert_allclose(lambert_shade(front, [[0, 1, 2], [0, 2, 1]], (0, 0, 1), ambient=0.2), [1.0, 0.2], atol=0.01)
+    np.testing.assert_allclose(lambert_shade(front, [[0, 1, 2], [0, 2, 1]], (0, 0, 1), ambient=0.2), [1.0, 0.2],
+                               atol=0.01)
     flat = np.array([[0, 0, 2.0], [0, 1, 2], [1, 0, 2]])  # normal -z
-    np.testing.assert_allclose(lambert_shade(flat, [[0, 1, 2]], (-1, 0, 1), ambient=0.2), 0.2 + 0.8 / np.sqrt(2), rtol=1e-6)
+    np.testing.assert_allclose(lambert_shade(flat, [[0, 1, 2]], (-1, 0, 1), ambient=0.2), 0.2 + 0.8 / np.sqrt(2),
+                               rtol=1e-6)
     floor = np.array([[0, 0, 0.0], [1, 0, 0], [0, 1, 0]])  # counter-clockwise seen from above: normal +z
     assert lambert_shade(floor, [[0, 1, 2]], (0, 0, -1), ambient=0.3)[0] == pytest.approx(1.0)  # light overhead
     atlas = np.ones((1, 1), np.float32)
@@ -269,7 +272,8 @@ def test_expose_quantisation_ranges_and_colour():
     rgb = np.random.default_rng(2).uniform(0, 1, (4, 5, 3))
     mono = to_mono(rgb)
     assert mono.shape == (4, 5) and mono[0, 0] == pytest.approx(rgb[0, 0] @ [0.2126, 0.7152, 0.0722], rel=1e-6)
-    np.testing.assert_array_equal(expose(rgb, shot_noise=False, read_noise_e=0), expose(mono, shot_noise=False, read_noise_e=0))
+    np.testing.assert_array_equal(expose(rgb, shot_noise=False, read_noise_e=0),
+                                  expose(mono, shot_noise=False, read_noise_e=0))
     assert expose(rgb, rgb=True, shot_noise=False, read_noise_e=0).shape == (4, 5, 3)
     with pytest.raises(InputError):
         expose(mono, rgb=True)

@@ -223,7 +223,8 @@ def test_truth_file_lives_beside_its_take(tmp_path, scene, view):
         np.testing.assert_array_equal(getattr(back, name), getattr(truth, name))
     assert back.camera_fps == 2000.0 and back.mode_names.tolist() == [m.name for m in scene.structure.modes]
     cam_back = back.camera()
-    np.testing.assert_allclose(cam_back.project(np.array([[0.1, 0.2, 0.3]]))[0], view.project(np.array([[0.1, 0.2, 0.3]]))[0])
+    p = np.array([[0.1, 0.2, 0.3]])
+    np.testing.assert_allclose(cam_back.project(p)[0], view.project(p)[0])
     assert back.camera_info().intrinsics.fx_px == pytest.approx(view.K[0, 0])
     # Bad files say which file and what is wrong.
     bad = tmp_path / "bad.truth.npz"

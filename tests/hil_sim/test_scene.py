@@ -35,7 +35,8 @@ def test_only_the_structure_moves(scene):
     floor = np.unique(scene.faces[scene.object_id == FLOOR])
     assert moved[floor].max() == 0
     assert moved[scene.structure_vertices()].max() > 1e-4
-    np.testing.assert_allclose(scene.deformed(q, alpha=50) - scene.rest_m, 50 * (scene.deformed(q) - scene.rest_m), atol=1e-12)
+    np.testing.assert_allclose(scene.deformed(q, alpha=50) - scene.rest_m, 50 * (scene.deformed(q) - scene.rest_m),
+                               atol=1e-12)
 
 
 def test_a_hundredth_of_a_pixel_changes_the_image(scene, camera):

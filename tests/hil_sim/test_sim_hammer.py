@@ -17,8 +17,14 @@ import serial
 
 from odsplat import hammerproto as hp
 from odsplat.errors import InputError
-from odsplat.hil_sim.hammer import (HammerFaults, SimAutoHammer, SimHammerCAN, SimHammerSettings, hammer_url,
-                                    model_from_url)
+from odsplat.hil_sim.hammer import (
+    HammerFaults,
+    SimAutoHammer,
+    SimHammerCAN,
+    SimHammerSettings,
+    hammer_url,
+    model_from_url,
+)
 from odsplat.hil_sim.rig import SimRig
 from odsplat.hil_sim.structure import Impact
 
@@ -426,7 +432,8 @@ def test_the_same_shot_over_can(rig):
             info = _can_expect(host, lambda m: isinstance(m, hp.Info))
             assert (info.ref_seq, info.firmware, info.min_force_n, info.max_force_n, info.max_energy_j) == \
                 (1, "1.0", 10.0, 2000.0, 10.0)
-            host.send(can.Message(arbitration_id=0x123, is_extended_id=False, data=b"\x01\x02"))  # another device's frame: ignored
+            # Another device's frame: ignored.
+            host.send(can.Message(arbitration_id=0x123, is_extended_id=False, data=b"\x01\x02"))
             host.send(hp.to_can(hp.Arm(), seq=2))
             assert _can_expect(host, lambda m: isinstance(m, (hp.Ack, hp.Nak))) == hp.Ack(2, hp.MsgType.ARM)
             assert _can_expect(host, lambda m: isinstance(m, hp.Status)).state is hp.State.ARMED

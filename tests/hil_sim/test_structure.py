@@ -21,8 +21,10 @@ def test_half_sine_response_solves_the_ode():
     force = np.where((s >= 0) & (s <= T), np.sin(np.pi * np.clip(s, 0, T) / T), 0.0)
     assert np.abs(a + 2 * zeta * w * v + w * w * x - force).max() < 1e-9 * np.abs(a).max()
     on = s >= 0
-    ref = solve_ivp(lambda t, y: [y[1], (np.sin(np.pi * t / T) if t <= T else 0.0) - 2 * zeta * w * y[1] - w * w * y[0]],
-                    [0, s[-1]], [0, 0], t_eval=s[on], rtol=1e-10, atol=1e-15, max_step=2e-5)
+    def rhs(t, y):
+        return [y[1], (np.sin(np.pi * t / T) if t <= T else 0.0) - 2 * zeta * w * y[1] - w * w * y[0]]
+
+    ref = solve_ivp(rhs, [0, s[-1]], [0, 0], t_eval=s[on], rtol=1e-10, atol=1e-15, max_step=2e-5)
     np.testing.assert_allclose(x[on], ref.y[0], atol=1e-8 * np.abs(x).max())
     np.testing.assert_allclose(v[on], ref.y[1], atol=1e-8 * np.abs(v).max())
     assert np.all(x[~on] == 0)

@@ -110,7 +110,8 @@ def test_photron_truncated_mraw_names_it(shared_data, tmp_path):
     with pytest.raises(InputError, match="truncated") as err:
         open_video(cih)
     assert err.value.source == str(cih.with_suffix(".mraw"))
-    assert "truncated: holds 1000000 bytes (4.521 frames), ball_12bit.cihx declares 15 frames of 384x384 at 12 bit = 3317760 bytes" in str(err.value)
+    assert ("truncated: holds 1000000 bytes (4.521 frames), ball_12bit.cihx declares 15 frames of 384x384 at 12 bit "
+            "= 3317760 bytes") in str(err.value)
 
 
 @pytest.mark.parametrize("field, value", [("Total Frame", "70"), ("Total Frame", "80"),

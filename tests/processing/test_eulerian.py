@@ -10,8 +10,17 @@ from odsplat.processing.base import rgb_to_yiq
 from odsplat.processing.eulerian import LinearMagnifier, collapse, laplacian_pyramid, level_gains, max_levels
 from odsplat.processing.filters import make_filter
 
-from .motion import (BAND_HZ, FPS_HZ, displacement_px, expected_motion_px, gain, measured_motion_px, run, texture,
-                     translating_video)
+from .motion import (
+    BAND_HZ,
+    FPS_HZ,
+    displacement_px,
+    expected_motion_px,
+    gain,
+    measured_motion_px,
+    run,
+    texture,
+    translating_video,
+)
 
 BORDER_PX = 8  # the Laplacian pyramid mirrors at the borders; the test texture is periodic
 

@@ -15,7 +15,6 @@ from odsplat.processing.learned.synth import SynthConfig, make_batch, make_sampl
 from odsplat.processing.learned.train import TrainConfig, losses, train
 from odsplat.processing.metrics import estimate_translation, psnr, ssim
 
-
 # One textured plane moving rigidly, no noise: the displacement is known exactly.
 PLANE = SynthConfig(size=64, objects=(0, 0), p_background_moves=1.0, p_noise=0.0, p_gray=0.0,
                     alpha_range=(10.0, 10.0), min_magnified_px=2.0, max_magnified_px=4.0)

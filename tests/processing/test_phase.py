@@ -13,8 +13,18 @@ from odsplat.processing.base import rgb_to_yiq
 from odsplat.processing.filters import make_filter
 from odsplat.processing.phase import PhaseMagnifier, measure_shift_px, shift_image_px, spline_sample
 
-from .motion import (BAND_HZ, DIRECTION, FPS_HZ, displacement_px, expected_motion_px, gain, measured_motion_px, run, texture,
-                     translating_video)
+from .motion import (
+    BAND_HZ,
+    DIRECTION,
+    FPS_HZ,
+    displacement_px,
+    expected_motion_px,
+    gain,
+    measured_motion_px,
+    run,
+    texture,
+    translating_video,
+)
 
 
 def two_gratings(cycles_a: tuple[int, int], cycles_b: tuple[int, int], n: int = 128) -> torch.Tensor:

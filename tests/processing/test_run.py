@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from odsplat.errors import InputError
-from odsplat.processing.run import MagnifiedVideo, MagnifySettings, magnify_capture, parse_options
+from odsplat.processing.magnify import MagnifiedVideo, MagnifySettings, magnify_capture, parse_options
 from odsplat.store import Capture
 from odsplat.sync import AlignedTake, SyncSettings, load_sync, sync_capture
 from odsplat.sync.image import DisplacementBasis

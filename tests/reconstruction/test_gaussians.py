@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from odsplat.errors import InputError, SchemaError
-from odsplat.reconstruction.gaussians import SH_C0, Gaussians, load_ply, save_ply
 from odsplat.processing.metrics import ssim as metric_ssim
+from odsplat.reconstruction.gaussians import SH_C0, Gaussians, load_ply, save_ply
 from odsplat.reconstruction.losses import Neighbours, image_loss, ssim
 from odsplat.reconstruction.quaternion import quat_multiply, quat_to_matrix
 
@@ -63,7 +63,8 @@ def test_ply_errors(tmp_path):
     with pytest.raises(InputError, match="nope.ply"):
         load_ply(tmp_path / "nope.ply")
     mesh = tmp_path / "mesh.ply"
-    mesh.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n" + bytes(4))
+    mesh.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nend_header\n"
+                     + bytes(4))
     with pytest.raises(SchemaError, match="missing"):
         load_ply(mesh)
     with pytest.raises(InputError, match="points"):

@@ -8,13 +8,13 @@ import torch
 
 from odsplat.errors import InputError
 from odsplat.geometry import look_at
+from odsplat.manifest import Manifest
 from odsplat.reconstruction.dynamic import render
 from odsplat.reconstruction.gaussians import Gaussians
 from odsplat.reconstruction.linear import LinearSettings, NodeGraph, fit_linear
+from odsplat.reconstruction.model import ReconstructSettings
 from odsplat.reconstruction.poses import PoseResult, ViewPose
-from odsplat.reconstruction.run import ReconstructSettings
 from odsplat.reconstruction.views import Camera, load_views
-from odsplat.manifest import Manifest
 from odsplat.store import Capture
 from odsplat.sync.aligned import write_aligned
 
@@ -65,8 +65,9 @@ def _beam(rng) -> Gaussians:
     pts = np.concatenate(pts)
     n = len(pts)
     t = lambda a: torch.as_tensor(a, dtype=torch.float32)  # noqa: E731
-    return Gaussians(means=t(pts), quats=t(np.tile([1.0, 0, 0, 0], (n, 1))), log_scales=t(np.full((n, 3), np.log(2.5e-3))),
-                     opacity_logits=t(np.full(n, 4.0)), color_logits=t(rng.normal(0, 1.5, (n, 1))))
+    return Gaussians(means=t(pts), quats=t(np.tile([1.0, 0, 0, 0], (n, 1))),
+                     log_scales=t(np.full((n, 3), np.log(2.5e-3))), opacity_logits=t(np.full(n, 4.0)),
+                     color_logits=t(rng.normal(0, 1.5, (n, 1))))
 
 
 def _shape(x: np.ndarray) -> np.ndarray:

@@ -14,8 +14,8 @@ from odsplat.hil_sim.scene import build_scene
 from odsplat.reconstruction.dynamic import FitSettings, fit_static
 from odsplat.reconstruction.gaussians import Gaussians
 from odsplat.reconstruction.modal import ModalMotion, ModalSettings, fit_modal
+from odsplat.reconstruction.model import DynamicScene
 from odsplat.reconstruction.quaternion import quat_conjugate, quat_from_rotvec, quat_multiply, quat_to_rotvec
-from odsplat.reconstruction.run import DynamicScene
 from odsplat.reconstruction.views import Camera, ViewSet
 
 from .test_dynamic import TARGET, _train_views, surface_points
@@ -77,7 +77,7 @@ def test_modal_fit_recovers_the_displacement_at_any_amplitude(rig):
         assert motion.basis.shape == (N_T, 2) and motion.shapes.shape == (len(g0), 2, 3)
         assert float(motion.basis[0].abs().max()) == 0.0  # timestep 0 is the rest state
         out[tip] = _gain(scene, frame, g0, motion, tip, unit)
-    for tip, (gain, err, floor, n_sel, n_floor) in out.items():
+    for tip, (_, _, floor, n_sel, n_floor) in out.items():
         assert n_sel >= 20 and n_floor >= 20
         assert floor < 0.1 * tip, out  # the floor stays still
     gain, err = out[0.03][:2]

@@ -18,7 +18,7 @@ from odsplat.cli import main
 from odsplat.errors import InputError
 from odsplat.hil_sim.bench import SimBench, SimBenchSettings
 from odsplat.reconstruction.gaussians import load_ply
-from odsplat.reconstruction.run import DynamicScene, parse_times
+from odsplat.reconstruction.model import DynamicScene, parse_times
 from odsplat.reconstruction.views import select_frames
 from odsplat.store import Capture
 

@@ -31,7 +31,8 @@ def test_strobe_gives_frame_times_to_a_hundredth_of_a_frame(scene):
         cam.arm(n_frames=60, pretrigger=10, trigger="external", at_s=0.01)
         rec = cam.trigger_at(0.05 + rng.uniform(0, 1e-3))
         volts = cam.ttl(np.arange(int(0.2 * FS)) / FS)
-        st = fit_strobe(volts, FS, 0.0, rec.counters, nominal_fps=FPS, trigger_time_s=_daq_trigger_s(rec.trigger_time_s))
+        st = fit_strobe(volts, FS, 0.0, rec.counters, nominal_fps=FPS,
+                        trigger_time_s=_daq_trigger_s(rec.trigger_time_s))
         assert st.anchor == "end" and "anchor_mismatch" not in st.flags
         errors.append((st.frame0_start_s - rec.trigger_frame_time_s) * FPS)
         assert st.exposure_s == pytest.approx(cam.config.exposure, abs=0.002 / FPS)

@@ -462,6 +462,6 @@ def render_sequence(scene: DynamicScene, cameras: list[Camera], times_s: np.ndar
     return paths
 
 
-__all__ = ["DynamicScene", "Model", "train", "ReconstructResult", "ReconstructSettings", "cameras_from_json", "initial_points",
-           "look_at_point", "orbit", "out_dir", "parse_times", "pose_camera", "reconstruct", "render_sequence",
-           "save_measured"]
+__all__ = ["DynamicScene", "Model", "train", "ReconstructResult", "ReconstructSettings", "cameras_from_json",
+           "initial_points", "look_at_point", "orbit", "out_dir", "parse_times", "pose_camera", "reconstruct",
+           "render_sequence", "save_measured"]

@@ -42,7 +42,8 @@ class AnalyzeSettings:
     pretrigger_s: float = 0.005                      # kept before each hit's onset
     record_s: float | None = None                    # each hit's segment; None: as long as every take allows
     fmin_hz: float | None = None                     # modal fit band; None: 2 % of fmax
-    fmax_hz: float | None = None                     # None: 0.45 x the frame rate with a camera, else 0.4 x the DAQ rate
+    fmax_hz: float | None = None                     # None: 0.45 x the frame rate with a camera,
+                                                     # else 0.4 x the DAQ rate
     max_order: int = 120                             # a low, lightly damped mode settles late (23.5 Hz: from ~42)
     approx_freq_hz: tuple[float, ...] | None = None  # pick these poles instead of automatic selection
     ods_freq_hz: tuple[float, ...] | None = None     # ODS lines; None: the modal frequencies
@@ -69,7 +70,8 @@ class AnalyzeSettings:
             raise InputError("AnalyzeSettings.k_neighbours", f"expected at least 1; got {self.k_neighbours}")
         if self.outlier_factor is not None and not self.outlier_factor >= 1:
             raise InputError("AnalyzeSettings.outlier_factor",
-                             f"expected None or a factor >= 1 (below 1 it can leave no Gaussian); got {self.outlier_factor}")
+                             "expected None or a factor >= 1 (below 1 it can leave no Gaussian); "
+                             f"got {self.outlier_factor}")
 
 
 @dataclass(frozen=True)

@@ -149,7 +149,8 @@ class MagnifyResult:
     def summary(self) -> str:
         band = f", band {self.band_hz[0]:g}-{self.band_hz[1]:g} Hz ({self.filter})" if self.band_hz else ", static"
         lines = [f"{len(self.takes)} view(s) magnified by {self.alpha:g} with {self.method}{band}"]
-        lines += [f"  {t.name:<10} {t.n_frames} frames from {t.source} in {t.seconds:.1f} s -> {t.file}" for t in self.takes]
+        lines += [f"  {t.name:<10} {t.n_frames} frames from {t.source} in {t.seconds:.1f} s -> {t.file}"
+                  for t in self.takes]
         return "\n".join(lines)
 
 
