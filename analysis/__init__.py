@@ -4,7 +4,7 @@ Gaussians, 2D tracking as a cross-check, correlation (MAC, CoMAC), exports (UFF,
 Public surface: two stage entries, `run(capture, AnalyzeSettings) -> AnalysisResult` (alias `analyze_capture`;
 saved to derived/analysis/) and `write_report(capture)` (derived/analysis/report.html), and the pieces they are
 made of for use on their own."""
-from .analyze import AnalysisResult, AnalyzeSettings, Sensor, VideoModes, analyze_capture
+from .analyze import AnalyzeSettings, analyze_capture
 from .correlation import Correlation, comac, correlate, mac, modal_scale_factor
 from .ema import LSFDResult, ModalFit, StabilisationChart, fit_modes, lscf, lsfd, select_poles, stabilisation
 from .export import (
@@ -30,6 +30,7 @@ from .ods import (
     stable_poles,
 )
 from .report import write_report
+from .result import AnalysisResult, Sensor, VideoModes
 from .tracking import Tracks, good_points, project_displacement, track_points
 
 run = analyze_capture  # the analyze stage's entry

@@ -16,12 +16,14 @@ from odsplat.errors import InputError
 from odsplat.manifest import utc_now
 from odsplat.store import Capture, atomic_write_text
 
-from .correlation import Correlation, correlate, mac
-from .crosscheck import ViewCheck, crosscheck_views
+from .correlation import correlate
+from .crosscheck import crosscheck_views
 from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_hit, estimate_frf
-from .imagepoles import ImagePoles, image_poles
+from .imagepoles import image_poles
 from .ods import SurfaceMotion, fit_decay, force_transform, receptance, stable_poles
+from .outputs import write_outputs
+from .result import AnalysisResult, Sensor, VideoModes
 
 log = logging.getLogger(__name__)
 
@@ -72,112 +74,6 @@ class AnalyzeSettings:
             raise InputError("AnalyzeSettings.outlier_factor",
                              "expected None or a factor >= 1 (below 1 it can leave no Gaussian); "
                              f"got {self.outlier_factor}")
-
-
-@dataclass(frozen=True)
-class Sensor:
-    name: str
-    position_m: np.ndarray   # (3,)
-    direction: np.ndarray    # (3,) unit
-
-
-@dataclass(frozen=True)
-class VideoModes:
-    """The video's modal amplitudes with the accelerometer poles, at the sensors and on the whole surface."""
-
-    poles_rad_s: np.ndarray          # (R,) the accelerometer poles inside the camera's band
-    mode_index: np.ndarray           # (R,) their index in the accelerometer fit
-    sensor_residues: np.ndarray      # (R, S) m/N along the sensor directions
-    surface_points_m: np.ndarray     # (N, 3) the Gaussians (or the linear model's nodes: `shapes_from`)
-    surface_residues: np.ndarray     # (R, N, 3) m/N
-    sensor_r2: np.ndarray            # (S,) share of each sensor point's motion the modes explain
-    condition: float
-    freq_hz: np.ndarray              # poles found in the video alone (matrix pencil, stable over ranks)
-    damping: np.ndarray
-    times_s: np.ndarray              # the trained window
-    sensor_displacement_m: np.ndarray  # (T, S) the video's motion at the sensors, along their directions
-    crosscheck: tuple[ViewCheck, ...] = ()   # the 3D motion against 2D tracks in single views
-    shapes_from: str = "trajectories"        # the motion the residues are fitted to: or "measured" (unfiltered)
-
-
-@dataclass(frozen=True)
-class AnalysisResult:
-    frf: FRFResult
-    modes: ModalFit
-    sensors: tuple[Sensor, ...]
-    takes: tuple[str, ...]
-    video: VideoModes | None = None
-    correlation: Correlation | None = None
-    ods_freq_hz: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    ods_accel: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), complex))   # (L, S) m/N, measured H1
-    ods_video: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), complex))   # (L, S) m/N, synthesised
-    image: ImagePoles | None = None      # poles from the raw frames of every synced take
-    files: dict[str, str] = field(default_factory=dict)
-
-    def summary(self) -> dict:
-        """The key numbers, as plain JSON values."""
-        m = self.modes
-        out = {
-            "takes": list(self.takes), "n_averages": self.frf.n_averages,
-            "rejected_hits": [{"take": t, "reasons": list(h.reasons)} for t, h in zip(self.takes, self.frf.hits)
-                              if not h.accepted],
-            "sensors": [s.name for s in self.sensors],
-            "exp_tau_s": self.frf.exp_tau_s,
-            "modes": [{"freq_hz": float(f), "damping": float(z)} for f, z in zip(m.freq_hz, m.damping)],
-        }
-        if self.video is not None:
-            v = self.video
-            out["video"] = {"modes_fitted": [int(i) for i in v.mode_index], "sensor_r2": v.sensor_r2.tolist(),
-                            "condition": v.condition, "freq_hz": v.freq_hz.tolist(), "damping": v.damping.tolist(),
-                            "window_s": [float(v.times_s[0]), float(v.times_s[-1])],
-                            "n_surface_points": int(len(v.surface_points_m)), "shapes_from": v.shapes_from,
-                            "crosscheck": [dataclasses.asdict(c) for c in v.crosscheck]}
-            if v.crosscheck:
-                out["video"]["crosscheck_gain_median"] = float(np.median([c.gain for c in v.crosscheck]))
-                out["video"]["crosscheck_correlation_median"] = float(np.median([c.correlation
-                                                                                 for c in v.crosscheck]))
-        if self.image is not None:
-            im = self.image
-            out["image_poles"] = {"freq_hz": im.freq_hz.tolist(), "damping": im.damping.tolist(),
-                                  "n_views": im.n_views, "n_pixels": im.n_pixels, "window_s": list(im.window_s),
-                                  "component_snr": im.snr.tolist()}
-        if self.correlation is not None:
-            out["correlation"] = {"pairs": self.correlation.summary(), "comac": self.correlation.comac.tolist()}
-        if len(self.ods_freq_hz) and self.ods_video.size:
-            out["ods"] = [{"freq_hz": float(f), "mac": float(mac(a, b)[0, 0])}
-                          for f, a, b in zip(self.ods_freq_hz, self.ods_accel, self.ods_video)]
-        return out
-
-    def text(self) -> str:
-        """A few lines for the terminal."""
-        m = self.modes
-        lines = [f"FRFs: {self.frf.n_averages} of {len(self.takes)} hits averaged, outputs "
-                 f"{', '.join(s.name for s in self.sensors)}",
-                 "modes (accelerometers): " + ", ".join(f"{f:.2f} Hz ({100 * z:.2f} %)"
-                                                        for f, z in zip(m.freq_hz, m.damping))]
-        if self.video is not None:
-            v = self.video
-            lines.append(f"video ({v.shapes_from} motion): {len(v.surface_points_m)} surface points, "
-                         f"{len(v.times_s)} timesteps; modes "
-                         f"{', '.join(str(int(k) + 1) for k in v.mode_index)} fitted (sensor r2 "
-                         f"{', '.join(f'{r:.2f}' for r in v.sensor_r2)}); video-only poles "
-                         + (", ".join(f"{f:.1f}" for f in v.freq_hz) or "none") + " Hz")
-            if v.crosscheck:
-                lines.append(f"2D cross-check ({len(v.crosscheck)} views): gain tracked/3D median "
-                             f"{np.median([c.gain for c in v.crosscheck]):.2f}, correlation median "
-                             f"{np.median([c.correlation for c in v.crosscheck]):.2f}")
-        if self.image is not None:
-            im = self.image
-            lines.append(f"image poles ({im.n_views} views, {im.n_pixels} px, {1e3 * im.window_s[0]:.1f}-"
-                         f"{1e3 * im.window_s[1]:.1f} ms): " + (", ".join(f"{f:.2f}" for f in im.freq_hz) or "none")
-                         + " Hz")
-        if self.correlation is not None:
-            c = self.correlation
-            lines.append("MAC video/accelerometers: " + ", ".join(
-                f"mode {i + 1} {c.pair_mac[k]:.3f} (scale {abs(c.scale_factor[k]):.2f})"
-                for k, (i, _) in enumerate(c.pairs)))
-        lines.append(f"-> {', '.join(self.files.values())}")
-        return "\n".join(lines)
 
 
 # ------------------------------------------------------------------------------------------- accelerometers
@@ -364,6 +260,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     lines = np.clip(np.searchsorted(rec.freq_hz, ods_f), 0, len(rec.freq_hz) - 1)
     ods_accel = rec.h1[lines]                                                       # (L, S)
     ods_video = np.zeros((0, 0), complex)
+    ods_surface = np.zeros((0, 0, 3), complex)
     if video is not None:
         f_acc = modes.freq_hz[video.mode_index]
         # the camera's frequency of each mode: from the raw frames (the whole take) where found, else from the
@@ -373,13 +270,13 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
         corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc, freq_b_hz=f_cam,
                          paired=True)      # each video residue was fitted with that accelerometer pole
         ods_video = receptance(video.sensor_residues, video.poles_rad_s, ods_f)
-    result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video, image)
+        ods_surface = receptance(video.surface_residues, video.poles_rad_s, ods_f)             # (L, N, 3)
+    result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video,
+                            ods_surface, image)
     return _write(capture, result, s)
 
 
 def _write(capture: Capture, result: AnalysisResult, s: AnalyzeSettings) -> AnalysisResult:
-    from .outputs import write_outputs
-
     dest = capture.paths.ensure(capture.paths.analysis_dir)
     files = write_outputs(dest, result)
     summary = {**describe(capture.id, KIND, SCHEMA, s).header(), "capture": capture.root.name,

@@ -8,10 +8,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .export import FRFRecord, Geometry, ShapeRecord, write_results_h5, write_uff
-from .ods import receptance
+from .plots import write_plots
 
 if TYPE_CHECKING:
-    from .analyze import AnalysisResult
+    from .result import AnalysisResult
 
 log = logging.getLogger(__name__)
 
@@ -58,10 +58,9 @@ def records(result: AnalysisResult) -> dict:
         for r, k in enumerate(v.mode_index):
             shapes.append(ShapeRecord(f"video mode {k + 1}", float(m.freq_hz[k]), float(m.damping[k]), sid,
                                       v.surface_residues[r][sub], "mode", "m/N"))
-        if len(result.ods_freq_hz):
-            ods = receptance(v.surface_residues[:, sub], v.poles_rad_s, result.ods_freq_hz)     # (L, n, 3)
-            for li, f in enumerate(result.ods_freq_hz):
-                shapes.append(ShapeRecord(f"video ODS {f:.2f} Hz", float(f), 0.0, sid, ods[li], "ods", "m/N"))
+        for li, f in enumerate(result.ods_freq_hz[:len(result.ods_surface)]):
+            shapes.append(ShapeRecord(f"video ODS {f:.2f} Hz", float(f), 0.0, sid, result.ods_surface[li][sub], "ods",
+                                      "m/N"))
     return {"geometry": geometry, "frfs": frfs, "shapes": shapes}
 
 
@@ -71,7 +70,5 @@ def write_outputs(dest: Path, result: AnalysisResult) -> dict[str, str]:
     write_results_h5(dest / "results.h5", **recs, attrs={"capture_takes": list(result.takes)})
     write_uff(dest / "analysis.uff", **recs, description="odsplat analysis")
     files = {"results": "results.h5", "uff": "analysis.uff"}
-    from .plots import write_plots
-
     files.update(write_plots(dest, result))
     return files

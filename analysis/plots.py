@@ -16,13 +16,12 @@ from odsplat.errors import InputError
 from odsplat.store import atomic_open
 
 from .correlation import mac
-from .ods import receptance
 
 if TYPE_CHECKING:
-    from .analyze import AnalysisResult
     from .correlation import Correlation
     from .ema import ModalFit, StabilisationChart
     from .frf import FRFResult
+    from .result import AnalysisResult
 
 log = logging.getLogger(__name__)
 
@@ -173,11 +172,10 @@ def _rotation(shape: np.ndarray) -> complex:
     return complex(np.exp(-0.5j * np.angle(s))) if s != 0 else 1.0
 
 
-def _video_ods(result: AnalysisResult, freq_hz: float, sub: np.ndarray) -> np.ndarray | None:
-    v = result.video
-    if v is None or v.surface_residues.shape[0] == 0 or len(sub) == 0:
+def _video_ods(result: AnalysisResult, line_index: int, sub: np.ndarray) -> np.ndarray | None:
+    if result.video is None or len(result.ods_surface) == 0 or len(sub) == 0:
         return None
-    return receptance(v.surface_residues[:, sub], v.poles_rad_s, [freq_hz])[0]     # (n, 3) m/N
+    return result.ods_surface[line_index][sub]     # (n, 3) m/N
 
 
 def plot_ods(result: AnalysisResult, line_index: int) -> Figure:
@@ -195,7 +193,7 @@ def plot_ods(result: AnalysisResult, line_index: int) -> Figure:
     v = result.video
     pts = np.asarray(v.surface_points_m, float) if v is not None else np.zeros((0, 3))
     sub = np.linspace(0, len(pts) - 1, min(len(pts), MAX_SCATTER_POINTS)).round().astype(int)
-    surf = _video_ods(result, freq, sub)
+    surf = _video_ods(result, line_index, sub)
     rot = _rotation(acc if acc is not None else surf if surf is not None else 0.0)
     every = np.concatenate([pts[sub], pos])
     every = every[np.isfinite(every).all(axis=1)]

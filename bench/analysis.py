@@ -46,7 +46,7 @@ sys.path.insert(0, str(REPO))
 
 from odsplat.analysis.analyze import AnalysisResult, AnalyzeSettings, analyze_capture  # noqa: E402
 from odsplat.analysis.correlation import mac, modal_scale_factor  # noqa: E402
-from odsplat.analysis.ods import MEASURED, TRAJECTORIES, SurfaceMotion, stable_poles  # noqa: E402
+from odsplat.analysis.ods import SurfaceMotion, stable_poles  # noqa: E402
 from odsplat.errors import InputError  # noqa: E402
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
 from odsplat.hil_sim.camera import SimCameraConfig  # noqa: E402
@@ -106,7 +106,7 @@ def record_and_process(out: Path, args, figures: dict, perfect: bool) -> Capture
               lambda: magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha,
                                                            options=parse_options(args.magnify_option)),
                                       progress=False))
-    stage(figures, "poses", (cap.derived_dir / "poses.json").exists(), lambda: estimate_poses(cap).save(cap))
+    stage(figures, "poses", cap.paths.poses_json.exists(), lambda: estimate_poses(cap).write(cap))
     n = len(timesteps(cap, args.timesteps, args.step))
     fit = FitSettings(iters_t0=args.iters_t0, iters_per_step=args.iters_step, seed=args.seed, progress=False)
     settings = ReconstructSettings(source=default_source(args.motion),
@@ -162,7 +162,7 @@ def write_perfect(cap: Capture, n: int, step: int, alpha: float) -> None:
     q = mean_q(cap, times)
     points = face_points(7200, seed=0)
     disp = np.einsum("prc,rt->tpc", ModalStructure().mode_shapes(points), q)
-    dest = cap.derived_dir / TRAJECTORIES
+    dest = cap.paths.trajectories_npz
     dest.parent.mkdir(parents=True, exist_ok=True)
     np.savez(dest, times_s=times, means_rest_m=points, displacement_m=(alpha * disp).astype(np.float32),
              opacity_logits=np.full(len(points), 4.0), source_alpha=alpha, perfect=True)
@@ -171,7 +171,7 @@ def write_perfect(cap: Capture, n: int, step: int, alpha: float) -> None:
 def lsce_video_poles(cap: Capture) -> tuple[np.ndarray, float]:
     """The baseline for the video's own poles: LSCE (stable over its orders) on the same motion the analysis
     finds them in, the reconstruction's opaque Gaussians after the pulse. Returns (freq_hz, seconds)."""
-    model = SurfaceMotion.read(cap.derived_dir / TRAJECTORIES, min_opacity=AnalyzeSettings.min_opacity)
+    model = SurfaceMotion.read(cap.paths.trajectories_npz, min_opacity=AnalyzeSettings.min_opacity)
     t = model.times_s
     use = t >= 1.5e-3
     x = model.displacement_m.reshape(len(t), -1)[use]
@@ -413,8 +413,8 @@ def main(argv: list[str] | None = None) -> dict:
         cap = Capture.open(args.capture)
     else:
         cap = record_and_process(args.keep or Path(tmp.name) / "cap", args, figures, args.perfect)
-    traj = cap.derived_dir / TRAJECTORIES
-    asides = {p: p.with_name(p.name + ".bench-aside") for p in (traj, cap.derived_dir / MEASURED)}
+    traj = cap.paths.trajectories_npz
+    asides = {p: p.with_name(p.name + ".bench-aside") for p in (traj, cap.paths.measured_motion_npz)}
     if args.perfect and traj.exists():
         with np.load(traj) as z:
             real = "perfect" not in z.files

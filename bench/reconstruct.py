@@ -274,10 +274,10 @@ def main() -> None:
     figures["sync_magnify_s"] = time.perf_counter() - t
     t = time.perf_counter()
     if (cap.derived_dir / "poses.json").exists():
-        poses = PoseResult.load(cap)
+        poses = PoseResult.read(cap)
     else:
         poses = estimate_poses(cap)
-        poses.save(cap)
+        poses.write(cap)
         figures["poses_s"] = time.perf_counter() - t
     names = [v.name for v in poses.views if v.kind == "take"]
     truth = {n: TakeTruth.load(truth_path(cap.takes_dir / f"{n}.h5")) for n in names}

@@ -36,13 +36,14 @@ def main(verbose: int) -> None:
 
 def _given(**fields: Any) -> dict[str, Any]:
     """The settings the user gave on the command line, as a table for the stage: FIELD=VALUE for each option given
-    (not defaulted); a dotted FIELD sets a nested one (fit.iters_t0). A value may be a callable of the option's."""
+    (not defaulted). FIELD is a name, a dotted name for a nested one (fit.iters_t0), or a tuple of them, or
+    (FIELD, convert) with a function of the option's value."""
     ctx = click.get_current_context()
     table: dict[str, Any] = {}
     for param, target in fields.items():
         if ctx.get_parameter_source(param) not in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT):
             continue
-        names, convert = (target, None) if isinstance(target, (str, tuple)) else target
+        names, convert = (target[0], target[1]) if callable(target[-1]) else (target, None)
         value = ctx.params[param]
         value = convert(value) if convert else value
         for name in (names,) if isinstance(names, str) else names:

@@ -327,9 +327,18 @@ def run(capture: Capture, config: Config | None = None, *, start: str | None = N
 
 
 def status(capture: Capture, config: Config | None = None) -> list[tuple[str, bool, str]]:
-    """(stage, current, why) for every stage, in order."""
+    """(stage, current, why) for every stage, in order; a stage after a stale one is stale too (it will run)."""
     config = config or load_config(capture)
-    return [(name, *is_current(capture, name, config)) for name in STAGES]
+    out, stale = [], set()
+    for name in STAGES:
+        current, why = is_current(capture, name, config)
+        behind = [up for up in stage(name).upstream(config) if up in stale]
+        if current and behind:
+            current, why = False, f"{', '.join(behind)} will run first"
+        if not current:
+            stale.add(name)
+        out.append((name, current, why))
+    return out
 
 
 __all__ = ["GRAPH", "PipelineResult", "Stage", "StageRun", "Stamp", "expected", "is_current", "output_identity",

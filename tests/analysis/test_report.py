@@ -11,15 +11,18 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from odsplat.analysis.analyze import AnalysisResult, Sensor, VideoModes
 from odsplat.analysis.correlation import correlate
 from odsplat.analysis.ema import fit_modes
 from odsplat.analysis.frf import FRFResult, HitCheck
 from odsplat.analysis.ods import receptance
 from odsplat.analysis.plots import ODS_SCALE, plot_frf, plot_mac, plot_ods, write_plots
 from odsplat.analysis.report import write_report
+from odsplat.analysis.result import AnalysisResult, Sensor, VideoModes
+from odsplat.contract import describe
 from odsplat.errors import InputError
 from odsplat.hil_sim.structure import ModalStructure
+from odsplat.manifest import Manifest
+from odsplat.store import Capture
 
 STRUCTURE = ModalStructure()
 FREQ_HZ = np.arange(1001) * 0.5  # 0-500 Hz
@@ -89,7 +92,8 @@ def result() -> AnalysisResult:
     rec = frf.to_receptance()
     lines = np.searchsorted(FREQ_HZ, modes.freq_hz)
     return AnalysisResult(frf, modes, SENSORS, ("t1", "t2", "t3", "t4"), video, corr, modes.freq_hz,
-                          rec.h1[lines], receptance(sensor_res, lam, modes.freq_hz))
+                          rec.h1[lines], receptance(sensor_res, lam, modes.freq_hz),
+                          receptance(video.surface_residues, lam, modes.freq_hz))
 
 
 @pytest.fixture(scope="module")
@@ -143,8 +147,8 @@ def test_plots_without_video_nan_lines_and_one_sensor(result, tmp_path):
 
 def test_report_embeds_the_numbers_and_figures(written, result):
     dest, files = written
-    capture = dest.parent.parent
-    doc = {"format": "odsplat-analysis", "capture": "bench-arm", "created_utc": "2024-05-01T10:00:00Z",
+    capture = Capture(dest.parent.parent, Manifest(name="bench-arm"))
+    doc = {**_header(capture), "capture": "bench-arm", "created_utc": "2024-05-01T10:00:00Z",
            **result.summary(), "files": {**files, "results": "results.h5"}}
     (dest / "analysis.json").write_text(json.dumps(doc, default=float))
     html = write_report(capture).read_text()
@@ -160,16 +164,27 @@ def test_report_embeds_the_numbers_and_figures(written, result):
     assert "bench-arm" in html and "2024-05-01" in html
 
 
+def _header(capture: Capture) -> dict:
+    return describe(capture.id, "odsplat.analysis", 2, {}).header()
+
+
 def test_report_input_errors(tmp_path):
+    capture = Capture(tmp_path, Manifest(name="cap"))
     path = tmp_path / "derived" / "analysis" / "analysis.json"
     with pytest.raises(InputError, match="odsplat analyze") as err:
-        write_report(tmp_path)
+        write_report(capture)
     assert err.value.source == str(path)
     path.parent.mkdir(parents=True)
     path.write_text("{not json")
     with pytest.raises(InputError, match="not valid JSON"):
-        write_report(tmp_path)
-    path.write_text(json.dumps({"modes": [{"damping": 0.01}]}))
+        write_report(capture)
+    path.write_text(json.dumps({"modes": [{"freq_hz": 23.5, "damping": 0.01}]}))
+    with pytest.raises(InputError, match="not an odsplat.analysis file"):
+        write_report(capture)
+    path.write_text(json.dumps({**_header(Capture(tmp_path, Manifest(name="other"))), "modes": []}))
+    with pytest.raises(InputError, match="belongs to another capture"):
+        write_report(capture)
+    path.write_text(json.dumps({**_header(capture), "modes": [{"damping": 0.01}]}))
     with pytest.raises(InputError) as err:
-        write_report(tmp_path)
+        write_report(capture)
     assert err.value.source.endswith("modes[0]: freq_hz") and err.value.problem == "missing"

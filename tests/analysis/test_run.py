@@ -18,6 +18,8 @@ from odsplat.errors import InputError
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.rig import TakeTruth, truth_path
 from odsplat.hil_sim.structure import ModalStructure
+from odsplat.reconstruction import PoseResult
+from odsplat.reconstruction.poses import ViewPose
 from odsplat.store import Capture
 from odsplat.sync import SyncSettings, load_sync, sync_capture
 
@@ -37,9 +39,12 @@ def capture(tmp_path_factory) -> Capture:
     views = []
     for take in load_sync(cap).ok:
         tr = _truth(cap, take.name)
-        views.append({"name": take.name, "K": tr.camera_K.tolist(), "R": tr.camera_R.tolist(),
-                      "t": tr.camera_t.tolist()})
-    (cap.derived_dir / "poses.json").write_text(json.dumps({"views": views}))
+        with cap.open_take(take.name) as r:
+            h, w = r.frame_shape[:2]
+        views.append(ViewPose(take.name, "take", int(take.view), "tags", tr.camera_K, tr.camera_R, tr.camera_t, w, h,
+                              None, None, None))
+    PoseResult(views, np.zeros((0, 3)), np.zeros((0, 1)), np.zeros(0), "tags", None, None, None, None, len(views),
+               len(views), []).write(cap)   # the true cameras, saved as the pose stage saves its result
     return cap
 
 
@@ -219,7 +224,7 @@ def test_outputs_read_back(capture):
     res = analyze_capture(capture, AnalyzeSettings(ods_freq_hz=(23.5, 86.0)))
     dest = capture.derived_dir / "analysis"
     summary = json.loads((dest / "analysis.json").read_text())
-    assert summary["format"] == "odsplat-analysis"
+    assert summary["kind"] == "odsplat.analysis" and summary["capture_id"] == capture.id
     assert [round(m["freq_hz"], 3) for m in summary["modes"]] == [round(f, 3) for f in res.modes.freq_hz]
     with h5py.File(dest / "results.h5") as h:
         assert h.attrs["format"] == "odsplat-results"

@@ -244,11 +244,11 @@ def test_compare_poses():
 def test_save_and_load(sfm, tmp_path):
     cap, result, _ = sfm
     with pytest.raises(InputError, match=r"derived/poses.json: no camera poses here; run `odsplat poses` first"):
-        PoseResult.load(cap)
-    result.save(cap)
+        PoseResult.read(cap)
+    result.write(cap)
     doc = json.loads((cap.derived_dir / "poses.json").read_text())
     assert doc["method"] == "sfm" and len(doc["views"]) == 2 * N_VIEWS and doc["report"] == result.report_lines()
-    back = PoseResult.load(cap)
+    back = PoseResult.read(cap)
     assert back.method == result.method and back.notes == result.notes and back.sim3_scale == result.sim3_scale
     for v in result.views:
         w = back.view(v.name)
@@ -268,7 +268,7 @@ def test_cli_poses(pose_capture, tmp_path):
     assert run.output.startswith("poses: method sfm") and "metric frame: Sim3 scale" in run.output
     assert "note: intrinsics refined by SfM from the manifest's" in run.output
     assert f"SfM registered {N_VIEWS}/{N_VIEWS}" in run.output
-    result = PoseResult.load(cap)
+    result = PoseResult.read(cap)
     assert len(result.views) == N_VIEWS and all(v.kind == "take" for v in result.views)
     assert compare_poses(result.poses(), _truth(cap)).center_max_mm < ESTIMATED_CENTER_MAX_MM
     bad = CliRunner().invoke(main, ["poses", str(cap.root), "--masks", str(tmp_path / "nope")])

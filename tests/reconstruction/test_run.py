@@ -48,7 +48,7 @@ def test_reconstruct_writes_the_model(reconstructed):
     cap, text = reconstructed
     d = cap.derived_dir / "reconstruction"
     report = json.loads((d / "reconstruction.json").read_text())
-    assert report["format"] == "odsplat-reconstruction"
+    assert report["kind"] == "odsplat.reconstruction" and report["capture_id"] == cap.id
     assert "v05_000" not in report["views"] and len(report["views"]) == 11 and len(report["static"]) == 12
     assert report["holdout"] == ["v05_000"] and len(report["times_s"]) == 3 and report["times_s"][0] < 0
     # The rest fit explains the training views; a few iterations already beat a flat grey image by far.

@@ -53,7 +53,8 @@ def test_strobe_sync_is_within_two_hundredths_of_a_frame(sim_capture, ttl_result
         assert abs(t.image_check_frames) < 0.2, t  # the images agree with the strobe
         assert t.xcorr_coeff > 0.99 and abs(t.xcorr_lag_s) * 25_600 < 0.25  # responses line up once locked
         assert not {"anchor_mismatch", "image_disagrees", "onset_inconsistent"} & set(t.flags)
-    assert json.loads(Path(sim_capture.derived_dir / "sync.json").read_text())["format"] == "odsplat-sync"
+    doc = json.loads(sim_capture.paths.sync_json.read_text())
+    assert doc["kind"] == "odsplat.sync" and doc["capture_id"] == sim_capture.id
     again = load_sync(sim_capture)
     assert [(t.name, t.offset_s, t.flags) for t in again.takes] == [(t.name, t.offset_s, t.flags) for t in res.takes]
 
@@ -64,7 +65,7 @@ def test_aligned_frames_are_on_the_common_grid(sim_capture, ttl_result):
     assert res.n_frames >= 55 and res.t0_s == pytest.approx(round(res.t0_s * FPS) / FPS)
     exposure = sim_capture.manifest.camera.exposure_s
     for t in res.ok:
-        with AlignedTake(sim_capture.root / t.aligned_file) as a, sim_capture.open_take(t.name) as raw:
+        with AlignedTake(sim_capture.paths.root / t.aligned_file) as a, sim_capture.open_take(t.name) as raw:
             assert a.n_frames == res.n_frames and a.frame_shape == raw.frame_shape
             np.testing.assert_allclose(a.times_s, res.times_s)
             rest = a.times_s + 0.5 * exposure < -0.5 / FPS  # frames wholly before the impact
@@ -105,17 +106,17 @@ def test_band_by_band_alignment_matches_and_impulse_normalisation_scales_the_mot
     base = SyncSettings(camera_trigger_delay_s=TRIGGER_DELAY_S, check_with_image=False)
     one = sync_capture(cap, base, progress=False)
     t = one.ok[1]
-    with AlignedTake(cap.root / t.aligned_file) as a:
+    with AlignedTake(cap.paths.root / t.aligned_file) as a:
         whole = a.read_frames()
     banded = sync_capture(cap, SyncSettings(**{**base.__dict__, "max_memory_mb": 2.0}), progress=False)
-    with AlignedTake(cap.root / banded.ok[1].aligned_file) as a:
+    with AlignedTake(cap.paths.root / banded.ok[1].aligned_file) as a:
         assert a._file["frames"].chunks[1] < a.frame_shape[0]  # it really went in bands of rows
         np.testing.assert_array_equal(a.read_frames(), whole)
     norm = sync_capture(cap, SyncSettings(**{**base.__dict__, "normalize_impulse": True}), progress=False)
     tn = norm.ok[1]
     assert tn.impulse_scale == pytest.approx(norm.reference_impulse_n_s / tn.impulse_n_s)
     assert abs(tn.impulse_scale - 1) > 0.02  # the hits differed in force
-    with AlignedTake(cap.root / tn.aligned_file) as a:
+    with AlignedTake(cap.paths.root / tn.aligned_file) as a:
         scaled = a.read_frames()
     rest = whole[:5].mean(axis=0)
     moved = np.abs(whole[-20:] - rest) > 30  # pixels that clearly changed

@@ -1,0 +1,220 @@
+"""The pipeline on a small simulated capture: `odsplat run` from raw takes to the report, the skip rule, reruns of
+what is stale, kill safety, the derived files' self-description, the configuration and notebook use."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import tomllib
+from click.testing import CliRunner
+
+import odsplat
+from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
+from odsplat.cli import main
+from odsplat.config import STAGES, load_config
+from odsplat.errors import InputError
+from odsplat.hil_sim import SimBench, SimBenchSettings
+from odsplat.pipeline import is_current, status
+from odsplat.store import Capture
+from odsplat.sync import AlignedTake, SyncSettings, load_sync
+
+# Test-sized: 64 px Gaussians, few iterations, a low LSCF order for 24-frame (12 ms) takes.
+CONFIG = """
+[magnify]
+workers = 1
+[reconstruct]
+width_px = 64
+n_timesteps = 16
+[reconstruct.fit]
+iters_t0 = 150
+[analyze]
+max_order = 30
+image_poles = false
+"""
+RIG_MODES_HZ = (23.5, 31.0, 86.0, 142.0, 262.0, 371.0)
+
+
+def _cli(args, code=0):
+    r = CliRunner().invoke(main, [str(a) for a in args])
+    assert r.exit_code == code, r.output + repr(r.exception)
+    return r.output
+
+
+def _statuses(output: str) -> dict[str, str]:
+    """stage -> ran/current from the summary table `odsplat run` prints last."""
+    out = {}
+    for line in output.splitlines():
+        parts = line.split()
+        if len(parts) >= 3 and parts[0] in STAGES and parts[1] in ("ran", "current"):
+            out[parts[0]] = parts[1]
+    return out
+
+
+@pytest.fixture(scope="module")
+def piped(tmp_path_factory):
+    """Twelve views of 24 frames with static photos, through `odsplat run` once (about 90 s)."""
+    out = tmp_path_factory.mktemp("pipeline") / "cap"
+    session = SessionSettings(name="cap", plan=PlanSettings(n_views=12), n_frames=24, pretrigger_frames=4,
+                              trigger=HammerTrigger(pretrigger_s=0.01, record_s=0.05), static_photos=True)
+    assert CaptureSession(out, session, SimBench(settings=SimBenchSettings(seed=1))).run().complete
+    (out / "odsplat.toml").write_text(CONFIG)
+    text = _cli(["run", out])
+    return Capture.open(out), text
+
+
+def _copy(piped, tmp_path) -> Capture:
+    cap, _ = piped
+    shutil.copytree(cap.root, tmp_path / "cap")
+    return Capture.open(tmp_path / "cap")
+
+
+def test_run_goes_from_raw_takes_to_the_report(piped):
+    cap, text = piped
+    assert _statuses(text) == {s: "ran" for s in STAGES}
+    assert f"report: {cap.paths.report_html}" in text
+    html = cap.paths.report_html.read_text()
+    assert "<html" in html and "modes" in html.lower()
+    for stage in STAGES:
+        assert cap.paths.stamp(stage).is_file()
+    # The stages' results, against the rig: every take synced, every view posed, the first bending modes found.
+    assert len(load_sync(cap).ok) == 12
+    poses = json.loads(cap.paths.poses_json.read_text())
+    assert len([v for v in poses["views"] if v["kind"] == "take"]) == 12
+    doc = json.loads(cap.paths.analysis_json.read_text())
+    found = np.array([m["freq_hz"] for m in doc["modes"]])
+    assert any(np.min(np.abs(found - f)) < 0.05 * f for f in RIG_MODES_HZ), found
+    # Every derived index file describes itself one way: kind, schema, this capture, the settings it was made with.
+    for path in (cap.paths.qc_json, cap.paths.sync_json, cap.paths.magnify_json("phase"), cap.paths.poses_json,
+                 cap.paths.reconstruction_json, cap.paths.analysis_json):
+        d = json.loads(path.read_text())
+        assert d["kind"].startswith("odsplat.") and isinstance(d["schema_version"], int), path
+        assert d["capture_id"] == cap.id and "settings" in d["provenance"], path
+    assert json.loads(cap.paths.reconstruction_json.read_text())["provenance"]["settings"]["width_px"] == 64
+
+
+def test_a_second_run_skips_every_stage(piped):
+    cap, _ = piped
+    started = time.perf_counter()
+    text = _cli(["run", cap.root])
+    assert time.perf_counter() - started < 10.0
+    assert _statuses(text) == {s: "current" for s in STAGES}
+    assert all(current for _, current, _ in status(cap))
+
+
+def test_changed_settings_rerun_that_stage_and_what_depends_on_it(piped, tmp_path):
+    cap = _copy(piped, tmp_path)
+    before = load_sync(cap).created_utc
+    (cap.root / "odsplat.toml").write_text(CONFIG.replace("[magnify]\n", "[magnify]\nalpha = 35\n"))
+    text = _cli(["run", cap.root])
+    # The default reconstruction reads the raw frames: nothing downstream depends on the magnified ones.
+    assert _statuses(text) == {**{s: "current" for s in STAGES}, "magnify": "ran"}
+    assert "settings changed (alpha)" in text
+    assert load_sync(cap).created_utc == before
+    assert json.loads(cap.paths.magnify_json("phase").read_text())["alpha"] == 35.0
+    # The paper's order reconstructs from the magnified frames: there the magnification reaches the model.
+    assert is_current(cap, "magnify", load_config(cap, sets=("magnify.alpha=20",)))[0] is False
+    config = load_config(cap, sets=("reconstruct.motion='timestep'",))
+    assert is_current(cap, "magnify", config) == (True, "current")
+    current, why = is_current(cap, "reconstruct", config)
+    assert not current and "settings changed" in why and "motion" in why and "source" in why
+    # A rerun upstream makes everything downstream stale, even with the same settings.
+    _cli(["sync", cap.root, "--no-image-check", "--no-plot"])
+    stale = {name: why for name, current, why in status(cap) if not current}
+    assert set(stale) == {"sync", "magnify", "reconstruct", "analyze", "report"}, stale
+    assert stale["sync"] == "settings changed (check_with_image, plot)"   # those options were for that run alone
+    assert stale["magnify"] == "inputs changed (sync)" and stale["reconstruct"] == "inputs changed (sync)"
+    assert stale["report"] == "analyze will run first"
+
+
+def test_sigkill_during_a_stage_then_run_gives_a_complete_correct_result(piped, tmp_path):
+    cap = _copy(piped, tmp_path)
+    sync_before = load_sync(cap)
+    frames_before = {t.name: AlignedTake(cap.paths.aligned(t.name)).read_frames() for t in sync_before.ok[:3]}
+    stamp = cap.paths.stamp("sync")
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "odsplat", "run", str(cap.root), "--force", "sync"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while stamp.exists() and time.monotonic() < deadline:   # the stage has begun once its stamp is gone
+        time.sleep(0.05)
+    time.sleep(2.0)                                          # well inside sync's ~6 s
+    assert proc.poll() is None, "sync finished before it could be killed"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not stamp.exists()
+    assert dict((n, c) for n, c, _ in status(cap))["sync"] is False
+    text = _cli(["run", cap.root])
+    statuses = _statuses(text)
+    assert statuses["qc"] == "current" and statuses["poses"] == "current"
+    assert all(statuses[s] == "ran" for s in ("sync", "magnify", "reconstruct", "analyze", "report"))
+    after = load_sync(cap)
+    assert [t.name for t in after.ok] == [t.name for t in sync_before.ok]
+    np.testing.assert_allclose([t.offset_s for t in after.ok], [t.offset_s for t in sync_before.ok], atol=1e-9)
+    for name, frames in frames_before.items():
+        np.testing.assert_array_equal(AlignedTake(cap.paths.aligned(name)).read_frames(), frames)
+    assert all(current for _, current, _ in status(cap))
+
+
+def test_foreign_and_newer_derived_files_are_refused_with_one_line(piped, tmp_path):
+    cap = _copy(piped, tmp_path)
+    doc = json.loads(cap.paths.sync_json.read_text())
+    cap.paths.sync_json.write_text(json.dumps({**doc, "capture_id": "someone-elses"}))
+    out = _cli(["magnify", cap.root], code=2)
+    assert out.count("\n") == 1 and "sync.json" in out and "belongs to another capture" in out
+    cap.paths.sync_json.write_text(json.dumps({**doc, "schema_version": 99}))
+    out = _cli(["magnify", cap.root], code=2)
+    assert out.count("\n") == 1 and "schema 99 is newer" in out
+    cap.paths.sync_json.write_text(json.dumps({**doc, "kind": "odsplat.poses"}))
+    with pytest.raises(InputError, match="not an odsplat.sync file"):
+        load_sync(cap)
+    # A stage stamp from another capture stops the pipeline too, with one line naming it.
+    stamp = json.loads(cap.paths.stamp("qc").read_text())
+    cap.paths.stamp("qc").write_text(json.dumps({**stamp, "capture_id": "someone-elses"}))
+    out = _cli(["run", cap.root], code=2)
+    assert out.strip().splitlines()[-1].startswith("odsplat: error:") and "qc.json" in out
+
+
+def test_config_prints_the_effective_settings_and_names_bad_ones(piped, tmp_path):
+    cap, _ = piped
+    text = _cli(["config", cap.root, "--set", "analyze.fmax_hz=900"])
+    table = tomllib.loads(text)
+    assert table["reconstruct"]["width_px"] == 64 and table["reconstruct"]["fit"]["iters_t0"] == 150
+    assert table["analyze"]["fmax_hz"] == 900.0 and table["magnify"]["alpha"] == 20.0
+    assert "odsplat.toml" in text.splitlines()[0]
+    # The printed file is a configuration: read back, it gives the same settings.
+    path = tmp_path / "odsplat.toml"
+    path.write_text(text)
+    again = load_config(path=path)
+    assert again.to_dict() == load_config(cap, sets=("analyze.fmax_hz=900",)).to_dict()
+    out = _cli(["config", cap.root, "--set", "magnify.alhpa=3"], code=2)
+    assert out.count("\n") == 1 and "alhpa" in out
+    out = _cli(["run", cap.root, "--set", "magnify.alpha=-1"], code=2)
+    assert out.count("\n") == 1 and "alpha" in out
+    path.write_text("[magnify]\nalpha = 'big'\n")
+    out = _cli(["run", cap.root, "--config", path], code=2)
+    assert out.count("\n") == 1 and str(path) in out and "alpha" in out
+
+
+def test_notebook_use_writes_nothing_into_the_capture(piped, tmp_path):
+    cap, _ = piped
+    before = {p: p.stat().st_mtime_ns for p in cap.paths.root.rglob("*") if p.is_file()}
+    scratch = odsplat.Capture.open(cap.root, derived=tmp_path / "scratch")
+    result = odsplat.sync.run(scratch, odsplat.SyncSettings(write_frames=False, plot=False, check_with_image=False))
+    assert len(result.ok) == 12 and (tmp_path / "scratch" / "sync.json").is_file()
+    done = odsplat.run(scratch, odsplat.load_config(cap), stop="qc")
+    assert [s.stage for s in done.stages] == ["qc"] and scratch.paths.stamp("qc").is_file()
+    after = {p: p.stat().st_mtime_ns for p in cap.paths.root.rglob("*") if p.is_file()}
+    assert after == before
+    assert isinstance(odsplat.SyncSettings(), SyncSettings)
+
+
+def test_python_dash_m_odsplat():
+    r = subprocess.run([sys.executable, "-m", "odsplat", "run", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "--from" in r.stdout and "--force" in r.stdout
