@@ -31,16 +31,18 @@ lint: $(STAMP)
 
 # The demo runs what works end to end: a guided 27-view capture on the simulated rig (with two
 # injected faults that QC catches and the session redoes), then the whole pipeline in one command
-# (`odsplat run` with examples/demo.toml): hit QC, sync of the takes onto one impact-locked timeline,
-# phase-based magnification of every view (2D videos to watch), camera poses (pycolmap + tags), dynamic 3D
-# Gaussians (the rest state at 128 px, then 64 timesteps of motion from the raw frames in one linear solve), the
-# analysis (modes from the accelerometers, the video's 3D shapes, MAC, UFF/HDF5) and the report; then an orbit
-# render magnified 30x in 3D, and real recordings imported from $(SHARED_DATA) when that folder exists.
+# (`odsplat run`, with examples/demo.toml as the capture's odsplat.toml): hit QC, sync of the takes onto
+# one impact-locked timeline, phase-based magnification of every view (2D videos to watch), camera poses
+# (pycolmap + tags), dynamic 3D Gaussians (the rest state at 128 px, then 64 timesteps of motion from the raw
+# frames in one linear solve), the analysis (modes from the accelerometers, the video's 3D shapes, MAC,
+# UFF/HDF5) and the report; then an orbit render magnified 30x in 3D, and real recordings imported from
+# $(SHARED_DATA) when that folder exists.
 demo: $(STAMP)
 	rm -rf $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat capture $(DEMO_OUT)/sim-rig --sim --auto --no-window --frames 100 --sim-faults 3:double_hit,9:dropped_packet
 	$(BIN)/odsplat info $(DEMO_OUT)/sim-rig
-	$(BIN)/odsplat run $(DEMO_OUT)/sim-rig --config examples/demo.toml
+	cp examples/demo.toml $(DEMO_OUT)/sim-rig/odsplat.toml
+	$(BIN)/odsplat run $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat render $(DEMO_OUT)/sim-rig --camera orbit:16:30 --times -0.0005:0.031:16 --alpha 30
 	@if test -d $(SHARED_DATA); then \
 	  rm -rf $(DEMO_OUT)/ladisk-beam && \

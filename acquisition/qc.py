@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from odsplat.errors import InputError
-from odsplat.impulse import find_impacts
+from odsplat.impulse import impact_onsets
 from odsplat.store import QCInfo
 
 from .daq import DAQChannel
@@ -53,7 +53,7 @@ class HitQC:
     reasons: tuple[str, ...]
     details: tuple[str, ...]
     peak_force_n: float
-    impact_times_s: tuple[float, ...]  # relative to the trigger sample
+    impact_times_s: tuple[float, ...]  # each impact's onset (odsplat.impulse), relative to the trigger sample
     accel_peak: Mapping[str, float] = field(default_factory=dict)  # m/s^2
     lost_samples: int = 0
     dropped_frames: tuple[int, ...] = ()
@@ -91,8 +91,9 @@ def check_hit(record: TriggeredRecord, channels: Sequence[DAQChannel], *, limits
     by_name = {c.name: c for c in channels}
     force = record.channel(force_channel)
     peak = float(np.nanmax(force)) if np.isfinite(force).any() else 0.0
-    impacts = find_impacts(force, fraction=limits.double_hit_fraction)
-    times = tuple((i + record.first_sample - record.trigger_sample) / record.sample_rate_hz for i in impacts)
+    impacts = impact_onsets(force, record.sample_rate_hz, fraction=limits.double_hit_fraction)
+    times = tuple((p.onset_sample + record.first_sample - record.trigger_sample) / record.sample_rate_hz
+                  for p in impacts)
     if len(impacts) > 1:
         gaps_ms = ", ".join(f"{1e3 * (b - a):.2f}" for a, b in zip(times, times[1:]))
         fail("double_hit", f"double hit: {len(impacts)} impacts, {gaps_ms} ms apart")
@@ -212,9 +213,9 @@ def check_take(reader, limits: QCLimits) -> HitQC:
     force = reader.channel(names[0]).astype(float)
     reasons, details = [], []
     peak = float(np.nanmax(force)) if np.isfinite(force).any() else 0.0
-    impacts = find_impacts(force, fraction=limits.double_hit_fraction)
     fs = reader.sample_rate_hz
-    times = tuple(float(i) / fs for i in impacts)
+    impacts = impact_onsets(force, fs, fraction=limits.double_hit_fraction)
+    times = tuple(p.onset_s for p in impacts)
     if len(impacts) == 0:
         reasons.append("force_low")
         details.append("no impact in the force record")

@@ -18,7 +18,7 @@ from .export import (
     write_results_h5,
     write_uff,
 )
-from .frf import FRFResult, FRFSettings, HitCheck, check_hit, estimate_frf, split_hits
+from .frf import FRFResult, FRFSettings, HitCheck, check_frf_hit, estimate_frf, split_hits
 from .ods import (
     DecayFit,
     SurfaceMotion,
@@ -38,7 +38,7 @@ run = analyze_capture  # the analyze stage's entry
 __all__ = ["AnalysisResult", "AnalyzeSettings", "Correlation", "DecayFit", "FRFRecord", "FRFResult", "FRFSettings",
            "Geometry", "HitCheck", "LSFDResult", "ModalFit", "ResultSet", "Sensor", "ShapeRecord",
            "StabilisationChart", "SurfaceMotion", "TimeSeries", "Tracks", "VideoModes", "analyze_capture",
-           "check_hit", "comac", "correlate", "estimate_frf", "fit_decay", "fit_modes", "force_transform",
+           "check_frf_hit", "comac", "correlate", "estimate_frf", "fit_decay", "fit_modes", "force_transform",
            "good_points", "lscf", "lsce_poles", "lsfd", "mac", "modal_scale_factor", "pencil_poles",
            "project_displacement", "read_results_h5", "read_uff", "receptance", "run", "select_poles",
            "split_hits", "stabilisation", "stable_poles", "track_points", "write_report", "write_results_h5",

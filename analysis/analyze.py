@@ -19,7 +19,7 @@ from odsplat.store import Capture, atomic_write_text
 from .correlation import correlate
 from .crosscheck import crosscheck_views
 from .ema import ModalFit, fit_modes
-from .frf import FRFResult, FRFSettings, check_hit, estimate_frf
+from .frf import FRFResult, FRFSettings, check_frf_hit, estimate_frf
 from .imagepoles import image_poles
 from .ods import SurfaceMotion, fit_decay, force_transform, receptance, stable_poles
 from .outputs import write_outputs
@@ -125,7 +125,7 @@ def _hit_segments(capture: Capture, takes: list[str], force: str, sensors, s: An
             rate = fs
             f = r.channel(force).astype(float)
             x = np.stack([r.channel(sn.name).astype(float) for sn in sensors])
-        onset = check_hit(f, fs).onset_index
+        onset = check_frf_hit(f, fs).onset_index
         if not np.isfinite(onset):
             raise InputError(f"takes/{name}.h5: {force}", "no hammer impact found in the force channel")
         records.append((name, f, x, int(np.floor(onset))))

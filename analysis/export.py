@@ -11,7 +11,7 @@ line 4 of a 55 keeps its unit, and a direction given as a vector is kept in ID l
 
 HDF5 layout (`write_results_h5` / `read_results_h5`), groups kept in the order written::
 
-    /                      attrs format="odsplat-results", version="1.0", created_utc, json_attrs (the
+    /                      attrs kind="odsplat.results", schema_version=2, created_utc, json_attrs (the
                            names of the user attrs stored as JSON text), then the user attrs
     /geometry              node_ids (P,) int64, coords_m (P,3) float64 [attr unit="m"],
                            lines (L,2) int64 (when given), names (P,) utf-8 (when given)
@@ -44,8 +44,8 @@ from odsplat.store import atomic_path
 
 log = logging.getLogger(__name__)
 
-RESULTS_FORMAT = "odsplat-results"
-RESULTS_VERSION = "1.0"
+RESULTS_KIND = "odsplat.results"
+RESULTS_SCHEMA = 2
 # UFF direction codes (58 record 6): 1..3 translations, 4..6 rotations, 0 scalar.
 _DIR_CODE = {"scalar": 0, **{f"{s}{a}": (1 if s == "+" else -1) * (i + 1) for s in "+-"
                              for i, a in enumerate(("X", "Y", "Z", "RX", "RY", "RZ"))}}
@@ -529,7 +529,7 @@ def read_uff(path: str | Path) -> ResultSet:
 # ------------------------------------------------------------------------------------------------------- HDF5
 
 _H5_GROUPS = (("time_series", TimeSeries), ("frfs", FRFRecord), ("shapes", ShapeRecord))
-_RESERVED = ("format", "version", "created_utc", "json_attrs")
+_RESERVED = ("kind", "schema_version", "created_utc", "json_attrs")
 
 
 def _plain(value: Any) -> Any:
@@ -553,7 +553,7 @@ def write_results_h5(path: str | Path, *, geometry: Geometry | None = None, time
         raise InputError("attrs", f"{sorted(set(_RESERVED) & set(attrs))} are reserved by the results layout")
     json_keys = [k for k, v in attrs.items() if v is None or isinstance(v, (dict, list, tuple))]
     with atomic_path(path) as tmp, h5py.File(tmp, "w", track_order=True) as f:
-        f.attrs.update({"format": RESULTS_FORMAT, "version": RESULTS_VERSION, "json_attrs": json.dumps(json_keys),
+        f.attrs.update({"kind": RESULTS_KIND, "schema_version": RESULTS_SCHEMA, "json_attrs": json.dumps(json_keys),
                         "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")})
         f.attrs.update({k: json.dumps(v) if k in json_keys else v for k, v in attrs.items()})
         if geometry is not None:
@@ -587,11 +587,11 @@ def read_results_h5(path: str | Path) -> ResultSet:
     except OSError as exc:
         raise InputError(path, f"not an HDF5 file ({exc})") from exc
     with f:
-        if _plain(f.attrs.get("format")) != RESULTS_FORMAT:
-            raise InputError(path, f"not an odsplat results file (format={_plain(f.attrs.get('format'))!r})")
-        version = str(_plain(f.attrs.get("version")))
-        if version.split(".")[0] != RESULTS_VERSION.split(".")[0]:
-            raise SchemaError(path, f"results layout version {version}; this odsplat reads {RESULTS_VERSION}")
+        if _plain(f.attrs.get("kind")) != RESULTS_KIND:
+            raise InputError(path, f"not an {RESULTS_KIND} file (kind={_plain(f.attrs.get('kind'))!r})")
+        version = _plain(f.attrs.get("schema_version"))
+        if version != RESULTS_SCHEMA:
+            raise SchemaError(path, f"results schema {version}; this odsplat reads {RESULTS_SCHEMA}")
         json_keys = json.loads(_plain(f.attrs.get("json_attrs", "[]")))
         out = ResultSet(attrs={k: json.loads(v) if k in json_keys else _plain(v) for k, v in f.attrs.items()
                                if k not in _RESERVED})

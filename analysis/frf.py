@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from odsplat.errors import InputError
+from odsplat.impulse import fit_pulse
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +102,7 @@ class HitCheck:
     baseline_n: float            # force offset: the pretrigger's median (the record's if that is short)
 
 
-def check_hit(force: ArrayLike, sample_rate_hz: float, *, overload_n: float | None = None,
+def check_frf_hit(force: ArrayLike, sample_rate_hz: float, *, overload_n: float | None = None,
               full_scale_n: float | None = None, double_hit_ratio: float = 0.1,
               reject_double_hits: bool = True, responses: ArrayLike | None = None,
               response_full_scale: float | None = None, output_names: Sequence[str] | None = None) -> HitCheck:
@@ -113,16 +114,16 @@ def check_hit(force: ArrayLike, sample_rate_hz: float, *, overload_n: float | No
     the force has returned below 5 % of the peak; more than one is a double hit. Rejected also: a peak over
     `overload_n`, force samples at or over `full_scale_n` (clipped), response samples at or over
     `response_full_scale` (in the response's unit), and a record with no pulse above the noise. The onset
-    is the first 5 % crossing walked back down the rising flank to 3 noise sigmas, extrapolated to 0 N."""
-    f = _as_finite(force, "check_hit: force", ndim=1)
-    _check_positive("check_hit: sample_rate_hz", sample_rate_hz)
+    is every stage's (`odsplat.impulse.fit_pulse`): the start of the half sine fitted to the first pulse."""
+    f = _as_finite(force, "check_frf_hit: force", ndim=1)
+    _check_positive("check_frf_hit: sample_rate_hz", sample_rate_hz)
     if not 0.0 < double_hit_ratio < 1.0:
-        raise InputError("check_hit: double_hit_ratio", f"expected 0 < ratio < 1; got {double_hit_ratio}")
+        raise InputError("check_frf_hit: double_hit_ratio", f"expected 0 < ratio < 1; got {double_hit_ratio}")
     reasons: list[str] = []
     if full_scale_n is not None and (n_clip := int(np.sum(np.abs(f) >= full_scale_n))):
         reasons.append(f"clipped: {n_clip} samples at full scale ({full_scale_n:g} N)")
     if responses is not None and response_full_scale is not None:
-        x = _as_finite(responses, "check_hit: responses", ndim=2)
+        x = _as_finite(responses, "check_frf_hit: responses", ndim=2)
         for k, row in enumerate(x):
             if n_over := int(np.sum(np.abs(row) >= response_full_scale)):
                 name = output_names[k] if output_names is not None else f"output {k}"
@@ -146,19 +147,26 @@ def check_hit(force: ArrayLike, sample_rate_hz: float, *, overload_n: float | No
     off = max(_DETECT_FRACTION * peak, _NOISE_DETECT * sigma)
     pulses = _pulses(g, on=max(double_hit_ratio * peak, 10.0 * sigma, off), off=off)
     lo = _NOISE_START * sigma
-    onset = _edge(g, pulses[0][0], -1, lo)
+    onsets = [_onset(g, start, stop, sample_rate_hz) for start, stop, _ in pulses]
+    onset = onsets[0]
     end_first = _edge(g, pulses[0][1] - 1, +1, lo)
     end_last = _edge(g, pulses[-1][1] - 1, +1, lo)
     main = max(range(len(pulses)), key=lambda k: pulses[k][2])
-    main_onset = _edge(g, pulses[main][0], -1, lo)
-    for k, (start, _, p) in enumerate(pulses if reject_double_hits else []):
+    for k, (_, _, p) in enumerate(pulses if reject_double_hits else []):
         if k != main:
-            dt_ms = (_edge(g, start, -1, lo) - main_onset) / sample_rate_hz * 1e3
+            dt_ms = (onsets[k] - onsets[main]) / sample_rate_hz * 1e3
             reasons.append(f"double hit at {dt_ms:+.1f} ms ({100 * p / peak:.0f} % of the peak)")
     if overload_n is not None and peak > overload_n:
         reasons.append(f"overload: peak {peak:.0f} N > {overload_n:g} N")
     return HitCheck(not reasons, tuple(reasons), peak, onset, end_last, float(end_first - onset) / sample_rate_hz,
                     len(pulses), baseline)
+
+
+def _onset(g: np.ndarray, start: int, stop: int, sample_rate_hz: float) -> float:
+    """The onset (fractional sample) of the pulse in g[start:stop] (baseline removed): the one definition,
+    `odsplat.impulse.fit_pulse`, the half sine's start."""
+    peak = start + int(np.argmax(g[start:stop]))
+    return fit_pulse(g, sample_rate_hz, peak_index=peak, source="force").onset_sample
 
 
 def _pulses(g: np.ndarray, on: float, off: float) -> list[tuple[int, int, float]]:
@@ -269,7 +277,7 @@ def estimate_frf(force: ArrayLike, responses: ArrayLike, sample_rate_hz: float,
     """H1 = Gfx/Gff, H2 = Gxx/Gxf and coherence |Gfx|^2/(Gff Gxx), the spectra averaged over accepted hits.
 
     force: (n_hits, n_samples) or (n_samples,) in N; responses: (n_hits, n_outputs, n_samples),
-    (n_outputs, n_samples) or (n_samples,) for a single hit. Each hit is checked (check_hit); rejected hits
+    (n_outputs, n_samples) or (n_samples,) for a single hit. Each hit is checked (check_frf_hit); rejected hits
     stay out of the averages. Each hit's windows follow its own onset: the force window around its pulse,
     and the exponential window from the onset on (the pretrigger is untouched), applied to the force as well
     as the responses, so the FRF is that of the structure with every pole's decay rate raised by 1/exp_tau_s
@@ -292,7 +300,7 @@ def estimate_frf(force: ArrayLike, responses: ArrayLike, sample_rate_hz: float,
     if len(names) != n_out:
         raise InputError("estimate_frf: output_names", f"expected {n_out} names; got {len(names)}")
 
-    checks = tuple(check_hit(f[h], sample_rate_hz, overload_n=s.overload_n, full_scale_n=s.full_scale_n,
+    checks = tuple(check_frf_hit(f[h], sample_rate_hz, overload_n=s.overload_n, full_scale_n=s.full_scale_n,
                              double_hit_ratio=s.double_hit_ratio, reject_double_hits=s.reject_double_hits,
                              responses=x[h], response_full_scale=s.response_full_scale, output_names=names)
                    for h in range(n_hits))
@@ -386,7 +394,7 @@ def split_hits(force: ArrayLike, responses: ArrayLike, sample_rate_hz: float, pr
     """Find every impact in a continuous record (force (n,), responses (n_outputs, n) or (n,)) and cut
     `length_s` from `pretrigger_s` before each onset. An impact is a rise above `threshold_ratio` of the
     largest peak (and 10 noise sigmas); rises within `min_gap_s` (default `length_s`) of the last hit's
-    onset belong to that hit, so a double hit stays in one segment for check_hit to find. Hits whose
+    onset belong to that hit, so a double hit stays in one segment for check_frf_hit to find. Hits whose
     segment would run off either end of the record are skipped (and logged)."""
     f = _as_finite(force, "split_hits: force", ndim=1)
     x = _as_finite(responses, "split_hits: responses")
@@ -409,7 +417,8 @@ def split_hits(force: ArrayLike, responses: ArrayLike, sample_rate_hz: float, pr
     onsets: list[float] = []
     for i in rises:
         if not onsets or i - onsets[-1] >= gap:
-            onsets.append(_edge(g, int(i), -1, _NOISE_START * sigma))
+            below = np.flatnonzero(g[i:] <= level)
+            onsets.append(_onset(g, int(i), int(i + below[0]) if below.size else g.size, fs))
     if not onsets:
         raise InputError("split_hits: force", f"no impact found (largest force {g.max():.3g} N over the baseline, "
                          f"noise sigma {sigma:.3g} N)")

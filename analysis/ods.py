@@ -46,23 +46,11 @@ class SurfaceMotion:
     def read(cls, path: str | Path, *, min_opacity: float = 0.5) -> SurfaceMotion:
         """From a reconstruction's trajectories.npz, keeping Gaussians at least `min_opacity` opaque (the
         translucent ones fill gaps and carry little of the image, so their motion is weakly observed)."""
-        path = Path(path)
-        if not path.is_file():
-            raise InputError(path, "no reconstruction trajectories (run `odsplat reconstruct` first)")
-        with np.load(path) as z:
-            missing = [k for k in ("times_s", "means_rest_m", "displacement_m", "opacity_logits") if k not in z.files]
-            if missing:
-                raise InputError(path, f"not a reconstruction's trajectories file: no {', '.join(missing)}")
-            times = np.asarray(z["times_s"], float)
-            rest = np.asarray(z["means_rest_m"], float)
-            disp = np.asarray(z["displacement_m"], float)
-            opacity = 1.0 / (1.0 + np.exp(-np.asarray(z["opacity_logits"], float).reshape(-1)))
-            alpha = float(z["source_alpha"]) if "source_alpha" in z.files else 1.0
-        if disp.shape != (len(times), len(rest), 3):
-            raise InputError(f"{path}: displacement_m",
-                             f"expected shape {(len(times), len(rest), 3)}; got {disp.shape}")
-        if alpha <= 0:
-            raise InputError(f"{path}: source_alpha", f"expected a positive magnification; got {alpha}")
+        from odsplat.reconstruction import MotionRecord  # the file's owner reads it
+
+        m = MotionRecord.read(path)
+        times, rest, disp, alpha = m.times_s, m.means_rest_m, np.asarray(m.displacement_m, float), m.source_alpha
+        opacity = 1.0 / (1.0 + np.exp(-m.opacity_logits))
         keep = opacity >= min_opacity
         if not keep.any():
             raise InputError(path, f"no Gaussian is at least {min_opacity} opaque")

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
+import textwrap
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import tomli_w
-import tomllib
 
 from .contract import plain
 from .errors import InputError
@@ -93,7 +94,8 @@ class Config:
         table = {stage: _drop_none(d, stage, unset) for stage, d in self.to_dict().items()}
         head = [f"# odsplat configuration; from: {', '.join(self.sources)}"]
         if unset:
-            head.append("# automatic (unset): " + ", ".join(unset))
+            head += textwrap.wrap("automatic (unset): " + ", ".join(unset), 116, initial_indent="# ",
+                                  subsequent_indent="#   ")
         return "\n".join(head) + "\n\n" + tomli_w.dumps(table)
 
 

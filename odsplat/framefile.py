@@ -1,7 +1,8 @@
 """Derived frame files (`derived/sync/NAME.h5`, `derived/magnified/METHOD/NAME.h5`): frames computed from a
 take, written once (temporary file, fsync, rename) and read back in chunks. One layout for every stage.
 
-Layout (HDF5): attribute `kind` names what the file holds; dataset `frames` (n, H, W[, C]) uint16 holds
+Layout (HDF5): attributes `kind` (what the file holds: `ALIGNED_KIND` or `MAGNIFIED_KIND`) and `schema_version`
+(`SCHEMA`), as every derived file describes itself (odsplat.contract); dataset `frames` (n, H, W[, C]) uint16 holds
 value * `value_scale`, value in the source take's digital numbers (DN), `value_scale` 4 (1 for 15- and
 16-bit cameras) so that a quarter DN of the sub-DN detail resampling and filtering create survives, far
 below the sensor's noise; dataset `times_s` (n,), each frame's time; `bit_depth` of the source.
@@ -18,6 +19,10 @@ import numpy as np
 
 from .errors import InputError, SchemaError
 from .store import atomic_path, frame_compression
+
+ALIGNED_KIND = "odsplat.aligned-take"        # sync's frames on the common grid
+MAGNIFIED_KIND = "odsplat.magnified-take"    # processing's magnified frames
+SCHEMA = 2
 
 
 def value_scale(bit_depth: int) -> float:
@@ -46,7 +51,7 @@ def create_frames(f: h5py.File, kind: str, *, frame_shape: tuple[int, ...], bit_
     attributes; returns the dataset and its value scale. Chunks are one frame, or bands of `chunk_rows`
     rows for writers that go band by band."""
     scale = value_scale(bit_depth)
-    f.attrs.update(kind=kind, format_version=1, bit_depth=int(bit_depth), value_scale=scale,
+    f.attrs.update(kind=kind, schema_version=SCHEMA, bit_depth=int(bit_depth), value_scale=scale,
                    **{k: v for k, v in (attrs or {}).items() if v is not None})
     rows = frame_shape[0] if chunk_rows is None else min(chunk_rows, frame_shape[0])
     n = 0 if n_frames is None else n_frames
@@ -76,6 +81,12 @@ class FrameFile:
         if self._file.attrs.get("kind") not in kinds:
             self._file.close()
             raise SchemaError(self.path, f"not a {self.WHAT} (kind {' or '.join(map(repr, kinds))} expected)")
+        version = self._file.attrs.get("schema_version")
+        if version != SCHEMA:
+            self._file.close()
+            raise SchemaError(self.path, f"{self.WHAT} of schema {version}; this odsplat reads {SCHEMA}"
+                              + (" (update odsplat)" if isinstance(version, (int, np.integer)) and version > SCHEMA
+                                 else " (run its stage again)"))
         self.scale = float(self._file.attrs["value_scale"])
 
     @property

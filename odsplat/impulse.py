@@ -1,7 +1,8 @@
 """Hammer pulses in a force record: how many there are, and where each starts, to a fraction of a sample.
 
-Shared by the acquisition stage's hit QC (double hits) and by sync (the impact onset every take is
-locked to). An impact hammer's pulse is close to a half sine, F(t) = A sin(pi (t - t0) / tau) for
+The one definition of the impact onset, used by every stage: the acquisition stage's hit QC (impacts and
+their times), sync (the onset every take is locked to) and the analysis (each hit's windows and segments) all
+take it from `fit_pulse`. An impact hammer's pulse is close to a half sine, F(t) = A sin(pi (t - t0) / tau) for
 t0 <= t <= t0 + tau; fitting that shape to the samples around the peak gives the onset t0 far finer
 than a sample, and the fit's residual says how well the shape held.
 """
@@ -103,6 +104,14 @@ def fit_pulse(force_n: np.ndarray, sample_rate_hz: float, *, peak_index: int | N
     return PulseFit(onset, onset / sample_rate_hz, amp, tau / sample_rate_hz, impulse, res, method)
 
 
+def impact_onsets(force_n: np.ndarray, sample_rate_hz: float, *, fraction: float = 0.05,
+                  min_peak_n: float = 0.0) -> list[PulseFit]:
+    """Every impact in a force record (`find_impacts`), each fitted (`fit_pulse`): its onset, peak and impulse."""
+    f = np.nan_to_num(np.asarray(force_n, float), nan=0.0)
+    return [fit_pulse(f, sample_rate_hz, peak_index=int(i)) for i in find_impacts(f, fraction=fraction,
+                                                                                   min_peak_n=min_peak_n)]
+
+
 def _threshold_onset(f: np.ndarray, i_peak: int, level: float, tau: float) -> float:
     """The rising crossing of `level` before the peak (interpolated), moved back along a half sine of length tau."""
     i = i_peak
@@ -115,4 +124,4 @@ def _threshold_onset(f: np.ndarray, i_peak: int, level: float, tau: float) -> fl
     return crossing - tau / np.pi * np.arcsin(min(1.0, level / f[i_peak]))
 
 
-__all__ = ["PulseFit", "find_impacts", "fit_pulse", "half_sine"]
+__all__ = ["PulseFit", "find_impacts", "fit_pulse", "half_sine", "impact_onsets"]

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import tomllib
 import types
 import typing
 from dataclasses import dataclass, field
@@ -11,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import tomllib
 
 from .errors import InputError, SchemaError
 from .units import SI_UNITS

@@ -278,9 +278,13 @@ class PipelineResult:
     report: Path | None = None
 
     def text(self) -> str:
+        """The stages' table, the analysis's result (modes, MAC) and where the report is."""
         lines = [f"{'stage':<12} {'status':<8} {'seconds':>8}"]
         for r in self.stages:
             lines.append(f"{r.stage:<12} {r.status:<8} {r.seconds:8.1f}" + (f"  ({r.reason})" if r.reason else ""))
+        analysis = next((r for r in self.stages if r.stage == "analyze"), None)
+        if analysis is not None and analysis.summary:
+            lines += [line for line in analysis.summary.splitlines() if not line.startswith("-> ")]
         if self.report is not None:
             lines.append(f"report: {self.report}")
         return "\n".join(lines)

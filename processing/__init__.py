@@ -5,13 +5,13 @@ Public surface: `run(capture, MagnifySettings)` (alias `magnify_capture`) -> `Ma
 own are in their modules."""
 from .learned import TrainConfig, train
 from .magnify import (
-           METHODS,
-           MagnifiedTake,
-           MagnifiedVideo,
-           MagnifyResult,
-           MagnifySettings,
-           magnify_capture,
-           parse_options,
+    METHODS,
+    MagnifiedTake,
+    MagnifiedVideo,
+    MagnifyResult,
+    MagnifySettings,
+    magnify_capture,
+    parse_options,
 )
 
 run = magnify_capture  # the stage's entry

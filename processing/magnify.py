@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from odsplat.contract import check, describe
 from odsplat.errors import InputError, OdsplatError
-from odsplat.framefile import FrameFile, atomic_h5, create_frames, to_stored
+from odsplat.framefile import MAGNIFIED_KIND, FrameFile, atomic_h5, create_frames, to_stored
 from odsplat.manifest import load_json, utc_now
 from odsplat.store import Capture, atomic_write_text
 
@@ -32,7 +32,6 @@ from .filters import KINDS, check_band, make_filter
 log = logging.getLogger(__name__)
 
 METHODS = ("phase", "linear", "learned")
-OUT_KIND = "odsplat-magnified-take"
 KIND = "odsplat.magnify"
 SCHEMA = 1
 
@@ -220,7 +219,7 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
                          filter=settings.filter_kind, mode=settings.mode,
                          band_hz=json.dumps(list(settings.band_hz) if settings.band_hz else None),
                          view=None if src.view is None else int(src.view))
-            ds, scale = create_frames(f, OUT_KIND, frame_shape=src.frame_shape, bit_depth=src.bit_depth,
+            ds, scale = create_frames(f, MAGNIFIED_KIND, frame_shape=src.frame_shape, bit_depth=src.bit_depth,
                                       times_s=src.times_s, attrs=attrs)
 
             def emit(y: torch.Tensor) -> None:
@@ -304,7 +303,7 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
 class MagnifiedVideo(FrameFile):
     """Reads a magnified take: frames as float32 DN of the source take, with their times."""
 
-    KIND = OUT_KIND
+    KIND = MAGNIFIED_KIND
     WHAT = "magnified take"
     MISSING = "no such magnified take (run `odsplat magnify` first)"
 

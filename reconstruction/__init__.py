@@ -9,15 +9,16 @@ from .gaussians import Gaussians, load_ply, save_ply
 from .linear import LinearSettings
 from .modal import ModalSettings
 from .model import (
-           DynamicScene,
-           ReconstructResult,
-           ReconstructSettings,
-           camera_path,
-           default_source,
-           parse_times,
-           reconstruct,
-           render_sequence,
-           train,
+    DynamicScene,
+    MotionRecord,
+    ReconstructResult,
+    ReconstructSettings,
+    camera_path,
+    default_source,
+    parse_times,
+    reconstruct,
+    render_sequence,
+    train,
 )
 from .poses import PoseResult, PoseSettings, estimate_poses, run_poses
 from .raster import RasterOutput, gsplat_available, rasterize, rasterize_reference
@@ -25,8 +26,8 @@ from .views import Camera, SceneFrame, TrainView, ViewSet, load_views
 
 run = reconstruct  # the reconstruct stage's entry
 
-__all__ = ["Camera", "DynamicScene", "FitSettings", "Gaussians", "LinearSettings", "ModalSettings", "PoseResult",
-           "PoseSettings", "RasterOutput", "ReconstructResult", "ReconstructSettings", "SceneFrame", "Trajectory",
-           "TrainView", "ViewSet", "camera_path", "default_source", "estimate_poses", "fit_dynamic", "fit_static",
-           "gsplat_available", "load_ply", "load_views", "parse_times", "rasterize", "rasterize_reference",
-           "reconstruct", "render_sequence", "run", "run_poses", "save_ply", "train"]
+__all__ = ["Camera", "DynamicScene", "FitSettings", "Gaussians", "LinearSettings", "ModalSettings", "MotionRecord",
+           "PoseResult", "PoseSettings", "RasterOutput", "ReconstructResult", "ReconstructSettings", "SceneFrame",
+           "Trajectory", "TrainView", "ViewSet", "camera_path", "default_source", "estimate_poses", "fit_dynamic",
+           "fit_static", "gsplat_available", "load_ply", "load_views", "parse_times", "rasterize",
+           "rasterize_reference", "reconstruct", "render_sequence", "run", "run_poses", "save_ply", "train"]

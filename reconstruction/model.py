@@ -36,7 +36,8 @@ log = logging.getLogger(__name__)
 
 KIND = "odsplat.reconstruction"
 SCHEMA = 2
-MEASURED = "measured_motion.npz"
+MEASURED = "measured_motion.npz"      # names inside capture.paths.reconstruction_dir (or a bench's folder)
+TRAJECTORIES = "trajectories.npz"
 MOTIONS = ("modal", "timestep", "linear")
 
 
@@ -188,6 +189,50 @@ def train(vs: ViewSet, poses, settings: ReconstructSettings, capture: Capture | 
     return Model(g0, traj, vs, stats0, time.perf_counter() - t1, init, background, modal, linear, measured)
 
 
+@dataclass(frozen=True)
+class MotionRecord:
+    """The motion keys `trajectories.npz` and `measured_motion.npz` share, the one reader of both (the analysis
+    reads the video's motion through it): world frame, metres, as trained (x `source_alpha`)."""
+
+    times_s: np.ndarray           # (T,) after the impact onset
+    means_rest_m: np.ndarray      # (N, 3)
+    displacement_m: np.ndarray    # (T, N, 3)
+    opacity_logits: np.ndarray    # (N,)
+    source_alpha: float = 1.0     # the frames' own magnification (1: raw frames)
+    extra: dict = field(default_factory=dict, repr=False)   # the file's other arrays (the model's rest state)
+
+    KEYS = ("times_s", "means_rest_m", "displacement_m", "opacity_logits")
+
+    @classmethod
+    def read(cls, path: str | Path) -> MotionRecord:
+        path = Path(path)
+        if not path.is_file():
+            raise InputError(path, "no reconstruction motion here (run `odsplat reconstruct` first)")
+        try:
+            with np.load(path) as z:
+                d = {k: z[k] for k in z.files}
+        except (OSError, ValueError) as exc:
+            raise InputError(path, f"not a readable .npz file: {exc}") from None
+        missing = [k for k in cls.KEYS if k not in d]
+        if missing:
+            raise InputError(path, f"not a reconstruction's motion file: no {', '.join(missing)}")
+        times, rest = np.asarray(d.pop("times_s"), float), np.asarray(d.pop("means_rest_m"), float)
+        disp, logits = np.asarray(d.pop("displacement_m")), np.asarray(d.pop("opacity_logits"), float).reshape(-1)
+        alpha = float(d.pop("source_alpha", 1.0))
+        if rest.ndim != 2 or rest.shape[1] != 3 or disp.shape != (len(times), len(rest), 3) or len(logits) != len(rest):
+            raise InputError(f"{path}: displacement_m", f"expected shape {(len(times), len(rest), 3)} with "
+                             f"{len(rest)} rest points and opacities; got {disp.shape}, {len(logits)}")
+        if not alpha > 0:
+            raise InputError(f"{path}: source_alpha", f"expected a positive magnification; got {alpha}")
+        return cls(times, rest, disp, logits, alpha, d)
+
+    def write(self, path: Path) -> None:
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, times_s=np.asarray(self.times_s, float), means_rest_m=self.means_rest_m,
+                     displacement_m=np.asarray(self.displacement_m, np.float32), opacity_logits=self.opacity_logits,
+                     source_alpha=self.source_alpha, **self.extra)
+
+
 def save_measured(dest: Path, times_s: np.ndarray, measured: NodeMotion | None) -> None:
     """`measured_motion.npz` from the linear solve, or none: a stale one from an earlier linear run goes, so that
     the analysis never pairs it with another model."""
@@ -195,11 +240,8 @@ def save_measured(dest: Path, times_s: np.ndarray, measured: NodeMotion | None) 
     if measured is None:
         path.unlink(missing_ok=True)
         return
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, times_s=np.asarray(times_s, float), means_rest_m=measured.points_m,
-                     displacement_m=measured.displacement_m.astype(np.float32),
-                     opacity_logits=np.full(len(measured.points_m), 10.0), source_alpha=1.0, kind="linear nodes")
+    MotionRecord(times_s, measured.points_m, measured.displacement_m, np.full(len(measured.points_m), 10.0), 1.0,
+                 {"kind": "linear nodes"}).write(path)
 
 
 def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -> ReconstructResult:
@@ -268,10 +310,14 @@ class DynamicScene:
     @classmethod
     def read(cls, path: Path) -> DynamicScene:
         """A model saved by `save` (its trajectories.npz)."""
-        if not path.exists():
-            raise InputError(path, "no reconstruction (run `odsplat reconstruct` first)")
-        with np.load(path) as z:
-            d = {k: z[k] for k in z.files}
+        m = MotionRecord.read(path)
+        d = m.extra
+        missing = [k for k in ("quats", "log_scales_m", "color_logits", "scene_center_m", "scene_radius_m",
+                               "frame_index", "bit_depth", "background") if k not in d]
+        if missing:
+            raise InputError(path, f"not a trained model's trajectories: no {', '.join(missing)}")
+        d.update(times_s=m.times_s, means_rest_m=m.means_rest_m, displacement_m=m.displacement_m,
+                 opacity_logits=m.opacity_logits, source_alpha=m.source_alpha)
         scene = SceneFrame(d["scene_center_m"], float(d["scene_radius_m"]))
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
         rest = Gaussians(means=t(scene.to_scene(d["means_rest_m"])), quats=t(d["quats"][0]),
@@ -303,15 +349,12 @@ class DynamicScene:
         save_ply(world, dest / "gaussians_t0.ply")
         modal = {} if self.basis is None else dict(basis=self.basis, shapes_m=self.shapes_m,
                                                    rot_shapes_rad=self.rot_shapes_rad)
-        with atomic_path(dest / "trajectories.npz") as tmp:
-            with open(tmp, "wb") as fh:
-                np.savez(fh, times_s=self.times_s, frame_index=self.frame_index, means_rest_m=self.means_rest_m,
-                         displacement_m=self.displacement_m.astype(np.float32), quats=self.quats.astype(np.float32),
-                         log_scales_m=world.log_scales.double().numpy(),
-                         opacity_logits=self.rest.opacity_logits.double().numpy(),
-                         color_logits=self.rest.color_logits.double().numpy(), scene_center_m=sc.center,
-                         scene_radius_m=sc.radius, bit_depth=self.bit_depth, background=self.background,
-                         source_alpha=self.source_alpha, **modal)
+        rest = dict(frame_index=self.frame_index, quats=self.quats.astype(np.float32),
+                    log_scales_m=world.log_scales.double().numpy(),
+                    color_logits=self.rest.color_logits.double().numpy(), scene_center_m=sc.center,
+                    scene_radius_m=sc.radius, bit_depth=self.bit_depth, background=self.background, **modal)
+        MotionRecord(self.times_s, self.means_rest_m, self.displacement_m,
+                     self.rest.opacity_logits.double().numpy(), self.source_alpha, rest).write(dest / TRAJECTORIES)
 
     def physical_displacement_m(self) -> np.ndarray:
         """(T, N, 3) displacement of every Gaussian in metres, the frames' magnification divided out."""

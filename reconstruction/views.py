@@ -16,14 +16,11 @@ import numpy as np
 import torch
 
 from odsplat.errors import InputError
-from odsplat.framefile import FrameFile
+from odsplat.framefile import ALIGNED_KIND, MAGNIFIED_KIND, FrameFile
 from odsplat.geometry import camera_center_m
 from odsplat.store import Capture
 
 log = logging.getLogger(__name__)
-
-ALIGNED_KIND, MAGNIFIED_KIND = "odsplat-aligned-take", "odsplat-magnified-take"
-
 
 class SourceFrames(FrameFile):
     """A take's frames on the common grid: sync's aligned take or processing's magnified one."""

@@ -12,9 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from odsplat.framefile import FrameFile, atomic_h5, create_frames, to_stored
-
-KIND = "odsplat-aligned-take"
+from odsplat.framefile import ALIGNED_KIND, FrameFile, atomic_h5, create_frames, to_stored
 
 
 @contextlib.contextmanager
@@ -23,7 +21,7 @@ def write_aligned(path: Path, *, n_frames: int, frame_shape: tuple[int, ...], ba
     """Yields `write_band(rows, values_dn)` for (n_frames, rows, W[, C]) bands in the raw take's DN; the file
     appears at `path` only when the block ends without an error."""
     with atomic_h5(path) as f:
-        ds, scale = create_frames(f, KIND, frame_shape=frame_shape, bit_depth=bit_depth, times_s=times_s,
+        ds, scale = create_frames(f, ALIGNED_KIND, frame_shape=frame_shape, bit_depth=bit_depth, times_s=times_s,
                                   n_frames=n_frames, chunk_rows=band_rows, attrs=attrs)
 
         def write_band(rows: slice, values_dn: np.ndarray) -> None:
@@ -35,7 +33,7 @@ def write_aligned(path: Path, *, n_frames: int, frame_shape: tuple[int, ...], ba
 class AlignedTake(FrameFile):
     """Reads an aligned take: frames as float32 in the raw take's DN, on the common grid."""
 
-    KIND = KIND
+    KIND = ALIGNED_KIND
     WHAT = "aligned take file"
     MISSING = "no such aligned take (run `odsplat sync` first)"
 

@@ -54,3 +54,26 @@ def test_real_hits_lock_to_their_fitted_onsets(shared_data):
     for r in responses[1:]:
         lag, coeff = _lag(responses[0], r)
         assert abs(lag) < 0.3 and coeff > 0.97, (lag, coeff)
+
+
+def test_every_stage_takes_the_same_onset():
+    """Hit QC, the FRF's per-hit check, its segmentation of a long record and sync's timing all use
+    odsplat.impulse: on noisy half sines with a baseline offset, their onsets agree and match the truth."""
+    from odsplat.analysis import check_frf_hit, split_hits
+    from odsplat.impulse import impact_onsets
+
+    rng = np.random.default_rng(4)
+    fs = 25_600.0
+    for _ in range(20):
+        onset = 300 + rng.uniform(0, 1)
+        peak, tau = rng.uniform(50, 400), fs * rng.uniform(0.6e-3, 2e-3)
+        base = rng.uniform(-2, 2)
+        f = base + half_sine(np.arange(4000.0), onset, peak, tau) + 0.2 * rng.standard_normal(4000)
+        frf = check_frf_hit(f, fs).onset_index
+        qc = impact_onsets(f - base, fs)[0].onset_sample
+        sync = fit_pulse(f - base, fs).onset_sample
+        segments = split_hits(f, np.zeros((1, f.size)), fs, pretrigger_s=100 / fs, length_s=2000 / fs)
+        cut = segments.start_index[0] + 100       # the segment starts `pretrigger_s` before the onset
+        assert abs(frf - onset) < 0.1 and abs(qc - onset) < 0.1 and abs(sync - onset) < 0.1
+        assert abs(frf - qc) < 0.05 and abs(frf - sync) < 0.05
+        assert cut == round(frf)

@@ -9,10 +9,10 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 
 import numpy as np
 import pytest
-import tomllib
 from click.testing import CliRunner
 
 import odsplat

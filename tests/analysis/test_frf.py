@@ -9,7 +9,7 @@ import pytest
 
 from odsplat.analysis.frf import (
     FRFSettings,
-    check_hit,
+    check_frf_hit,
     correct_damping,
     correct_poles,
     estimate_frf,
@@ -176,7 +176,7 @@ def test_output_noise_biases_h2_up_and_leaves_h1_unbiased():
 
 def test_double_hit_is_rejected_and_the_rest_averaged(caplog):
     force, resp = simulate([150.0, 220.0, 300.0, 180.0], double=1, force_noise=0.05)
-    check = check_hit(force[1], FS)
+    check = check_frf_hit(force[1], FS)
     assert not check.accepted and check.n_impacts == 2
     assert check.reasons == ("double hit at +3.0 ms (40 % of the peak)",)
     with caplog.at_level(logging.WARNING):
@@ -199,13 +199,13 @@ def test_overload_clipping_and_response_overload():
     r = estimate_frf(force, resp, FS, FRFSettings(overload_n=250.0))
     assert r.n_averages == 2 and r.hits[2].reasons == ("overload: peak 297 N > 250 N",)  # the sampled peak
     clipped = np.minimum(force[1], 200.0)
-    c = check_hit(clipped, FS, full_scale_n=200.0)
+    c = check_frf_hit(clipped, FS, full_scale_n=200.0)
     assert not c.accepted and c.reasons[0] == f"clipped: {int(np.sum(force[1] >= 200))} samples at full scale (200 N)"
     quiet_tip = resp[2] * np.array([[0.1], [1.0]])
     limit = 0.9 * np.abs(quiet_tip[1]).max()
-    c = check_hit(force[2], FS, responses=quiet_tip, response_full_scale=limit, output_names=("tip", "mid"))
+    c = check_frf_hit(force[2], FS, responses=quiet_tip, response_full_scale=limit, output_names=("tip", "mid"))
     assert not c.accepted and len(c.reasons) == 1 and c.reasons[0].startswith("response overload: mid has")
-    quiet = check_hit(np.random.default_rng(0).standard_normal(2000), FS)
+    quiet = check_frf_hit(np.random.default_rng(0).standard_normal(2000), FS)
     assert not quiet.accepted and quiet.reasons[0].startswith("no impact")
     with pytest.raises(InputError, match="every hit was rejected: hit 0: overload"):
         estimate_frf(force, resp, FS, FRFSettings(overload_n=100.0))
@@ -226,7 +226,7 @@ def test_shape_and_value_errors_name_the_argument(clean_hits):
         (lambda: exponential_window(100, FS, end_value=1.5), "exponential_window: end_value"),
         (lambda: estimate_frf(force, resp, FS, FRFSettings(exponential_end=0.0)),
          "estimate_frf: settings.exponential_end"),
-        (lambda: check_hit(force, FS), "check_hit: force"),
+        (lambda: check_frf_hit(force, FS), "check_frf_hit: force"),
     ]
     for call, source in cases:
         with pytest.raises(InputError) as exc:

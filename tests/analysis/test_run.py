@@ -227,7 +227,7 @@ def test_outputs_read_back(capture):
     assert summary["kind"] == "odsplat.analysis" and summary["capture_id"] == capture.id
     assert [round(m["freq_hz"], 3) for m in summary["modes"]] == [round(f, 3) for f in res.modes.freq_hz]
     with h5py.File(dest / "results.h5") as h:
-        assert h.attrs["format"] == "odsplat-results"
+        assert h.attrs["kind"] == "odsplat.results"
         names = list(h["shapes"])
     assert "video ODS 23.50 Hz" in names and any(n.startswith("accelerometer mode") for n in names)
     sets = pyuff.UFF(str(dest / "analysis.uff")).read_sets()
