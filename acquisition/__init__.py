@@ -1,9 +1,11 @@
 """Acquisition: camera, hammer and DAQ drivers, triggering, hit QC and the guided capture session.
 
-The public surface, which the other stages (hil_sim's simulated bench) and the command line import: the drivers,
-the capture session, and the qc stage's entry `run_qc(capture, QCSettings) -> QCReport` (derived/qc.json).
+The public surface, which the other stages (hil_sim's simulated bench and devices) and the command line import:
+the wire protocols (`daqproto`, `canproto`, `hammerproto`, each spoken by a driver here and a device in hil_sim),
+the drivers, the capture session, and the qc stage's entry `run_qc(capture, QCSettings) -> QCReport` (derived/qc.json).
 Drivers for particular hardware (`opencv_camera`, `photron`) and the session's internals are imported from their
 modules."""
+from . import canproto, daqproto, hammerproto  # the wire protocols, shared with hil_sim's devices
 from .camera import CameraDriver, CameraTimeout, Frame, RecordingStatus, TriggerSettings
 from .daq import DAQChannel, DAQError, SerialDAQ
 from .hammer import AutoHammer, CANHammerLink, SerialHammerLink
@@ -32,6 +34,7 @@ from .session import (
 from .trigger import HammerTrigger, NoTrigger, TriggeredRecord, wait_for_hit
 
 __all__ = [
+    "canproto", "daqproto", "hammerproto",
     "CameraDriver", "CameraTimeout", "Frame", "RecordingStatus", "TriggerSettings",
     "DAQChannel", "DAQError", "SerialDAQ",
     "AutoHammer", "CANHammerLink", "SerialHammerLink",

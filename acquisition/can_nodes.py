@@ -1,6 +1,6 @@
 """The CAN accelerometer driver: starts nodes on any python-can bus and streams them into per-node ring buffers.
 
-Frames are decoded through odsplat.canproto (DBC for cantools). Timestamps come from each node's sample
+Frames are decoded through odsplat.acquisition.canproto (DBC for cantools). Timestamps come from each node's sample
 counter (sample / nominal rate, on the node's clock); gaps, error frames and silent nodes are reported and
 lost samples stay NaN.
 """
@@ -15,9 +15,9 @@ from typing import Any
 import can
 import numpy as np
 
-from odsplat import canproto as cp
 from odsplat.errors import InputError, OdsplatError
 
+from . import canproto as cp
 from .ring import SampleRing
 
 log = logging.getLogger(__name__)

@@ -1,4 +1,4 @@
-"""The serial DAQ driver: speaks odsplat.daqproto on any pyserial port, streams into a ring buffer in SI units.
+"""The serial DAQ driver: speaks daqproto on any pyserial port, streams into a ring buffer in SI units.
 
 Timestamps come from the device's sample counter (sample / rate), never from when the host received them.
 Lost packets, bit errors (CRC failures), device overruns and disconnects are detected and reported; a gap
@@ -15,10 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
-from odsplat import daqproto as dp
 from odsplat.errors import InputError, OdsplatError
 from odsplat.manifest import CHANNEL_KINDS, ChannelInfo
 
+from . import daqproto as dp
 from .ring import SampleRing
 
 log = logging.getLogger(__name__)

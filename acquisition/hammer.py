@@ -29,8 +29,9 @@ from typing import Protocol
 import can
 import serial
 
-from odsplat import hammerproto as hp
 from odsplat.errors import InputError, OdsplatError
+
+from . import hammerproto as hp
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +139,7 @@ class SerialHammerLink:
 
 
 class CANHammerLink:
-    """The protocol's CAN frames (odsplat/auto_hammer.dbc) on an open python-can bus; other devices' frames pass by."""
+    """The protocol's CAN frames (auto_hammer.dbc) on an open python-can bus; other devices' frames pass by."""
 
     seq_modulus = 1 << 8
 

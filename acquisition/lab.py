@@ -89,7 +89,7 @@ class LabConfig:
             return None
         if h.url is not None:
             return AutoHammer.open_serial(h.url)
-        from odsplat.canproto import open_bus
+        from .canproto import open_bus
 
         return AutoHammer(CANHammerLink(open_bus(config=h.can), close_bus=True))
 

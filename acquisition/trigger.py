@@ -8,9 +8,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from odsplat import daqproto as dp
 from odsplat.errors import InputError
 
+from . import daqproto as dp
 from .daq import DAQError, SerialDAQ
 
 log = logging.getLogger(__name__)

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 import serial
 
-from odsplat import daqproto as dp
+from odsplat.acquisition import daqproto as dp
 from odsplat.acquisition.daq import DAQChannel, SerialDAQ
 from odsplat.hil_sim.daq import SineSource, device_from_url
 

@@ -12,7 +12,7 @@ from typing import Iterator, Mapping, Protocol, Sequence
 import can
 import numpy as np
 
-from odsplat import canproto as cp
+from odsplat.acquisition import canproto as cp
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""A simulated DAQ that speaks odsplat.daqproto on a PTY, with injectable faults (loss, bit errors, drift,
+"""A simulated DAQ that speaks odsplat.acquisition.daqproto on a PTY, with injectable faults (loss, bit errors, drift,
 clipping, disconnect), and the `simdaq://` URL registry."""
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from urllib.parse import urlsplit
 import numpy as np
 import serial
 
-from odsplat import daqproto as dp
+from odsplat.acquisition import daqproto as dp
 from odsplat.errors import InputError
 
 from .pty import PtyDevice, parse_bool, split_url_options
@@ -105,7 +105,7 @@ class SimDAQDevice(PtyDevice):
         self.realtime = realtime
         self.faults = faults or DAQFaults()
         ranges = (range_v,) if isinstance(range_v, (int, float)) else tuple(range_v)
-        self.ranges_v = tuple(sorted(dp._f32(r) for r in ranges))
+        self.ranges_v = tuple(sorted(dp.wire_f32(r) for r in ranges))
         self.device_id = device_id
         self.n_inputs = len(source.channel_names)
         self.disconnected = False  # set when the disconnect fault fired

@@ -1,4 +1,4 @@
-"""A simulated automatic impact hammer (a solenoid hammer fired on command) that speaks odsplat.hammerproto on a
+"""A simulated automatic impact hammer (a solenoid hammer fired on command) that speaks the hammer protocol on a
 PTY or a CAN bus and strikes a `SimRig`, with injectable faults and the ground truth of every shot; and the
 `simhammer://` URL registry."""
 from __future__ import annotations
@@ -15,7 +15,7 @@ from urllib.parse import urlsplit
 import can
 import numpy as np
 
-from odsplat import hammerproto as hp
+from odsplat.acquisition import hammerproto as hp
 from odsplat.errors import InputError
 
 from .daq import register_url_handler

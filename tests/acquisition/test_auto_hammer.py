@@ -16,7 +16,7 @@ import can
 import numpy as np
 import pytest
 
-from odsplat import hammerproto as hp
+from odsplat.acquisition import hammerproto as hp
 from odsplat.acquisition.hammer import (
     AutoHammer,
     CANHammerLink,

@@ -6,7 +6,7 @@ import uuid
 import numpy as np
 import pytest
 
-from odsplat import canproto as cp
+from odsplat.acquisition import canproto as cp
 from odsplat.acquisition.can_nodes import CANAccelerometers, CANError
 from odsplat.hil_sim.can_nodes import CANFaults, sim_nodes
 from odsplat.hil_sim.rig import SimRig

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import serial
 
-from odsplat import daqproto as dp
+from odsplat.acquisition import daqproto as dp
 
 
 @dataclass

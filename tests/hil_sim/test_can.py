@@ -9,7 +9,7 @@ import can
 import numpy as np
 import pytest
 
-from odsplat import canproto as cp
+from odsplat.acquisition import canproto as cp
 from odsplat.errors import InputError
 from odsplat.hil_sim.can_nodes import CANFaults, SimAccelNode, SineSource, sim_nodes
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import serial
 
-from odsplat import daqproto as dp
+from odsplat.acquisition import daqproto as dp
 from odsplat.errors import InputError
 from odsplat.hil_sim.daq import CLOCK_HZ, DAQFaults, SimDAQDevice, SineSource, register_source, register_url_handler
 from tests.hil_sim.daqhost import DAQHost as _Host

@@ -1,5 +1,5 @@
 """The automatic hammer's protocol byte for byte: the examples, tables and DBC of docs/hammer-protocol.md
-against odsplat.hammerproto, round trips over serial and CAN, and the refusals."""
+against odsplat.acquisition.hammerproto, round trips over serial and CAN, and the refusals."""
 from __future__ import annotations
 
 import dataclasses
@@ -12,9 +12,9 @@ import can
 import numpy as np
 import pytest
 
-from odsplat import canproto as cp
-from odsplat import daqproto as dp
-from odsplat import hammerproto as hp
+from odsplat.acquisition import canproto as cp
+from odsplat.acquisition import daqproto as dp
+from odsplat.acquisition import hammerproto as hp
 from odsplat.errors import InputError
 
 pytestmark = pytest.mark.timeout(30)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.signal import find_peaks
 
-from odsplat import canproto as cp
-from odsplat import daqproto as dp
+from odsplat.acquisition import canproto as cp
+from odsplat.acquisition import daqproto as dp
 from odsplat.errors import InputError
 from odsplat.hil_sim.camera import SimCameraConfig
 from odsplat.hil_sim.can_nodes import CANFaults, sim_nodes

@@ -1,4 +1,4 @@
-"""The simulated automatic hammer, at the wire: a small host in this file speaks odsplat.hammerproto to it over the
+"""The simulated automatic hammer, at the wire: a small host in this file speaks the hammer protocol to it over the
 `simhammer://` PTY and over a `virtual` CAN bus, and every number it reads is checked against what the rig was struck
 with (the rig's impacts and the model's ground truth)."""
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import serial
 
-from odsplat import hammerproto as hp
+from odsplat.acquisition import hammerproto as hp
 from odsplat.errors import InputError
 from odsplat.hil_sim.hammer import (
     HammerFaults,

@@ -20,7 +20,7 @@ from odsplat.units import STANDARD_GRAVITY_M_S2
 
 log = logging.getLogger(__name__)
 
-DBC_RESOURCE = "accel_nodes.dbc"  # package data of `odsplat`
+DBC_RESOURCE = "accel_nodes.dbc"  # package data of `odsplat.acquisition`
 NODE_IDS = range(1, 17)
 BROADCAST = 0  # NODE_CMD at NODE_CMD_BASE itself reaches every node
 ACC_DATA_BASE, NODE_CMD_BASE, NODE_STATUS_BASE = 0x100, 0x600, 0x700
@@ -112,7 +112,7 @@ class NodeTimeout:
 @functools.cache
 def load_dbc() -> cantools.database.can.Database:
     """The node DBC shipped with odsplat; the fast ACC_DATA codec refuses a DBC whose layout it does not match."""
-    text = resources.files("odsplat").joinpath(DBC_RESOURCE).read_text(encoding="ascii")
+    text = resources.files("odsplat.acquisition").joinpath(DBC_RESOURCE).read_text(encoding="ascii")
     db = cantools.database.load_string(text, database_format="dbc")
     _check_fast_layout(db)
     return db

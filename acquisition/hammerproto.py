@@ -1,6 +1,6 @@
 """The automatic impact hammer's protocol (docs/hammer-protocol.md): typed messages, their serial packets
 (framed exactly like the DAQ's: COBS, version/type/seq header, CRC-32) and their CAN frames (described by
-`odsplat/auto_hammer.dbc`). Shared by the simulated device and the driver, so neither can drift from the spec."""
+`acquisition/auto_hammer.dbc`). Shared by the simulated device and the driver, so neither can drift from the spec."""
 from __future__ import annotations
 
 import enum
@@ -15,12 +15,13 @@ from typing import ClassVar, Union
 import can
 import cantools
 
-from odsplat import daqproto as dp
 from odsplat.errors import InputError, SchemaError
+
+from . import daqproto as dp
 
 log = logging.getLogger(__name__)
 
-DBC_RESOURCE = "auto_hammer.dbc"  # package data of `odsplat`
+DBC_RESOURCE = "auto_hammer.dbc"  # package data of `odsplat.acquisition`
 NO_REF = 0xFFFF  # ref_seq of an unsolicited STATUS (serial)
 CAN_NO_REF = 0xFF  # the same on CAN
 CAN_MAX_LEVEL = 16777.215  # Level on CAN: u24 in mN or mJ
@@ -93,7 +94,7 @@ class ShotFlag(enum.IntFlag):
 
 # ---------------------------------------------------------------------------------- messages
 
-_Empty = dp._EmptyBody  # commands without a body encode as the DAQ's do
+_Empty = dp.EmptyBody  # commands without a body encode as the DAQ's do
 
 
 @dataclass(frozen=True)
@@ -128,7 +129,7 @@ class Fire:
         return struct.pack("<HBfI", self.shot_id & 0xFFFF, int(self.mode), self.level, round(self.timeout_s * 1000))
 
     @classmethod
-    def _parse(cls, r: dp._Reader) -> Fire:
+    def _parse(cls, r: dp.BodyReader) -> Fire:
         shot_id, mode, level, timeout_ms = r.take("HBfI")
         return cls(shot_id, LevelMode(mode) if mode in LevelMode._value2member_map_ else mode, level, timeout_ms / 1000)
 
@@ -167,12 +168,12 @@ class Info:
     max_energy_j: float
 
     def _body(self) -> bytes:
-        return (struct.pack("<H", self.ref_seq) + dp._text(self.device_id, "device id")
-                + dp._text(self.firmware, "firmware")
+        return (struct.pack("<H", self.ref_seq) + dp.encode_text(self.device_id, "device id")
+                + dp.encode_text(self.firmware, "firmware")
                 + struct.pack("<fff", self.min_force_n, self.max_force_n, self.max_energy_j))
 
     @classmethod
-    def _parse(cls, r: dp._Reader) -> Info:
+    def _parse(cls, r: dp.BodyReader) -> Info:
         ref_seq, device_id, firmware = r.take("H"), r.text(), r.text()
         return cls(ref_seq, device_id, firmware, *r.take("fff"))
 
@@ -216,7 +217,7 @@ class Shot:
                            self.delay_s, int(self.flags))
 
     @classmethod
-    def _parse(cls, r: dp._Reader) -> Shot:
+    def _parse(cls, r: dp.BodyReader) -> Shot:
         shot_id, outcome, count, peak, delay, flags = r.take("HBIffB")
         return cls(shot_id, Outcome(outcome), count, peak, delay, ShotFlag(flags))
 
@@ -237,7 +238,7 @@ class Status:
                            self.last_peak_force_n)
 
     @classmethod
-    def _parse(cls, r: dp._Reader) -> Status:
+    def _parse(cls, r: dp.BodyReader) -> Status:
         ref_seq, state, ready, fault, count, peak = r.take("HBBBIf")
         return cls(ref_seq, State(state), bool(ready), Fault(fault), count, peak)
 
@@ -275,7 +276,7 @@ CAN_IDS = (ESTOP_ID, CMD_ID, REPLY_ID, STATUS_ID, SHOT_ID, INFO_ID)
 @functools.cache
 def load_dbc() -> cantools.database.can.Database:
     """The hammer's DBC shipped with odsplat; refused if it lacks a frame this codec uses."""
-    text = resources.files("odsplat").joinpath(DBC_RESOURCE).read_text(encoding="ascii")
+    text = resources.files("odsplat.acquisition").joinpath(DBC_RESOURCE).read_text(encoding="ascii")
     db = cantools.database.load_string(text, database_format="dbc")
     for frame_id in CAN_IDS:
         try:

@@ -106,7 +106,7 @@ def cobs_decode(data: bytes) -> bytes:
 
 # ------------------------------------------------------------------------------ body encoding
 
-class _Reader:
+class BodyReader:
     """Cursor over a packet body; every read checks the length so a short body is MALFORMED, not a crash."""
 
     def __init__(self, body: bytes):
@@ -139,7 +139,7 @@ class _Reader:
             raise ValueError(f"{len(self._body) - self._pos} unexpected bytes after the body")
 
 
-def _text(value: str, what: str) -> bytes:
+def encode_text(value: str, what: str) -> bytes:
     try:
         raw = value.encode("ascii")
     except UnicodeEncodeError:
@@ -149,7 +149,7 @@ def _text(value: str, what: str) -> bytes:
     return bytes([len(raw)]) + raw
 
 
-def _f32(x: float) -> float:
+def wire_f32(x: float) -> float:
     """The value a float survives as on the wire; echoes are compared after this rounding."""
     return float(np.float32(x))
 
@@ -165,15 +165,15 @@ class ChannelConfig:
     name: str
 
     def _encode(self) -> bytes:
-        return struct.pack("<Bf", self.index, self.range_v) + _text(self.name, "channel name")
+        return struct.pack("<Bf", self.index, self.range_v) + encode_text(self.name, "channel name")
 
     @classmethod
-    def _decode(cls, r: _Reader) -> ChannelConfig:
+    def _decode(cls, r: BodyReader) -> ChannelConfig:
         index, range_v = r.take("Bf")
         return cls(index, range_v, r.text())
 
     def same_as(self, other: ChannelConfig) -> bool:
-        return (self.index, _f32(self.range_v), self.name) == (other.index, _f32(other.range_v), other.name)
+        return (self.index, wire_f32(self.range_v), self.name) == (other.index, wire_f32(other.range_v), other.name)
 
 
 def _encode_channels(channels: tuple[ChannelConfig, ...]) -> bytes:
@@ -182,21 +182,21 @@ def _encode_channels(channels: tuple[ChannelConfig, ...]) -> bytes:
     return bytes([len(channels)]) + b"".join(c._encode() for c in channels)
 
 
-def _decode_channels(r: _Reader) -> tuple[ChannelConfig, ...]:
+def _decode_channels(r: BodyReader) -> tuple[ChannelConfig, ...]:
     return tuple(ChannelConfig._decode(r) for _ in range(r.take("B")))
 
 
-class _EmptyBody:
+class EmptyBody:
     def _body(self) -> bytes:
         return b""
 
     @classmethod
-    def _parse(cls, r: _Reader):
+    def _parse(cls, r: BodyReader):
         return cls()
 
 
 @dataclass(frozen=True)
-class Hello(_EmptyBody):
+class Hello(EmptyBody):
     """Host asks who is there; the device answers INFO."""
 
     TYPE: ClassVar[MsgType] = MsgType.HELLO
@@ -216,19 +216,19 @@ class Configure:
         return struct.pack("<I", int(self.sample_rate_hz)) + _encode_channels(tuple(self.channels))
 
     @classmethod
-    def _parse(cls, r: _Reader) -> Configure:
+    def _parse(cls, r: BodyReader) -> Configure:
         return cls(r.take("I"), _decode_channels(r))
 
 
 @dataclass(frozen=True)
-class Start(_EmptyBody):
+class Start(EmptyBody):
     """Start acquiring; the sample counter restarts at 0. Answered ACK or NAK, then DATA flows."""
 
     TYPE: ClassVar[MsgType] = MsgType.START
 
 
 @dataclass(frozen=True)
-class Stop(_EmptyBody):
+class Stop(EmptyBody):
     """Stop acquiring (idempotent); answered ACK, then a final STATUS with RUNNING clear."""
 
     TYPE: ClassVar[MsgType] = MsgType.STOP
@@ -247,12 +247,13 @@ class Info:
     ranges_v: tuple[float, ...]  # supported full-scale ranges, +-V
 
     def _body(self) -> bytes:
-        return (struct.pack("<H", self.ref_seq) + _text(self.device_id, "device id") + _text(self.firmware, "firmware")
+        return (struct.pack("<H", self.ref_seq) + encode_text(self.device_id, "device id")
+                + encode_text(self.firmware, "firmware")
                 + struct.pack("<BdB", self.n_inputs, self.max_rate_hz, len(self.ranges_v))
                 + struct.pack(f"<{len(self.ranges_v)}f", *self.ranges_v))
 
     @classmethod
-    def _parse(cls, r: _Reader) -> Info:
+    def _parse(cls, r: BodyReader) -> Info:
         ref_seq, device_id, firmware = r.take("H"), r.text(), r.text()
         n_inputs, max_rate, n_ranges = r.take("BdB")
         ranges = struct.unpack(f"<{n_ranges}f", r.raw(4 * n_ranges))
@@ -272,7 +273,7 @@ class ConfigAck:
         return struct.pack("<Hd", self.ref_seq, self.sample_rate_hz) + _encode_channels(tuple(self.channels))
 
     @classmethod
-    def _parse(cls, r: _Reader) -> ConfigAck:
+    def _parse(cls, r: BodyReader) -> ConfigAck:
         ref_seq, rate = r.take("Hd")
         return cls(ref_seq, rate, _decode_channels(r))
 
@@ -289,7 +290,7 @@ class Ack:
         return struct.pack("<HB", self.ref_seq, self.ref_type)
 
     @classmethod
-    def _parse(cls, r: _Reader) -> Ack:
+    def _parse(cls, r: BodyReader) -> Ack:
         return cls(*r.take("HB"))
 
 
@@ -304,10 +305,10 @@ class Nak:
     text: str = ""
 
     def _body(self) -> bytes:
-        return struct.pack("<HBB", self.ref_seq, self.ref_type, self.reason) + _text(self.text[:255], "NAK text")
+        return struct.pack("<HBB", self.ref_seq, self.ref_type, self.reason) + encode_text(self.text[:255], "NAK text")
 
     @classmethod
-    def _parse(cls, r: _Reader) -> Nak:
+    def _parse(cls, r: BodyReader) -> Nak:
         ref_seq, ref_type, reason = r.take("HBB")
         return cls(ref_seq, ref_type, reason, r.text())
 
@@ -338,7 +339,7 @@ class Data:
         return _DATA_HEAD.pack(self.first_sample, counts.shape[1]) + counts.T.astype("<i2").tobytes()
 
     @classmethod
-    def _parse(cls, r: _Reader) -> Data:
+    def _parse(cls, r: BodyReader) -> Data:
         first, n = r.take("QH")
         raw = r.rest()
         if n == 0 or len(raw) % (2 * n) or not raw:
@@ -360,7 +361,7 @@ class Status:
         return struct.pack("<BIQ", int(self.flags), self.clipped_channels, self.sample_counter)
 
     @classmethod
-    def _parse(cls, r: _Reader) -> Status:
+    def _parse(cls, r: BodyReader) -> Status:
         flags, mask, counter = r.take("BIQ")
         return cls(StatusFlag(flags), mask, counter)
 
@@ -422,7 +423,7 @@ def parse_packet(raw: RawPacket, messages: Mapping[int, type] | None = None,
     """Parse a CRC-checked packet's body; raises DAQProtocolError (or `error`) with the NakReason as `reason`.
 
     `messages` maps type codes to message classes: the DAQ's by default. Another protocol framed the same
-    way (the automatic hammer's, odsplat.hammerproto) passes its own, and its error class."""
+    way (the automatic hammer's, odsplat.acquisition.hammerproto) passes its own, and its error class."""
     def fail(reason: NakReason, problem: str) -> DAQProtocolError:
         err = (error or DAQProtocolError)(f"packet seq {raw.seq}", problem)
         err.reason = reason
@@ -434,7 +435,7 @@ def parse_packet(raw: RawPacket, messages: Mapping[int, type] | None = None,
     if cls is None:
         raise fail(NakReason.UNKNOWN_TYPE, f"unknown message type 0x{raw.type:02x}")
     try:
-        r = _Reader(raw.body)
+        r = BodyReader(raw.body)
         message = cls._parse(r)
         r.end()
     except (ValueError, struct.error, UnicodeDecodeError) as e:
