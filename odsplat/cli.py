@@ -269,7 +269,7 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
     try:
         report = CaptureSession(out, settings, bench, feedback=feedback).run()
     finally:
-        if getattr(bench, "hammer", None) is not None:
+        if bench.hammer is not None:   # every bench has one, or None (acquisition's Bench protocol)
             bench.hammer.close()
     click.echo(report.summary())
     if not report.complete:

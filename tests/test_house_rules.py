@@ -56,6 +56,8 @@ def tree(tmp_path) -> Path:
     ("hil_sim/_bad.py", "def f():\n    from odsplat.acquisition.session import CaptureSession",  # in a function too
      "hil_sim imports only the spine and the other stages' __init__"),
     ("odsplat/units.py", "from odsplat.sync import SyncSettings", "the spine imports no stage"),
+    ("odsplat/pipeline.py", "def f():\n    from odsplat.processing.magnify import magnify_capture",
+     "the CLI and the pipeline use only the stages' __init__"),
 ])
 def test_a_forbidden_import_breaks_its_contract(tree, path, line, contract):
     with open(tree / path, "a") as f:
