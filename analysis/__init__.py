@@ -29,7 +29,7 @@ from .ods import (
     receptance,
     stable_poles,
 )
-from .report import write_report
+from .report import read_analysis, write_report
 from .result import AnalysisResult, Sensor, VideoModes
 from .tracking import Tracks, good_points, project_displacement, track_points
 
@@ -40,6 +40,6 @@ __all__ = ["AnalysisResult", "AnalyzeSettings", "Correlation", "DecayFit", "FRFR
            "StabilisationChart", "SurfaceMotion", "TimeSeries", "Tracks", "VideoModes", "analyze_capture",
            "check_frf_hit", "comac", "correlate", "estimate_frf", "fit_decay", "fit_modes", "force_transform",
            "good_points", "lscf", "lsce_poles", "lsfd", "mac", "modal_scale_factor", "pencil_poles",
-           "project_displacement", "read_results_h5", "read_uff", "receptance", "run", "select_poles",
+           "project_displacement", "read_analysis", "read_results_h5", "read_uff", "receptance", "run", "select_poles",
            "split_hits", "stabilisation", "stable_poles", "track_points", "write_report", "write_results_h5",
            "write_uff"]

@@ -64,7 +64,8 @@ def _kind_name(kind) -> str:
 _NUM = (int, float)
 
 
-def _load(capture: Capture) -> dict:
+def read_analysis(capture: Capture) -> dict:
+    """The capture's analysis.json, checked: its header (kind, schema, capture) and the fields the report uses."""
     path = capture.paths.analysis_json
     doc = load_json(path, missing="no analysis (run `odsplat analyze` first)")
     check(doc, path, kind=KIND, schema_version=SCHEMA, capture_id=capture.id)
@@ -268,7 +269,7 @@ def render_report(doc: dict, folder: Path, title: str) -> str:
 
 def write_report(capture: Capture) -> Path:
     """derived/analysis/report.html from derived/analysis/analysis.json and the plots it lists; returns its path."""
-    doc = _load(capture)
+    doc = read_analysis(capture)
     path = capture.paths.report_html
     atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name))
     log.info("report written to %s", path)

@@ -72,9 +72,15 @@ def check(doc: Any, path: str | Path, *, kind: str, schema_version: int, capture
     if not isinstance(doc, dict):
         raise InputError(path, f"not an {kind} file (expected a JSON object)")
     got = doc.get("kind")
+    if got is None and "format" in doc:   # the self-description before odsplat.contract
+        raise InputError(path, f"written by an older odsplat ({doc['format']!r} version {doc.get('version')!r}); "
+                               "run its stage again")
     if got != kind:
         raise InputError(path, f"not an {kind} file (its kind is {got!r})")
     version = doc.get("schema_version")
+    if isinstance(version, str):   # "1.0": the poses file before odsplat.contract
+        raise InputError(path, f"schema {version!r} is older than this odsplat writes ({schema_version}); "
+                               "run its stage again")
     if not isinstance(version, int) or isinstance(version, bool):
         raise InputError(path, f"schema_version: expected an integer, got {version!r}")
     if version > schema_version:

@@ -10,6 +10,7 @@ upstream makes the stages downstream stale.
 """
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import os
@@ -46,46 +47,15 @@ class Stage:
     raw: bool = False                                  # reads the raw takes themselves
 
 
-def _qc(capture: Capture, settings: Any) -> Any:
-    from .acquisition import run_qc
+def _entry(package: str, name: str) -> Callable[[Capture, Any], Any]:
+    """A stage's entry, `odsplat.<package>.<name>(capture, settings)`, imported when the stage runs (some stages
+    load torch or pycolmap). The report's entry takes no settings."""
+    def call(capture: Capture, settings: Any) -> Any:
+        entry = getattr(importlib.import_module(f"odsplat.{package}"), name)
+        return entry(capture) if settings is None else entry(capture, settings)
 
-    return run_qc(capture, settings)
-
-
-def _sync(capture: Capture, settings: Any) -> Any:
-    from .sync import run
-
-    return run(capture, settings)
-
-
-def _magnify(capture: Capture, settings: Any) -> Any:
-    from .processing import run
-
-    return run(capture, settings)
-
-
-def _poses(capture: Capture, settings: Any) -> Any:
-    from .reconstruction import run_poses
-
-    return run_poses(capture, settings)
-
-
-def _reconstruct(capture: Capture, settings: Any) -> Any:
-    from .reconstruction import run
-
-    return run(capture, settings)
-
-
-def _analyze(capture: Capture, settings: Any) -> Any:
-    from .analysis import run
-
-    return run(capture, settings)
-
-
-def _report(capture: Capture, settings: Any) -> Path:
-    from .analysis import write_report
-
-    return write_report(capture)
+    call.__qualname__ = f"odsplat.{package}.{name}"
+    return call
 
 
 def _magnify_upstream(c: Config) -> tuple[str, ...]:
@@ -105,23 +75,27 @@ def _lines(text: Any) -> str:
 
 
 GRAPH: tuple[Stage, ...] = (
-    Stage("qc", _qc, lambda c: (), lambda cap, s: [cap.paths.qc_json], lambda r: r.summary(), raw=True),
-    Stage("sync", _sync, lambda c: ("qc",),
-          lambda cap, s: [cap.paths.sync_json] + ([cap.paths.sync_png] if s.plot else [])
+    Stage("qc", _entry("acquisition", "run_qc"), upstream=lambda c: (),
+          outputs=lambda cap, s: [cap.paths.qc_json], summary=lambda r: r.summary(), raw=True),
+    Stage("sync", _entry("sync", "run"), upstream=lambda c: ("qc",),
+          outputs=lambda cap, s: [cap.paths.sync_json] + ([cap.paths.sync_png] if s.plot else [])
           + ([cap.paths.aligned_dir] if s.write_frames else []),
-          lambda r: r.summary(), volatile=("max_memory_mb",), raw=True),
-    Stage("magnify", _magnify, _magnify_upstream, lambda cap, s: [cap.paths.magnified_dir(s.method)],
-          lambda r: r.summary(), volatile=("workers",), raw=True),
-    Stage("poses", _poses, lambda c: ("qc",), lambda cap, s: [cap.paths.poses_json, cap.paths.points_npz],
-          lambda r: _lines(r.report_lines()), volatile=("threads",), raw=True),
-    Stage("reconstruct", _reconstruct, _reconstruct_upstream,
-          lambda cap, s: [cap.paths.reconstruction_json, cap.paths.gaussians_ply, cap.paths.trajectories_npz,
-                          cap.paths.measured_motion_npz],
-          lambda r: r.summary(), volatile=("threads",)),
-    Stage("analyze", _analyze, _analyze_upstream,
-          lambda cap, s: [p for p in _walk(cap.paths.analysis_dir) if p != cap.paths.report_html],
-          lambda r: r.text()),
-    Stage("report", _report, lambda c: ("analyze",), lambda cap, s: [cap.paths.report_html], lambda p: str(p)),
+          summary=lambda r: r.summary(), volatile=("max_memory_mb",), raw=True),
+    Stage("magnify", _entry("processing", "run"), upstream=_magnify_upstream,
+          outputs=lambda cap, s: [cap.paths.magnified_dir(s.method)],
+          summary=lambda r: r.summary(), volatile=("workers",), raw=True),
+    Stage("poses", _entry("reconstruction", "run_poses"), upstream=lambda c: ("qc",),
+          outputs=lambda cap, s: [cap.paths.poses_json, cap.paths.points_npz],
+          summary=lambda r: _lines(r.report_lines()), volatile=("threads",), raw=True),
+    Stage("reconstruct", _entry("reconstruction", "run"), upstream=_reconstruct_upstream,
+          outputs=lambda cap, s: [cap.paths.reconstruction_json, cap.paths.gaussians_ply, cap.paths.trajectories_npz,
+                                  cap.paths.measured_motion_npz],
+          summary=lambda r: r.summary(), volatile=("threads",)),
+    Stage("analyze", _entry("analysis", "run"), upstream=_analyze_upstream,
+          outputs=lambda cap, s: [p for p in _walk(cap.paths.analysis_dir) if p != cap.paths.report_html],
+          summary=lambda r: r.text()),
+    Stage("report", _entry("analysis", "write_report"), upstream=lambda c: ("analyze",),
+          outputs=lambda cap, s: [cap.paths.report_html], summary=str),
 )
 BY_NAME = {s.name: s for s in GRAPH}
 assert tuple(BY_NAME) == STAGES, "the graph and the configuration must name the same stages in the same order"

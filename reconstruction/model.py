@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from odsplat.contract import describe, plain
+from odsplat.contract import check, describe, plain
 from odsplat.errors import InputError
 from odsplat.geometry import look_at
 from odsplat.manifest import load_json, utc_now
@@ -133,6 +133,19 @@ class ReconstructResult:
         return (f"{self.n_gaussians} Gaussians from {self.n_views} views (+{self.n_static} static) over "
                 f"{self.n_timesteps} timesteps: t=0 fit {self.seconds_t0:.0f} s (train PSNR {self.psnr_t0_db:.1f} dB), "
                 f"dynamic {self.seconds_dynamic:.0f} s (last timestep {self.psnr_last_db:.1f} dB) -> {self.out_dir}")
+
+    @classmethod
+    def read(cls, capture: Capture) -> ReconstructResult:
+        """The last reconstruction's figures from reconstruction.json (the model itself: `DynamicScene.load`);
+        a file of another kind, schema or capture is refused with one line."""
+        path = capture.paths.reconstruction_json
+        doc = load_json(path, missing="no reconstruction here (run `odsplat reconstruct` first)")
+        check(doc, path, kind=KIND, schema_version=SCHEMA, capture_id=capture.id)
+        try:
+            r = dict(doc["result"])
+            return cls(**{**r, "out_dir": Path(r["out_dir"]), "notes": list(r.get("notes", []))})
+        except (KeyError, TypeError) as exc:
+            raise InputError(path, f"not a readable reconstruction summary: {exc}") from None
 
 
 def _psnr(g: Gaussians, views, t: int, means=None, quats=None, background=0.0) -> float:

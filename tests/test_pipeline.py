@@ -97,6 +97,12 @@ def test_run_goes_from_raw_takes_to_the_report(piped):
         assert d["kind"].startswith("odsplat.") and isinstance(d["schema_version"], int), path
         assert d["capture_id"] == cap.id and "settings" in d["provenance"], path
     assert json.loads(cap.paths.reconstruction_json.read_text())["provenance"]["settings"]["width_px"] == 64
+    # Each stage's result reads back through its owner's contract.
+    assert odsplat.reconstruction.ReconstructResult.read(cap).n_views == 12
+    assert odsplat.reconstruction.PoseResult.read(cap).method in ("sfm", "tags")
+    assert odsplat.processing.MagnifyResult.read(cap, "phase").alpha == 20.0
+    assert odsplat.acquisition.QCReport.read(cap).takes[0].status == "accepted"
+    assert odsplat.analysis.read_analysis(cap)["modes"] == doc["modes"]
 
 
 def test_a_second_run_skips_every_stage(piped):

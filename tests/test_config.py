@@ -1,0 +1,54 @@
+"""The pipeline's configuration: defaults, the capture's odsplat.toml, --set, and one-line refusals."""
+from __future__ import annotations
+
+import pytest
+
+from odsplat.config import Config, load_config, parse_set
+from odsplat.errors import InputError
+
+
+def test_layers_override_in_order_and_automatic_settings_stay_automatic(tmp_path):
+    path = tmp_path / "odsplat.toml"
+    path.write_text("[magnify]\nalpha = 30\nband_hz = [20, 400]\n[reconstruct.fit]\niters_t0 = 800\n")
+    c = load_config(path=path, sets=("magnify.alpha=50", "reconstruct.motion=timestep"))
+    assert c.magnify.alpha == 50.0 and c.magnify.band_hz == (20.0, 400.0)
+    assert c.reconstruct.fit.iters_t0 == 800 and c.reconstruct.fit.iters_per_step == 150   # the rest default
+    # The file says nothing of the frames: the per-timestep model's default source follows its motion.
+    assert c.reconstruct.source == "magnified/phase"
+    assert load_config(path=path).reconstruct.source == "sync"
+    assert c.sources == ("defaults", str(path), "--set magnify.alpha=50", "--set reconstruct.motion=timestep")
+    assert Config.defaults().to_dict() == load_config().to_dict()
+
+
+@pytest.mark.parametrize("item, value", [
+    ("magnify.alpha=30", {"magnify": {"alpha": 30}}),
+    ("magnify.band_hz=[20, 400]", {"magnify": {"band_hz": [20, 400]}}),
+    ("reconstruct.motion=timestep", {"reconstruct": {"motion": "timestep"}}),
+    ("reconstruct.fit.iters_t0=10", {"reconstruct": {"fit": {"iters_t0": 10}}}),
+    ("sync.plot=false", {"sync": {"plot": False}}),
+])
+def test_parse_set(item, value):
+    assert parse_set(item) == value
+
+
+@pytest.mark.parametrize("sets, where, message", [
+    (("magnify",), "--set", "expected STAGE.FIELD=VALUE"),
+    (("render.width=3",), "--set render.width=3", "unknown stage"),
+    (("magnify.alhpa=3",), "--set magnify.alhpa=3: magnify", "unknown field"),
+    (("magnify.alpha=fast",), "--set magnify.alpha=fast: magnify.alpha", "expected a number"),
+    (("magnify.alpha=-2",), "--alpha", "alpha"),
+    (("reconstruct.source=frames",), "source", "expected 'sync' or 'magnified/METHOD'"),
+])
+def test_bad_settings_are_named(sets, where, message):
+    with pytest.raises(InputError, match=message) as err:
+        load_config(sets=sets)
+    assert err.value.source == where
+
+
+def test_the_printed_configuration_reads_back(tmp_path):
+    c = load_config(sets=("analyze.fmax_hz=900", "magnify.band_hz=[20, 400]"))
+    text = c.to_toml()
+    assert "# automatic (unset):" in text and "analyze.fmin_hz" in text
+    path = tmp_path / "odsplat.toml"
+    path.write_text(text)
+    assert load_config(path=path).to_dict() == c.to_dict()
