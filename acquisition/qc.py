@@ -11,9 +11,11 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from odsplat.contract import check, describe
 from odsplat.errors import InputError
 from odsplat.impulse import impact_onsets
-from odsplat.store import QCInfo
+from odsplat.manifest import from_plain, load_json
+from odsplat.store import Capture, QCInfo, TakeReader, atomic_write_text
 
 from .daq import DAQChannel
 from .trigger import TriggeredRecord
@@ -179,10 +181,7 @@ class QCReport:
                              + (f" ({'; '.join(t.details)})" if t.details else ""))
         return "\n".join(lines)
 
-    def write(self, capture) -> None:
-        from odsplat.contract import describe
-        from odsplat.store import atomic_write_text
-
+    def write(self, capture: Capture) -> None:
         prov = describe(capture.id, QC_KIND, QC_SCHEMA, self.settings)
         doc = {**prov.header(), "takes": [{**asdict(t), "status": t.status} for t in self.takes]}
         path = capture.paths.qc_json
@@ -190,10 +189,7 @@ class QCReport:
         atomic_write_text(path, json.dumps(doc, indent=1, allow_nan=False, default=str) + "\n")
 
     @classmethod
-    def read(cls, capture) -> QCReport:
-        from odsplat.contract import check
-        from odsplat.manifest import from_plain, load_json
-
+    def read(cls, capture: Capture) -> QCReport:
         path = capture.paths.qc_json
         doc = load_json(path, missing="no QC result (run `odsplat run CAPTURE --to qc` first)")
         prov = check(doc, path, kind=QC_KIND, schema_version=QC_SCHEMA, capture_id=capture.id)
@@ -204,7 +200,7 @@ class QCReport:
         return cls(tuple(takes), from_plain(QCSettings, prov.settings, f"{path}: settings"))
 
 
-def check_take(reader, limits: QCLimits) -> HitQC:
+def check_take(reader: TakeReader, limits: QCLimits) -> HitQC:
     """The checks a take's file allows afterwards: impacts, force band, lost samples (NaN) and dropped frames
     (gaps in the camera's counter). Overloads need the DAQ's range, which only the live session knows."""
     names = reader.channels_of_kind("force")
@@ -245,7 +241,7 @@ def check_take(reader, limits: QCLimits) -> HitQC:
     return HitQC(tuple(reasons), tuple(details), peak, times, {}, lost, dropped)
 
 
-def run_qc(capture, settings: QCSettings | None = None) -> QCReport:
+def run_qc(capture: Capture, settings: QCSettings | None = None) -> QCReport:
     """The qc stage: every complete take's hit checked from its file, beside the verdict recorded with it;
     writes derived/qc.json. A take recorded as unchecked (imported, say) gets the check's verdict there."""
     s = settings or QCSettings()
