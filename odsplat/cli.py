@@ -11,6 +11,7 @@ from typing import Any
 import click
 from click.core import ParameterSource
 
+from .config import STAGES
 from .errors import OdsplatError
 
 
@@ -109,15 +110,14 @@ def recover(capture: Path) -> None:
         sys.exit(1)
 
 
-_STAGES = ("qc", "sync", "magnify", "poses", "reconstruct", "analyze", "report")  # odsplat.config.STAGES
 
 
 @main.command("run")
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--from", "start", type=click.Choice(_STAGES), default=None,
+@click.option("--from", "start", type=click.Choice(STAGES), default=None,
               help="Run from this stage on, whether or not it is current.")
-@click.option("--to", "stop", type=click.Choice(_STAGES), default=None, help="Stop after this stage.")
-@click.option("--force", "force", type=click.Choice(_STAGES), multiple=True,
+@click.option("--to", "stop", type=click.Choice(STAGES), default=None, help="Stop after this stage.")
+@click.option("--force", "force", type=click.Choice(STAGES), multiple=True,
               help="Run this stage even if it is current (repeatable); what depends on it follows.")
 @click.option("--config", "config_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Configuration file (default: CAPTURE_DIR/odsplat.toml when it exists).")
