@@ -35,6 +35,8 @@ from .store import Capture, QCInfo, TriggerInfo, fsync_path
 
 log = logging.getLogger(__name__)
 
+RATE_TOLERANCE = 1e-6  # signal files whose rates differ by less (relative) share one clock
+
 
 @dataclass
 class RigChannel:
@@ -140,9 +142,12 @@ def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) 
         videos.append(open_video(_resolve(base, take.video), fps=take.fps) if take.video else None)
         signals.append(_read_take_signals(rig, base, take) if take.signals else None)
     camera = _camera_info(rig, rig_path, videos)
-    rates = {s.sample_rate_hz for s in signals if s is not None}
-    if len(rates) > 1:
-        raise InputError(f"{rig_path}: takes", f"signal files disagree on the sample rate: {sorted(rates)} Hz")
+    rates = sorted({s.sample_rate_hz for s in signals if s is not None})
+    # Time stamps printed to 7 significant digits put the same clock at rates 1e-7 apart: one rate to 1e-6.
+    if rates and rates[-1] - rates[0] > RATE_TOLERANCE * rates[0]:
+        raise InputError(f"{rig_path}: takes", f"signal files disagree on the sample rate: {rates} Hz (more than "
+                                               f"{RATE_TOLERANCE:g} apart)")
+    rates = {float(np.median(rates))} if rates else set()
     manifest = Manifest(
         name=rig.name,
         camera=camera,

@@ -144,3 +144,30 @@ def test_existing_capture_is_not_overwritten(tmp_path):
     rig.write_text('name = "x"\n[[takes]]\nvideo = "a.npy"\n')
     with pytest.raises(InputError, match="exists already"):
         import_capture(rig, tmp_path / "cap")
+
+
+def test_two_takes_with_seven_digit_time_stamps_share_one_rate(tmp_path):
+    """A lab's export: a `time_s` column printed to 7 significant digits. The two takes' rates read 1e-7 apart
+    (20479.99808 against 20479.9994 Hz in the issue's files) and are one clock, within RATE_TOLERANCE."""
+    fs = 20_480.0
+    for name, n in (("a.csv", 4096), ("b.csv", 3000)):
+        t = np.arange(n) / fs
+        force = np.exp(-(((t - 0.01) / 0.0005) ** 2)) * 100.0
+        (tmp_path / name).write_text("time_s,hammer [N],acc1 [g]\n" + "".join(
+            f"{a:.7g},{b:.6f},{np.sin(2 * np.pi * 80 * a):.6f}\n" for a, b in zip(t, force)))
+    rig = tmp_path / "rig.toml"
+    rig.write_text(
+        'name = "lab"\n'
+        '[[channels]]\nname = "force"\nkind = "force"\ncolumn = "hammer"\n'
+        '[[channels]]\nname = "acc1"\nkind = "acceleration"\n'
+        '[[takes]]\nname = "a"\nsignals = "a.csv"\n[[takes]]\nname = "b"\nsignals = "b.csv"\n')
+    cap = import_capture(rig, tmp_path / "cap")
+    assert cap.manifest.daq_sample_rate_hz == pytest.approx(fs, rel=1e-6)
+    with cap.open_take("b") as r:
+        assert r.n_samples == 3000 and r.channel("force").max() == pytest.approx(100.0, rel=1e-3)
+    # Rates a real difference apart are still refused, naming the rig.
+    (tmp_path / "b.csv").write_text("time_s,hammer [N],acc1 [g]\n" + "".join(
+        f"{k / 20_000.0:.7g},{k % 3},{k % 5}\n" for k in range(3000)))
+    with pytest.raises(InputError, match=r"rig\.toml: takes: signal files disagree on the sample rate"):
+        import_capture(rig, tmp_path / "cap2")
+    assert not (tmp_path / "cap2").exists()

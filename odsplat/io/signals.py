@@ -173,6 +173,22 @@ def _load_table(path: Path, source: io.TextIOBase, sep: str, cols: Sequence[int]
 _HEADING = re.compile(r"^(?P<name>.*?)\s*(?:\[(?P<bracket>[^\]]*)\]|\((?P<paren>[^)]*)\))?$")
 
 
+TIME_NAMES = ("time", "t", "times", "timestamp", "elapsed")   # a time column's names, in any case
+_TIME_SUFFIXES = ("s", "sec", "ms", "us", "µs")                # time_s, t_ms, ...
+
+
+def _time_unit(name: str, unit: str | None) -> str | None | bool:
+    """The unit of a time column's heading (None: none given, seconds), or False when the heading is no time:
+    'time', 'Time [ms]', 't (s)', 'timestamp', 'time_s', 't_ms'."""
+    n = name.strip().lower()
+    if n in TIME_NAMES:
+        return unit
+    base, sep, suffix = n.rpartition("_")
+    if sep and base in TIME_NAMES and suffix in _TIME_SUFFIXES and unit is None:
+        return suffix
+    return False
+
+
 def _split_heading(heading: str) -> tuple[str, str | None]:
     """'force [N]' or 'acc1 (g)' -> (name, unit); a heading without brackets has no unit."""
     match = _HEADING.match(heading.strip().strip('"').strip())
@@ -194,13 +210,25 @@ def _csv_line(path: Path, header_no: int, row: int) -> int:
     return next(itertools.islice(_csv_rows(path, header_no), row, None))[0]
 
 
-def _print_step(t: np.ndarray) -> float:
-    """The decimal step the column was printed with (1e-6 for '0.000333'), 0 if finer than 1e-12."""
+def _print_resolution(t: np.ndarray) -> np.ndarray:
+    """Each value's printed resolution, the larger of two readings: the decimal step of the column (1e-6 for
+    '0.000333'), and one unit of each value's last digit when all were printed to n significant digits
+    ('0.1000000', '4.882812e-05'; the decimal step alone reads these as 1e-12). 0 where finer than both tell."""
+    fixed = 0.0
     for digits in range(13):
         scaled = t * 10.0**digits
         if np.all(np.abs(scaled - np.rint(scaled)) < 1e-3):
-            return 10.0**-digits
-    return 0.0
+            fixed = 10.0**-digits
+            break
+    significant = np.zeros(t.shape)
+    magnitude = np.floor(np.log10(np.where(t == 0, 1.0, np.abs(t))))
+    for n in range(1, 16):
+        unit = 10.0 ** (magnitude - n + 1)
+        scaled = t / unit
+        if np.all(np.abs(scaled - np.rint(scaled)) < 1e-3):
+            significant = unit
+            break
+    return np.maximum(fixed, significant)
 
 
 def _read_csv(path: Path) -> _Raw:
@@ -225,9 +253,10 @@ def _read_csv(path: Path) -> _Raw:
         rows = functools.partial(_csv_rows, path, header_no)
         table = _load_table(path, f, sep, range(len(names)), names, rows, "#")
 
-    time_name, time_unit = parsed[0]
-    if time_name.lower() not in ("time", "t"):
-        raise InputError(path, f"first column must be time ('time' or 't', unit in brackets), not {headings[0]!r}")
+    time_unit = _time_unit(*parsed[0])
+    if time_unit is False:
+        raise InputError(path, f"first column must be time ({', '.join(map(repr, TIME_NAMES))}, with its unit in "
+                               f"brackets or as a suffix such as 'time_s' or 't_ms'), not {headings[0]!r}")
     time_si, time_scale = _parse_unit(path, headings[0], time_unit or "s")
     if time_si != "s":
         raise InputError(path, f"time column {headings[0]!r} has unit {time_unit!r}, not a unit of time")
@@ -244,7 +273,8 @@ def _read_csv(path: Path) -> _Raw:
     mean_step = (t[-1] - t[0]) / (len(t) - 1)
     # Rounding when the time was printed moves a step by up to one printed digit; allow that, but never
     # half a sample, which would let a dropped sample through.
-    tolerance = _STEP_TOLERANCE * mean_step + min(_print_step(t), mean_step / 2)
+    res = _print_resolution(t)
+    tolerance = _STEP_TOLERANCE * mean_step + np.minimum(np.maximum(res[1:], res[:-1]), mean_step / 2)
     off = np.abs(step - mean_step) > tolerance
     if off.any():
         row = int(np.argmax(off)) + 1

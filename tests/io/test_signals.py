@@ -295,3 +295,28 @@ def test_lvm_bad_cell_names_line(tmp_path: Path, newline: str):
     with pytest.raises(InputError) as err:
         read_signals(path)
     assert str(err.value) == f"{path}: line {row + 1}: column 'Acc' holds 'clipped', not a number"
+
+
+@pytest.mark.parametrize("heading, scale", [("time_s", 1.0), ("Time [ms]", 1e-3), ("t_ms", 1e-3),
+                                            ("timestamp (s)", 1.0), ("TIME", 1.0), ("t_us", 1e-6)])
+def test_csv_time_column_by_its_common_names(tmp_path: Path, heading: str, scale: float):
+    path = tmp_path / "hit.csv"
+    t = np.arange(50) * 1e-3 / scale             # 1 kHz, in the column's unit
+    path.write_text(f"{heading},force [N]\n" + "".join(f"{float(x)!r},{k}\n" for k, x in enumerate(t)))
+    signals = read_signals(path)
+    assert signals.sample_rate_hz == pytest.approx(1000.0, rel=1e-9)
+    with pytest.raises(InputError, match="first column must be time"):
+        path.write_text("time_kg,force [N]\n0,1\n1,2\n")
+        read_signals(path)
+
+
+def test_seven_digit_time_stamps_give_one_rate_to_a_part_in_a_million(tmp_path: Path):
+    """20480 Hz printed to 7 significant digits: two takes read 20479.99808 and 20479.9994 Hz; the importer
+    takes them as one clock (odsplat.importer.RATE_TOLERANCE)."""
+    rates = []
+    for n in (20480, 20000):
+        path = tmp_path / f"take{n}.csv"
+        t = np.arange(n) / 20480.0
+        path.write_text("time_s,acc [m/s^2]\n" + "".join(f"{x:.7g},{k % 7}\n" for k, x in enumerate(t)))
+        rates.append(read_signals(path).sample_rate_hz)
+    assert rates[0] != rates[1] and abs(rates[0] / rates[1] - 1) < 1e-6
