@@ -74,6 +74,7 @@ class RigTake:
     fps: float | None = None
     pretrigger_samples: int | None = None
     camera_trigger_time_s: float | None = None
+    trigger_frame: int | None = None   # file index of the camera's trigger frame (image sequences, .npy, video files)
     notes: str = ""
 
 
@@ -138,9 +139,10 @@ def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) 
     # Open and check every input before writing anything, so errors surface early.
     videos: list[VideoSource | None] = []
     signals: list[SignalSet | None] = []
-    for take in rig.takes:
+    for i, take in enumerate(rig.takes):
         videos.append(open_video(_resolve(base, take.video), fps=take.fps) if take.video else None)
         signals.append(_read_take_signals(rig, base, take) if take.signals else None)
+        _check_trigger_frame(f"{rig_path}: takes[{i}].trigger_frame", take, videos[-1])
     camera = _camera_info(rig, rig_path, videos)
     rates = sorted({s.sample_rate_hz for s in signals if s is not None})
     # Time stamps printed to 7 significant digits put the same clock at rates 1e-7 apart: one rate to 1e-6.
@@ -236,9 +238,9 @@ def _write_take(capture: Capture, take: RigTake, video: VideoSource | None, sigs
             writer.append_samples({ch.name: sc.values for ch, sc in zip(manifest.channels, sigs.channels, strict=True)})
             if trigger_sample is not None:
                 trigger_time_s = sigs.t0_s + trigger_sample / sigs.sample_rate_hz
-        camera_trigger = video.trigger_frame if video else None
+        camera_trigger = _trigger_frame(take, video) if video else None
         if video is not None:
-            counter = _camera_frame_numbers(video)
+            counter = _camera_frame_numbers(video, camera_trigger)
             times = _frame_times(video, counter, take)
             progress = tqdm(total=video.n_frames, desc=f"import {writer.name}", unit="frame", leave=False,
                             disable=None)
@@ -261,11 +263,29 @@ def _write_take(capture: Capture, take: RigTake, video: VideoSource | None, sigs
         writer.finalize()
 
 
-def _camera_frame_numbers(video: VideoSource) -> np.ndarray:
-    """The camera's frame number of each file frame; Photron numbers from the trigger (frame 0)."""
+def _check_trigger_frame(where: str, take: RigTake, video: VideoSource | None) -> None:
+    if take.trigger_frame is None:
+        return
+    if video is None:
+        raise InputError(where, "a trigger frame needs the take's video")
+    if not 0 <= take.trigger_frame < video.n_frames:
+        raise InputError(where, f"expected a frame index from 0 to {video.n_frames - 1}; got {take.trigger_frame}")
+    if video.trigger_frame is not None and video.trigger_frame != take.trigger_frame:
+        raise InputError(where, f"{take.trigger_frame}, but the header of {video.path.name} says "
+                                f"{video.trigger_frame}")
+
+
+def _trigger_frame(take: RigTake, video: VideoSource) -> int | None:
+    """The file index of the camera's trigger frame: the rig's, else the file header's (None: unknown)."""
+    return take.trigger_frame if take.trigger_frame is not None else video.trigger_frame
+
+
+def _camera_frame_numbers(video: VideoSource, trigger: int | None) -> np.ndarray:
+    """The camera's frame number of each file frame, the trigger frame being 0 (as sync reads them): Photron's
+    own numbering, else the file index less the trigger frame's (the first frame when unknown)."""
     index = np.arange(video.n_frames)
     if video.start_frame is None:
-        return index
+        return index - (trigger or 0)
     return video.start_frame + index * video.frame_step
 
 
@@ -273,7 +293,5 @@ def _frame_times(video: VideoSource, counter: np.ndarray, take: RigTake) -> np.n
     """Frame times in the DAQ time base when the rig says when the camera's trigger frame was exposed."""
     if take.camera_trigger_time_s is None or not video.fps:
         return np.full(video.n_frames, np.nan)
-    # Without a camera numbering the trigger is the header's trigger frame, or the first frame.
-    trigger_number = 0 if video.start_frame is not None else (video.trigger_frame or 0)
     record_rate = video.fps * video.frame_step
-    return take.camera_trigger_time_s + (counter - trigger_number) / record_rate
+    return take.camera_trigger_time_s + counter / record_rate       # counter 0 is the trigger frame

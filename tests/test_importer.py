@@ -171,3 +171,23 @@ def test_two_takes_with_seven_digit_time_stamps_share_one_rate(tmp_path):
     with pytest.raises(InputError, match=r"rig\.toml: takes: signal files disagree on the sample rate"):
         import_capture(rig, tmp_path / "cap2")
     assert not (tmp_path / "cap2").exists()
+
+
+def test_the_rig_names_an_image_sequence_trigger_frame(tmp_path):
+    """An image sequence has no header: the rig's `trigger_frame` says which file frame the camera triggered on.
+    It becomes camera frame 0, as sync reads the counter, and the frames' DAQ times follow from it."""
+    _write_sequence(tmp_path / "seq", 12)
+    _write_csv(tmp_path / "daq.csv", 2000, 20_000.0)
+    rig = _rig(tmp_path)
+    rig.write_text(rig.read_text() + "trigger_frame = 3\n")
+    cap = import_capture(rig, tmp_path / "cap")
+    with cap.open_take("hit") as r:
+        assert r.trigger.camera_trigger_frame == 3
+        np.testing.assert_array_equal(r.frame_counter, np.arange(12) - 3)
+        np.testing.assert_allclose(r.frame_times_s, 0.0095 + (np.arange(12) - 3) / 1000.0)
+    for value, message in (("12", r"expected a frame index from 0 to 11; got 12"), ("-1", "got -1")):
+        rig.write_text(rig.read_text().rsplit("trigger_frame", 1)[0] + f"trigger_frame = {value}\n")
+        with pytest.raises(InputError, match=message) as err:
+            import_capture(rig, tmp_path / f"bad{value}")
+        assert err.value.source.endswith("takes[0].trigger_frame")
+        assert not (tmp_path / f"bad{value}").exists()
