@@ -75,6 +75,7 @@ class RigTake:
     pretrigger_samples: int | None = None
     camera_trigger_time_s: float | None = None
     trigger_frame: int | None = None   # file index of the camera's trigger frame (image sequences, .npy, video files)
+    recorded_fps: float | None = None  # the rate a slow-motion file was filmed at (its own says its playback)
     notes: str = ""
 
 
@@ -140,7 +141,13 @@ def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) 
     videos: list[VideoSource | None] = []
     signals: list[SignalSet | None] = []
     for i, take in enumerate(rig.takes):
-        videos.append(open_video(_resolve(base, take.video), fps=take.fps) if take.video else None)
+        try:
+            videos.append(open_video(_resolve(base, take.video), fps=take.fps, recorded_fps=take.recorded_fps)
+                          if take.video else None)
+        except InputError as exc:
+            if exc.source in ("fps", "recorded_fps"):   # a rig value: name where it stands
+                raise InputError(f"{rig_path}: takes[{i}].{exc.source}", exc.problem) from None
+            raise
         signals.append(_read_take_signals(rig, base, take) if take.signals else None)
         _check_trigger_frame(f"{rig_path}: takes[{i}].trigger_frame", take, videos[-1])
     camera = _camera_info(rig, rig_path, videos)

@@ -191,3 +191,31 @@ def test_the_rig_names_an_image_sequence_trigger_frame(tmp_path):
             import_capture(rig, tmp_path / f"bad{value}")
         assert err.value.source.endswith("takes[0].trigger_frame")
         assert not (tmp_path / f"bad{value}").exists()
+
+
+def test_a_slow_motion_file_gets_its_true_rate_from_the_rig(tmp_path):
+    """A clip filmed at 600 fps and stored for playback at 29.97 fps: fps = 600 is refused (the file says
+    otherwise, and the error says what to write), recorded_fps = 600 imports it at 600 fps."""
+    path = tmp_path / "slowmo.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 29.97, (64, 48))
+    for i in range(8):
+        writer.write(np.full((48, 64, 3), 20 * i, np.uint8))
+    writer.release()
+    _write_csv(tmp_path / "daq.csv", 2000, 20_000.0)
+    rig = tmp_path / "rig.toml"
+    base = ('name = "phone"\n[[channels]]\nname = "force"\nkind = "force"\ncolumn = "hammer"\n'
+            '[[channels]]\nname = "acc1"\nkind = "acceleration"\n'
+            '[[takes]]\nname = "hit"\nvideo = "slowmo.avi"\nsignals = "daq.csv"\ncamera_trigger_time_s = 0.01\n')
+    rig.write_text(base + "fps = 600\n")
+    with pytest.raises(InputError, match=r"says 29\.97 fps, but fps=600 was given .*recorded_fps = 600"):
+        import_capture(rig, tmp_path / "bad")
+    rig.write_text(base + "recorded_fps = 600\n")
+    cap = import_capture(rig, tmp_path / "cap")
+    assert cap.manifest.camera.fps == 600.0
+    with cap.open_take("hit") as r:
+        assert r.fps == 600.0 and r.n_frames == 8
+        np.testing.assert_allclose(r.frame_times_s, 0.01 + np.arange(8) / 600.0)
+    rig.write_text(base + "recorded_fps = 600\nfps = 600\n")
+    with pytest.raises(InputError, match="not both") as err:
+        import_capture(rig, tmp_path / "both")
+    assert err.value.source.endswith("takes[0].recorded_fps")

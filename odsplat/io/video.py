@@ -74,11 +74,17 @@ class VideoSource(ABC):
         """Frames start..stop-1, the range already checked."""
 
 
-def open_video(path: str | PathLike, fps: float | None = None) -> VideoSource:
-    """Open a recording by its kind; `fps` supplies the rate where the file has none and must agree where it has."""
+def open_video(path: str | PathLike, fps: float | None = None, *, recorded_fps: float | None = None) -> VideoSource:
+    """Open a recording by its kind; `fps` supplies the rate where the file has none and must agree where it has.
+    `recorded_fps` is the rate the frames were filmed at, replacing what the file says: a slow-motion clip filmed
+    at 600 fps and stored for playback at 29.97 fps, as phones and many high-speed tools save them."""
     path = Path(path)
-    if fps is not None and not (math.isfinite(fps) and fps > 0):
-        raise InputError("fps", f"must be a positive number of frames per second, got {fps!r}")
+    for name, value in (("fps", fps), ("recorded_fps", recorded_fps)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise InputError(name, f"must be a positive number of frames per second, got {value!r}")
+    if fps is not None and recorded_fps is not None:
+        raise InputError("recorded_fps", "give fps (the file has no rate) or recorded_fps (the file's rate is "
+                                         "its playback rate), not both")
     if not path.exists():
         raise InputError(path, "does not exist")
     suffix = path.suffix.lower()
@@ -96,7 +102,14 @@ def open_video(path: str | PathLike, fps: float | None = None) -> VideoSource:
         if source.fps is None:
             source.fps = float(fps)
         elif not math.isclose(fps, source.fps, rel_tol=_FPS_REL_TOL):
-            raise InputError(path, f"the file says {source.fps:g} fps, but fps={fps:g} was given")
+            raise InputError(path, f"the file says {source.fps:g} fps, but fps={fps:g} was given (a slow-motion "
+                                   f"file filmed at {fps:g} fps: give recorded_fps = {fps:g} instead)")
+    if recorded_fps is not None:
+        if source.fps is not None and not math.isclose(recorded_fps, source.fps, rel_tol=_FPS_REL_TOL):
+            log.info("%s: filmed at %g fps, stored for playback at %g fps (recorded_fps)", path, recorded_fps,
+                     source.fps)
+            source.header = {**source.header, "playback_fps": source.fps}
+        source.fps = float(recorded_fps)
     log.debug("opened %s: %d frames of %s at %s fps", path, source.n_frames,
               _describe(source.frame_shape, source.dtype), source.fps)
     return source
