@@ -31,10 +31,6 @@ KIND = "odsplat.analysis"
 SCHEMA = 2
 
 
-def out_dir(capture: Capture) -> Path:
-    return capture.paths.analysis_dir
-
-
 @dataclass(frozen=True)
 class AnalyzeSettings:
     force_channel: str | None = None                 # None: the capture's one force channel

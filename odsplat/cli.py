@@ -11,7 +11,7 @@ from typing import Any
 import click
 from click.core import ParameterSource
 
-from .config import STAGES
+from .config import STAGES, load_config
 from .errors import OdsplatError
 
 
@@ -59,7 +59,6 @@ def _given(**fields: Any) -> dict[str, Any]:
 def _stage(capture_dir: Path, stage: str, given: dict[str, Any]) -> tuple[Any, Any]:
     """Run one stage through the pipeline's entry: the capture's configuration with the options given laid over.
     Returns (capture, the stage's result)."""
-    from .config import load_config
     from .pipeline import run_stage
     from .store import Capture
 
@@ -127,7 +126,6 @@ def run_(capture_dir: Path, start: str | None, stop: str | None, force: tuple[st
          sets: tuple[str, ...]) -> None:
     """Run the pipeline on CAPTURE_DIR, from the raw takes to the report; stages whose outputs are current are
     skipped, stale ones rerun with everything downstream (docs/config.md)."""
-    from .config import load_config
     from .pipeline import run
     from .store import Capture
 
@@ -145,7 +143,6 @@ def run_(capture_dir: Path, start: str | None, stop: str | None, force: tuple[st
 @click.option("--status", is_flag=True, help="Also say which stages are current.")
 def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], status: bool) -> None:
     """Print the effective configuration of CAPTURE_DIR (defaults, its odsplat.toml, --set) as TOML."""
-    from .config import load_config
     from .store import Capture
 
     cap = Capture.open(capture_dir)

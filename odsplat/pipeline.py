@@ -132,8 +132,8 @@ def output_identity(capture: Capture, paths: Iterable[Path]) -> dict[str, list[i
 def takes_identity(capture: Capture) -> str:
     """The raw takes as the manifest lists them (name, file, status, QC, size) and the static photos."""
     takes = [[t.name, t.file, t.status, t.qc, t.n_frames, t.n_samples, t.created_utc] for t in capture.manifest.takes]
-    static = [[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in sorted(capture.static_dir.glob("*"))
-              if p.is_file()] if capture.static_dir.is_dir() else []
+    photos = sorted(p for p in capture.static_dir.glob("*") if p.is_file()) if capture.static_dir.is_dir() else []
+    static = [[p.name, (st := p.stat()).st_size, st.st_mtime_ns] for p in photos]
     return digest([takes, static])
 
 
@@ -190,23 +190,28 @@ def expected(capture: Capture, name: str, config: Config) -> Provenance:
 
 def is_current(capture: Capture, name: str, config: Config) -> tuple[bool, str]:
     """Whether the stage's outputs are current, and if not, why (one phrase)."""
+    return _currency(capture, name, config)[:2]
+
+
+def _currency(capture: Capture, name: str, config: Config) -> tuple[bool, str, Stamp | None]:
+    """`is_current` with the stamp it read."""
     stamp = Stamp.read(capture, name)
     if stamp is None:
-        return False, "not run yet"
+        return False, "not run yet", None
     want = expected(capture, name, config)
     if stamp.provenance.fingerprint != want.fingerprint:
         old = stamp.provenance
         if old.settings != want.settings:
             changed = sorted(k for k in set(old.settings) | set(want.settings)
                              if old.settings.get(k) != want.settings.get(k))
-            return False, f"settings changed ({', '.join(changed)})"
+            return False, f"settings changed ({', '.join(changed)})", stamp
         changed = sorted(k for k in set(old.inputs) | set(want.inputs) if old.inputs.get(k) != want.inputs.get(k))
-        return False, f"inputs changed ({', '.join(changed)})"
+        return False, f"inputs changed ({', '.join(changed)})", stamp
     st = stage(name)
     now = output_identity(capture, st.outputs(capture, config.settings(name)))
     if now != stamp.outputs:
-        return False, "its outputs changed on disk"
-    return True, "current"
+        return False, "its outputs changed on disk", stamp
+    return True, "current", stamp
 
 
 # ------------------------------------------------------------------------------------------ running
@@ -284,10 +289,9 @@ def run(capture: Capture, config: Config | None = None, *, start: str | None = N
         forced.add(span[0])
     out = PipelineResult(capture.root)
     for name in span:
-        current, why = is_current(capture, name, config)
+        current, why, stamp = _currency(capture, name, config)
         if current and name not in forced:
-            stamp = Stamp.read(capture, name)
-            out.stages.append(StageRun(name, "current", 0.0, stamp.summary if stamp else ""))
+            out.stages.append(StageRun(name, "current", 0.0, stamp.summary))
             say(f"[{name}] current, skipped")
             continue
         why = "forced" if name in forced else why

@@ -267,10 +267,6 @@ def _inputs(capture: Capture, s: MagnifySettings) -> list[tuple[str, str | None]
     return [(n, None) for n in names]
 
 
-def out_dir(capture: Capture, method: str) -> Path:
-    return capture.paths.magnified_dir(method)
-
-
 def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bool = True) -> MagnifyResult:
     """Magnify every selected view; writes derived/magnified/METHOD/NAME.h5 and magnify.json beside them."""
     s = settings
@@ -309,4 +305,4 @@ class MagnifiedVideo(FrameFile):
 
 
 __all__ = ["METHODS", "MagnifiedTake", "MagnifiedVideo", "MagnifyResult", "MagnifySettings", "magnify_capture",
-           "magnify_take", "make_magnifier", "out_dir"]
+           "magnify_take", "make_magnifier"]

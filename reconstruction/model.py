@@ -78,10 +78,6 @@ class ReconstructSettings:
                                        f"{self.source!r} (it magnifies in 3D, at render time)")
 
 
-def out_dir(capture: Capture) -> Path:
-    return capture.paths.reconstruction_dir
-
-
 def _poses(capture: Capture):
     from .poses import PoseResult  # the pose stage's saved result
 
@@ -268,7 +264,7 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
     bg = m.background
     psnr0 = _psnr(m.g0, vs.views, 0, background=bg)
     psnr_last = _psnr(m.g0, vs.views, last, m.trajectory.means[last], m.trajectory.quats[last], bg)
-    dest = out_dir(capture)
+    dest = capture.paths.reconstruction_dir
     m.scene().save(dest)
     save_measured(dest, vs.times_s, m.measured)
     result = ReconstructResult(dest, len(m.g0), len(vs.views), len(vs.static), vs.n_timesteps, m.stats_t0["seconds"],
@@ -519,5 +515,5 @@ def render_sequence(scene: DynamicScene, cameras: list[Camera], times_s: np.ndar
 
 
 __all__ = ["DynamicScene", "Model", "train", "ReconstructResult", "ReconstructSettings", "cameras_from_json",
-           "initial_points", "look_at_point", "orbit", "out_dir", "parse_times", "pose_camera", "reconstruct",
+           "initial_points", "look_at_point", "orbit", "parse_times", "pose_camera", "reconstruct",
            "render_sequence", "save_measured"]
