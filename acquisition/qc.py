@@ -14,7 +14,7 @@ import numpy as np
 from odsplat.contract import check, describe
 from odsplat.errors import InputError
 from odsplat.impulse import impact_onsets
-from odsplat.manifest import from_plain, load_json
+from odsplat.manifest import QC_KIND, QC_SCHEMA, from_plain, load_json
 from odsplat.store import Capture, QCInfo, TakeReader, atomic_write_text
 
 from .daq import DAQChannel
@@ -130,8 +130,6 @@ def check_hit(record: TriggeredRecord, channels: Sequence[DAQChannel], *, limits
 
 # ---------------------------------------------------------------------------------------------- the qc stage
 
-QC_KIND = "odsplat.qc"
-QC_SCHEMA = 1
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,9 @@ class InputError(OdsplatError, ValueError):
         self.problem = problem
         super().__init__(f"{self.source}: {problem}")
 
+    def __reduce__(self):  # raised in a worker process, it must cross back with both fields
+        return type(self), (self.source, self.problem)
+
 
 class SchemaError(InputError):
     """A file written by a newer, unknown or foreign schema."""

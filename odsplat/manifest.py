@@ -30,6 +30,9 @@ CHANNEL_KINDS: dict[str, str] = {
 }
 TAKE_STATUSES = ("complete", "recovered")
 QC_STATUSES = ("unchecked", "accepted", "rejected")
+# The qc stage's result, derived/qc.json: read by the spine to select imported (unchecked) takes.
+QC_KIND = "odsplat.qc"
+QC_SCHEMA = 1
 
 
 def utc_now() -> str:

@@ -32,9 +32,19 @@ import h5py
 import hdf5plugin
 import numpy as np
 
-from .contract import digest
+from .contract import check, digest
 from .errors import IncompleteTakeError, InputError, OdsplatError, SchemaError
-from .manifest import SCHEMA_VERSION, ChannelInfo, Manifest, TakeRecord, check_schema, utc_now
+from .manifest import (
+    QC_KIND,
+    QC_SCHEMA,
+    SCHEMA_VERSION,
+    ChannelInfo,
+    Manifest,
+    TakeRecord,
+    check_schema,
+    load_json,
+    utc_now,
+)
 from .paths import DerivedPaths
 
 log = logging.getLogger(__name__)
@@ -43,6 +53,7 @@ MANIFEST_NAME = "capture.json"
 PARTIAL_SUFFIX = ".h5.partial"
 CRASHED_SUFFIX = ".h5.crashed"
 TAKE_SELECTIONS = ("accepted", "all")
+QC_VERDICTS = ("accepted", "rejected")
 _FRAME_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
 
 
@@ -627,8 +638,27 @@ class Capture:
         accepted, or with "all" every complete take whatever its QC verdict."""
         if which not in TAKE_SELECTIONS:
             raise InputError("takes", f"expected one of {TAKE_SELECTIONS}, got {which!r}")
-        return [t for t in self.manifest.takes
-                if t.status in ("complete", "recovered") and (which == "all" or t.qc == "accepted")]
+        complete = [t for t in self.manifest.takes if t.status in ("complete", "recovered")]
+        if which == "all":
+            return complete
+        verdicts = self.qc_verdicts() if any(t.qc == "unchecked" for t in complete) else {}
+        return [t for t in complete if (verdicts.get(t.name, "unchecked") if t.qc == "unchecked" else t.qc)
+                == "accepted"]
+
+    def qc_verdicts(self) -> dict[str, str]:
+        """The verdict the qc stage gave each take from its file (`derived/qc.json`), {} before it ran. A take
+        recorded as unchecked (an imported one) is selected by this verdict; a recorded verdict stands."""
+        path = self.paths.qc_json
+        if not path.is_file():
+            return {}
+        doc = load_json(path, missing="no QC result")
+        check(doc, path, kind=QC_KIND, schema_version=QC_SCHEMA, capture_id=self.id)
+        out = {}
+        for t in doc.get("takes") or []:
+            if not (isinstance(t, dict) and isinstance(t.get("name"), str) and t.get("checked") in QC_VERDICTS):
+                raise InputError(path, "takes: expected objects with a name and a checked verdict")
+            out[t["name"]] = t["checked"]
+        return out
 
     def next_take_name(self, view: int | None = None) -> str:
         stem = f"v{view:02d}" if view is not None else "take"
