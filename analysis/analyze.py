@@ -16,6 +16,7 @@ from odsplat.errors import InputError
 from odsplat.manifest import utc_now
 from odsplat.store import Capture, atomic_write_text
 
+from .band import band_notes, default_band_hz, frf_peaks
 from .correlation import correlate
 from .crosscheck import crosscheck_views
 from .ema import ModalFit, fit_modes
@@ -29,6 +30,7 @@ log = logging.getLogger(__name__)
 
 KIND = "odsplat.analysis"
 SCHEMA = 2
+VIDEO_BAND = 0.45     # the camera's poles are sought below this fraction of its frame rate
 
 
 @dataclass(frozen=True)
@@ -39,9 +41,9 @@ class AnalyzeSettings:
     frf: FRFSettings = field(default_factory=FRFSettings)
     pretrigger_s: float = 0.005                      # kept before each hit's onset
     record_s: float | None = None                    # each hit's segment; None: as long as every take allows
-    fmin_hz: float | None = None                     # modal fit band; None: 2 % of fmax
-    fmax_hz: float | None = None                     # None: 0.45 x the frame rate with a camera,
-                                                     # else 0.4 x the DAQ rate
+    fmin_hz: float | None = None                     # modal fit band; None: 3 frequency lines
+    fmax_hz: float | None = None                     # None: where the force spectrum is 20 dB down, at most
+                                                     # 0.4 x the DAQ rate (analysis/band.py)
     max_order: int = 120                             # a low, lightly damped mode settles late (23.5 Hz: from ~42)
     approx_freq_hz: tuple[float, ...] | None = None  # pick these poles instead of automatic selection
     ods_freq_hz: tuple[float, ...] | None = None     # ODS lines; None: the modal frequencies
@@ -86,18 +88,20 @@ def _channels(capture: Capture, s: AnalyzeSettings) -> tuple[str, tuple[Sensor, 
         force = s.force_channel
         if force not in [c.name for c in chans]:
             raise InputError(where, f"no force channel {force!r}; channels are {[c.name for c in chans]}")
-    names = s.response_channels or tuple(c.name for c in chans if c.kind == "acceleration"
-                                         and c.position_m is not None and c.direction is not None)
+    names = s.response_channels or tuple(c.name for c in chans if c.kind == "acceleration")
     if not names:
-        raise InputError(where, "no acceleration channel with position_m and direction to analyse")
+        raise InputError(where, "no acceleration channel to analyse")
     sensors = []
     for n in names:
         try:
             c = capture.manifest.channel(n)
         except KeyError:
             raise InputError(where, f"no response channel {n!r}; channels are {[c.name for c in chans]}") from None
+        if c.kind != "acceleration":
+            raise InputError(f"{where}: {n}", f"a {c.kind} channel; the responses must be acceleration channels")
         if c.position_m is None or c.direction is None:
-            raise InputError(f"{where}: {n}", "a response channel needs position_m and direction for the shapes")
+            sensors.append(Sensor(n))
+            continue
         d = np.asarray(c.direction, float)
         sensors.append(Sensor(n, np.asarray(c.position_m, float), d / np.linalg.norm(d)))
     return force, tuple(sensors)
@@ -106,7 +110,8 @@ def _channels(capture: Capture, s: AnalyzeSettings) -> tuple[str, tuple[Sensor, 
 def _take_names(capture: Capture, s: AnalyzeSettings) -> list[str]:
     takes = [t.name for t in capture.select_takes(s.takes) if t.n_samples > 0]
     if not takes:
-        raise InputError(capture.root / "capture.json", f"no {s.takes} take with DAQ samples to analyse")
+        raise InputError(capture.root / "capture.json", f"no {s.takes} take with DAQ samples to analyse"
+                         + ("" if s.takes == "all" else capture.unchecked_hint()))
     return takes
 
 
@@ -135,11 +140,11 @@ def _hit_segments(capture: Capture, takes: list[str], force: str, sensors, s: An
     return F, X, float(rate)
 
 
-def _band(capture: Capture, frf: FRFResult, s: AnalyzeSettings) -> tuple[float, float]:
-    fps = capture.manifest.camera.fps
-    fmax = s.fmax_hz or (0.45 * fps if fps else 0.4 * frf.sample_rate_hz)
-    fmax = min(fmax, float(frf.freq_hz[-1]))
-    fmin = s.fmin_hz if s.fmin_hz is not None else 0.02 * fmax
+def _band(frf: FRFResult, s: AnalyzeSettings) -> tuple[float, float]:
+    """The modal fit band: the DAQ's (analysis/band.py) unless given; the camera's band is the video side's."""
+    lo, hi = default_band_hz(frf)
+    fmax = min(s.fmax_hz or hi, float(frf.freq_hz[-1]))
+    fmin = s.fmin_hz if s.fmin_hz is not None else lo
     if fmin >= fmax:
         raise InputError("AnalyzeSettings.fmin_hz", f"expected below fmax_hz={fmax:g}; got {fmin:g}")
     return fmin, fmax
@@ -239,17 +244,28 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     frf = estimate_frf(F, X, rate, s.frf, input_name=force, output_names=[sn.name for sn in sensors],
                        output_unit="m/s^2")
     log.info("FRFs from %d of %d hits, %d lines", frf.n_averages, len(takes), len(frf.freq_hz))
-    fmin, fmax = _band(capture, frf, s)
+    fmin, fmax = _band(frf, s)
+    peaks = frf_peaks(frf, fmin, fmax)
     modes = fit_modes(frf.freq_hz, frf.h1, frf_kind="accelerance", fmin_hz=fmin, fmax_hz=fmax,
                       max_order=s.max_order, approx_freq_hz=s.approx_freq_hz,
-                      output_names=[sn.name for sn in sensors])
+                      output_names=[sn.name for sn in sensors], peaks_hz=[p.freq_hz for p in peaks])
     if frf.exp_tau_s:
         modes = modes.with_corrected_damping(frf.exp_tau_s)
     log.info("modes: %s Hz", ", ".join(f"{f:.2f}" for f in modes.freq_hz))
-    video = video_modes(capture, modes, sensors, force, s)
+    notes = band_notes(frf, (fmin, fmax), modes.freq_hz, given=s.fmax_hz is not None or s.fmin_hz is not None)
+    unplaced = [sn.name for sn in sensors if not sn.placed]
+    if unplaced:
+        notes.append(f"no position or direction for {', '.join(unplaced)}: frequencies and damping only; shapes "
+                     "need them (`odsplat geometry CAPTURE FILE`)")
+    video = video_modes(capture, modes, sensors, force, s) if not unplaced else None
     image = None
-    if s.video and s.image_poles:
-        image = image_poles(capture, fmax_hz=fmax, ranks=s.image_ranks, pixel_fraction=s.image_pixel_fraction)
+    fps = capture.manifest.camera.fps
+    if s.video and s.image_poles and fps:
+        image = image_poles(capture, fmax_hz=VIDEO_BAND * fps, ranks=s.image_ranks,
+                            pixel_fraction=s.image_pixel_fraction)
+    if video is not None and len(video.mode_index) < modes.n_modes:
+        above = [f"{f:.0f}" for i, f in enumerate(modes.freq_hz) if i not in set(video.mode_index.tolist())]
+        notes.append(f"modes at {', '.join(above)} Hz are above the video's band: no video shape")
     corr = None
     ods_f = np.asarray(s.ods_freq_hz if s.ods_freq_hz is not None else modes.freq_hz, float)
     rec = frf.to_receptance()
@@ -267,8 +283,10 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
                          paired=True)      # each video residue was fitted with that accelerometer pole
         ods_video = receptance(video.sensor_residues, video.poles_rad_s, ods_f)
         ods_surface = receptance(video.surface_residues, video.poles_rad_s, ods_f)             # (L, N, 3)
+    for note in notes:
+        log.info("note: %s", note)
     result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video,
-                            ods_surface, image)
+                            ods_surface, image, notes=tuple(notes))
     return _write(capture, result, s)
 
 

@@ -281,7 +281,8 @@ def stabilisation(poles_by_order: Sequence[PolesAtOrder], *, freq_tol: float = 0
 
 def select_poles(chart: StabilisationChart, *, approx_freq_hz: Sequence[float] | None = None,
                  min_stable: float = 0.5, cluster_tol: float = 0.005, max_damping: float = 0.2,
-                 search_tol: float = 0.05) -> np.ndarray:
+                 search_tol: float = 0.05, peaks_hz: Sequence[float] = (), peak_tol: float = 0.005,
+                 peak_min_stable: float = 0.25) -> np.ndarray:
     """Pick one pole per mode from a stabilisation chart; returns poles (rad/s) sorted by frequency.
 
     Automatic (approx_freq_hz None): the "stable" poles with damping below max_damping are sorted by
@@ -290,6 +291,10 @@ def select_poles(chart: StabilisationChart, *, approx_freq_hz: Sequence[float] |
     has the median frequency and damping of the cluster's poles in the upper half of its orders: the
     noise biases LSCF's damping, less so the more the model is over-specified. Since the fraction counts
     every order of the chart, max_order should be about twice the order where the modes first settle.
+    Guided by peaks_hz (the FRFs' clear peaks): a peak with no cluster within peak_tol of it takes the cluster
+    nearest to it within peak_tol that is stable in at least peak_min_stable of the orders. A lightly damped
+    mode's damping settles late (its frequency long before), so the half-of-the-orders rule alone can miss a
+    mode the FRF shows plainly.
     Manual: for each approx_freq_hz (in the order given), among the poles within search_tol (relative)
     of it, those of the best status; of them the nearest in frequency.
     """
@@ -307,14 +312,25 @@ def select_poles(chart: StabilisationChart, *, approx_freq_hz: Sequence[float] |
     order, poles, fn = order[srt], poles[srt], fn[srt]
     cuts = np.flatnonzero(np.diff(fn) > cluster_tol * fn[1:]) + 1
     need = min_stable * len(chart.levels)
-    picked = []
+    clusters = []                                   # (centre Hz, orders with a stable pole, pole)
     for idx in np.split(np.arange(fn.size), cuts):
-        if np.unique(order[idx]).size >= need:
-            top = idx[order[idx] >= np.median(order[idx])]
-            picked.append(pole_from_freq_damping(np.median(fn[top]), np.median(pole_damping(poles[top]))))
-    log.debug("select_poles: %d clusters, %d kept (need stable poles in %.1f orders)", len(cuts) + 1,
+        top = idx[order[idx] >= np.median(order[idx])]
+        clusters.append((float(np.median(fn[idx])), np.unique(order[idx]).size,
+                         pole_from_freq_damping(np.median(fn[top]), np.median(pole_damping(poles[top])))))
+    picked = [c for c in clusters if c[1] >= need]
+    for f0 in peaks_hz:
+        if any(abs(c[0] - f0) <= peak_tol * f0 for c in picked):
+            continue
+        near = [c for c in clusters if abs(c[0] - f0) <= peak_tol * f0
+                and c[1] >= peak_min_stable * len(chart.levels) and c not in picked]
+        if near:
+            best = min(near, key=lambda c: abs(c[0] - f0))
+            picked.append(best)
+            log.info("select_poles: the FRF peak at %.1f Hz takes the pole at %.1f Hz (stable in %d orders)", f0,
+                     best[0], best[1])
+    log.debug("select_poles: %d clusters, %d kept (need stable poles in %.1f orders)", len(clusters),
               len(picked), need)
-    picked = np.array(picked, complex)
+    picked = np.array([c[2] for c in picked], complex)
     return picked[np.argsort(pole_freq_hz(picked))]
 
 
@@ -482,9 +498,9 @@ class ModalFit:
 def fit_modes(freq_hz, frf, *, frf_kind: str, fmin_hz: float, fmax_hz: float, max_order: int = 80,
               approx_freq_hz: Sequence[float] | None = None, output_names: Sequence[str] | None = None,
               min_stable: float = 0.5, freq_tol: float = 0.01, damping_tol: float = 0.05,
-              residuals: bool = True) -> ModalFit:
-    """LSCF poles up to max_order, a stabilisation chart, automatic (or, with approx_freq_hz, manual)
-    pole selection, and LSFD modal constants, all in the band fmin_hz..fmax_hz."""
+              residuals: bool = True, peaks_hz: Sequence[float] = ()) -> ModalFit:
+    """LSCF poles up to max_order, a stabilisation chart, automatic (guided by the FRFs' clear peaks_hz; or,
+    with approx_freq_hz, manual) pole selection, and LSFD modal constants, all in the band fmin_hz..fmax_hz."""
     f, h, trailing = _check_frf(freq_hz, frf)
     _check_kind(frf_kind)
     if output_names is not None:
@@ -494,7 +510,7 @@ def fit_modes(freq_hz, frf, *, frf_kind: str, fmin_hz: float, fmax_hz: float, ma
             raise InputError("output_names", f"expected {n_out} names, one per output; got {len(output_names)}")
     chart = stabilisation(lscf(f, frf, max_order=max_order, fmin_hz=fmin_hz, fmax_hz=fmax_hz),
                           freq_tol=freq_tol, damping_tol=damping_tol)
-    poles = select_poles(chart, approx_freq_hz=approx_freq_hz, min_stable=min_stable)
+    poles = select_poles(chart, approx_freq_hz=approx_freq_hz, min_stable=min_stable, peaks_hz=peaks_hz)
     if poles.size == 0:
         raise InputError("max_order", f"no mode stable in {min_stable:.0%} of the orders up to {max_order} "
                                       f"in {fmin_hz:g}-{fmax_hz:g} Hz; raise max_order or lower min_stable")

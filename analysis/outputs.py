@@ -32,27 +32,34 @@ def records(result: AnalysisResult) -> dict:
     """Geometry, FRFs and shapes (accelerometer modes, video modes, both ODS) as export records."""
     sensors = result.sensors
     s_ids = np.arange(SENSOR_NODE0, SENSOR_NODE0 + len(sensors))
-    coords = [np.stack([s.position_m for s in sensors])]
-    ids = [s_ids]
-    names = [s.name for s in sensors]
+    placed = np.array([s.placed for s in sensors], bool)
+    # A sensor without a position is a node of the FRFs (direction "scalar") but not of the geometry or shapes.
+    coords = [np.stack([s.position_m for s in sensors if s.placed]) if placed.any() else np.zeros((0, 3))]
+    ids = [s_ids[placed]]
+    names = [s.name for s in sensors if s.placed]
     v = result.video
     sub = surface_subset(len(v.surface_points_m)) if v is not None else np.zeros(0, int)
     if v is not None:
         ids.append(SURFACE_NODE0 + np.arange(len(sub)))
         coords.append(v.surface_points_m[sub])
         names += [f"gaussian {i}" for i in sub]
-    geometry = Geometry(np.concatenate(ids), np.concatenate(coords), None, names)
+    node_ids = np.concatenate(ids)
+    geometry = Geometry(node_ids, np.concatenate(coords), None, names) if len(node_ids) else None
     frf = result.frf
-    frfs = [FRFRecord(f"H1 {sn.name} by {frf.input_name}", int(i), tuple(sn.direction), FORCE_NODE, "scalar",
+    frfs = [FRFRecord(f"H1 {sn.name} by {frf.input_name}", int(i),
+                      tuple(sn.direction) if sn.placed else "scalar", FORCE_NODE, "scalar",
                       "accelerance", frf.freq_hz, frf.h1[:, j])
             for j, (i, sn) in enumerate(zip(s_ids, sensors))]
-    dirs = np.stack([s.direction for s in sensors])
     m = result.modes
-    shapes = [ShapeRecord(f"accelerometer mode {k + 1}", float(m.freq_hz[k]), float(m.damping[k]), s_ids,
-                          m.shapes[k][:, None] * dirs, "mode", "m/N") for k in range(len(m.freq_hz))]
-    for li, f in enumerate(result.ods_freq_hz):
-        shapes.append(ShapeRecord(f"accelerometer ODS {f:.2f} Hz", float(f), 0.0, s_ids,
-                                  result.ods_accel[li][:, None] * dirs, "ods", "m/N"))
+    shapes = []
+    if placed.any():
+        dirs = np.stack([s.direction for s in sensors if s.placed])
+        shapes += [ShapeRecord(f"accelerometer mode {k + 1}", float(m.freq_hz[k]), float(m.damping[k]),
+                               s_ids[placed], m.shapes[k][placed][:, None] * dirs, "mode", "m/N")
+                   for k in range(len(m.freq_hz))]
+        for li, f in enumerate(result.ods_freq_hz):
+            shapes.append(ShapeRecord(f"accelerometer ODS {f:.2f} Hz", float(f), 0.0, s_ids[placed],
+                                      result.ods_accel[li][placed][:, None] * dirs, "ods", "m/N"))
     if v is not None:
         sid = SURFACE_NODE0 + np.arange(len(sub))
         for r, k in enumerate(v.mode_index):

@@ -280,8 +280,9 @@ def write_plots(dest: Path, result: AnalysisResult) -> dict[str, str]:
                                        [f"video {i + 1}" for i in idx], title="MAC: accelerometers vs video")
     if result.video is not None:
         jobs["time"] = lambda: plot_time(result)
-    for li in range(len(result.ods_freq_hz)):
-        jobs[f"ods_{li + 1:02d}"] = lambda li=li: plot_ods(result, li)
+    if result.video is not None or all(s.placed for s in result.sensors):   # a shape needs somewhere to be drawn
+        for li in range(len(result.ods_freq_hz)):
+            jobs[f"ods_{li + 1:02d}"] = lambda li=li: plot_ods(result, li)
     files = {}
     for key, make in jobs.items():
         path = out / f"{key}.png"

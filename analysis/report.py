@@ -137,7 +137,18 @@ def _hits(doc: dict) -> str:
 
 def _modes(doc: dict) -> str:
     rows = [[str(k + 1), _num(m["freq_hz"], ".2f"), _num(m["damping"], ".2f", 100)] for k, m in enumerate(doc["modes"])]
-    return "<h2>Modes (accelerometers)</h2>" + _table(["mode", "frequency (Hz)", "damping (%)"], rows)
+    band = doc.get("band_hz")
+    where = (f"<p>Fitted in {float(band[0]):.0f} to {float(band[1]):.0f} Hz.</p>"
+             if isinstance(band, list) and len(band) == 2 else "")
+    return "<h2>Modes (accelerometers)</h2>" + where + _table(["mode", "frequency (Hz)", "damping (%)"], rows)
+
+
+def _notes(doc: dict) -> str:
+    """What the numbers cannot show, at the top: peaks with no mode, a band that cuts a peak, missing geometry."""
+    notes = [str(n) for n in doc.get("notes") or []]
+    if not notes:
+        return ""
+    return "<h2>Notes</h2><ul>" + "".join(f'<li class="bad">{escape(n)}</li>' for n in notes) + "</ul>"
 
 
 def _video(doc: dict) -> str:
@@ -260,7 +271,8 @@ def _settings(doc: dict) -> str:
 
 def render_report(doc: dict, folder: Path, title: str) -> str:
     """The report's HTML from a loaded analysis.json (`folder` holds it and its plots)."""
-    sections = [_hits(doc), _modes(doc), _video(doc), _correlation(doc), _figures(doc, folder), _settings(doc)]
+    sections = [_notes(doc), _hits(doc), _modes(doc), _video(doc), _correlation(doc), _figures(doc, folder),
+                _settings(doc)]
     return _PAGE.format(title=escape(str(doc.get("capture") or title)),
                         created=escape(str(doc.get("created_utc", "(no date)"))),
                         n_sensors=len(doc.get("sensors", [])), n_avg=escape(str(doc.get("n_averages", "?"))),

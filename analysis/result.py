@@ -15,9 +15,16 @@ from .imagepoles import ImagePoles
 
 @dataclass(frozen=True)
 class Sensor:
+    """A response channel, and where it sits: position and direction are None until the user gives them (an
+    imported recording without geometry still gives FRFs, frequencies and damping; shapes need both)."""
+
     name: str
-    position_m: np.ndarray   # (3,)
-    direction: np.ndarray    # (3,) unit
+    position_m: np.ndarray | None = None   # (3,)
+    direction: np.ndarray | None = None    # (3,) unit
+
+    @property
+    def placed(self) -> bool:
+        return self.position_m is not None and self.direction is not None
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,7 @@ class AnalysisResult:
     #                                    video's ODS at every surface point (video.surface_points_m), synthesised
     image: ImagePoles | None = None      # poles from the raw frames of every synced take
     files: dict[str, str] = field(default_factory=dict)
+    notes: tuple[str, ...] = ()          # what the numbers cannot show: peaks with no mode, a band that cuts one
 
     def summary(self) -> dict:
         """The key numbers, as plain JSON values."""
@@ -65,6 +73,8 @@ class AnalysisResult:
             "sensors": [s.name for s in self.sensors],
             "exp_tau_s": self.frf.exp_tau_s,
             "modes": [{"freq_hz": float(f), "damping": float(z)} for f, z in zip(m.freq_hz, m.damping)],
+            "band_hz": [float(b) for b in m.band_hz],
+            "notes": list(self.notes),
         }
         if self.video is not None:
             v = self.video
@@ -117,5 +127,6 @@ class AnalysisResult:
             lines.append("MAC video/accelerometers: " + ", ".join(
                 f"mode {i + 1} {c.pair_mac[k]:.3f} (scale {abs(c.scale_factor[k]):.2f})"
                 for k, (i, _) in enumerate(c.pairs)))
+        lines += [f"note: {n}" for n in self.notes]
         lines.append(f"-> {', '.join(self.files.values())}")
         return "\n".join(lines)

@@ -109,6 +109,22 @@ def recover(capture: Path) -> None:
         sys.exit(1)
 
 
+@main.command()
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.argument("geometry_file", type=click.Path(path_type=Path), required=False)
+def geometry(capture_dir: Path, geometry_file: Path | None) -> None:
+    """Place the sensors after the recording: with GEOMETRY_FILE (TOML [[sensors]] tables: name, position_m,
+    direction), set their positions and directions in the capture; without it, print the capture's geometry in
+    that format, to edit. The raw takes are untouched; `odsplat run` then redoes the analysis."""
+    from .sensors import apply_geometry, geometry_toml, read_geometry
+    from .store import Capture
+
+    cap = Capture.open(capture_dir)
+    if geometry_file is None:
+        click.echo(geometry_toml(cap), nl=False)
+        return
+    changes = apply_geometry(cap, read_geometry(geometry_file), geometry_file)
+    click.echo("\n".join(changes) if changes else "the geometry is as the file says already")
 
 
 @main.command("run")
@@ -153,7 +169,8 @@ def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], 
 
         click.echo("")
         for name, current, why in stage_status(cap, config):
-            click.echo(f"# {name:<12} {'current' if current else 'stale'}: {why}")
+            state = "n/a" if why.startswith("does not apply") else "current" if current else "stale"
+            click.echo(f"# {name:<12} {state}: {why}")
 
 
 @main.command()

@@ -131,9 +131,8 @@ def import_capture(rig_path: str | Path, out: str | Path, *, data_dir: str | Pat
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    capture.root = out
     log.info("imported %d takes into %s", len(capture.manifest.takes), out)
-    return capture
+    return Capture.open(out)   # opened anew: the one built has its root and derived paths in the temporary folder
 
 
 def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) -> Capture:

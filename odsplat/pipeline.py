@@ -24,6 +24,7 @@ from .config import STAGES, Config, load_config
 from .contract import Provenance, check, describe, digest, plain
 from .errors import InputError, OdsplatError
 from .manifest import load_json
+from .sensors import geometry_identity
 from .store import Capture, atomic_write_text, fsync_path
 
 log = logging.getLogger(__name__)
@@ -45,6 +46,8 @@ class Stage:
     summary: Callable[[Any], str]                      # its result in a few lines
     volatile: tuple[str, ...] = ()                     # settings that do not change the result (threads, memory)
     raw: bool = False                                  # reads the raw takes themselves
+    needs_views: int = 0                               # takes with frames from this many views, or it does not apply
+    geometry: bool = False                             # reads the sensors' placement (odsplat geometry changes it)
 
 
 def _entry(package: str, name: str) -> Callable[[Capture, Any], Any]:
@@ -80,20 +83,20 @@ GRAPH: tuple[Stage, ...] = (
     Stage("sync", _entry("sync", "run"), upstream=lambda c: ("qc",),
           outputs=lambda cap, s: [cap.paths.sync_json] + ([cap.paths.sync_png] if s.plot else [])
           + ([cap.paths.aligned_dir] if s.write_frames else []),
-          summary=lambda r: r.summary(), volatile=("max_memory_mb",), raw=True),
+          summary=lambda r: r.summary(), volatile=("max_memory_mb",), raw=True, needs_views=1),
     Stage("magnify", _entry("processing", "run"), upstream=_magnify_upstream,
           outputs=lambda cap, s: [cap.paths.magnified_dir(s.method)],
-          summary=lambda r: r.summary(), volatile=("workers",), raw=True),
+          summary=lambda r: r.summary(), volatile=("workers",), raw=True, needs_views=1),
     Stage("poses", _entry("reconstruction", "run_poses"), upstream=lambda c: ("qc",),
           outputs=lambda cap, s: [cap.paths.poses_json, cap.paths.points_npz],
-          summary=lambda r: _lines(r.report_lines()), volatile=("threads",), raw=True),
+          summary=lambda r: _lines(r.report_lines()), volatile=("threads",), raw=True, needs_views=2),
     Stage("reconstruct", _entry("reconstruction", "run"), upstream=_reconstruct_upstream,
           outputs=lambda cap, s: [cap.paths.reconstruction_json, cap.paths.gaussians_ply, cap.paths.trajectories_npz,
                                   cap.paths.measured_motion_npz],
-          summary=lambda r: r.summary(), volatile=("threads",)),
+          summary=lambda r: r.summary(), volatile=("threads",), needs_views=2),
     Stage("analyze", _entry("analysis", "run"), upstream=_analyze_upstream,
           outputs=lambda cap, s: [p for p in _walk(cap.paths.analysis_dir) if p != cap.paths.report_html],
-          summary=lambda r: r.text()),
+          summary=lambda r: r.text(), geometry=True),
     Stage("report", _entry("analysis", "write_report"), upstream=lambda c: ("analyze",),
           outputs=lambda cap, s: [cap.paths.report_html], summary=str),
 )
@@ -176,6 +179,8 @@ class Stamp:
 def _inputs(capture: Capture, name: str, config: Config) -> dict[str, str]:
     st = stage(name)
     inputs = {"takes": takes_identity(capture)} if st.raw else {}
+    if st.geometry:
+        inputs["geometry"] = geometry_identity(capture)
     for up in st.upstream(config):
         stamp = Stamp.read(capture, up)
         inputs[up] = stamp.provenance.run_id if stamp else "missing"
@@ -214,16 +219,40 @@ def _currency(capture: Capture, name: str, config: Config) -> tuple[bool, str, S
     return True, "current", stamp
 
 
+def applies(capture: Capture, name: str, config: Config) -> str | None:
+    """None when stage `name` has something to work on; else why not, in a phrase. The video stages need takes
+    with frames among those sync selects (after qc's verdicts): a recording with accelerometers only goes
+    from qc straight to the analysis, and 3D needs at least two views."""
+    need = stage(name).needs_views
+    if not need:
+        return None
+    takes = [t for t in capture.select_takes(config.sync.takes) if t.n_frames > 0]
+    views = {t.view for t in takes}
+    if not takes:
+        unchecked = not capture.paths.qc_json.exists() and any(t.qc == "unchecked" for t in capture.manifest.takes)
+        return f"no {config.sync.takes} take has video frames" + (" (qc has not run)" if unchecked else "")
+    if len(views) < need:
+        return f"3D needs takes from {need} views or more; the {config.sync.takes} takes with frames have {len(views)}"
+    return None
+
+
 # ------------------------------------------------------------------------------------------ running
 
 @dataclass
 class StageRun:
     stage: str
-    status: str            # "ran" or "current"
+    status: str            # "ran", "current" or "n/a" (nothing to work on: `applies`)
     seconds: float
     summary: str
     reason: str = ""
     result: Any = None
+
+
+def _unstamp(capture: Capture, name: str) -> None:
+    stamp = capture.paths.stamp(name)
+    if stamp.exists():
+        stamp.unlink()
+        fsync_path(stamp.parent)
 
 
 def run_stage(capture: Capture, name: str, config: Config | None = None, settings: Any = None) -> StageRun:
@@ -235,10 +264,7 @@ def run_stage(capture: Capture, name: str, config: Config | None = None, setting
         config = config.replace(name, settings)
     st = stage(name)
     prov = expected(capture, name, config)
-    stamp = capture.paths.stamp(name)
-    if stamp.exists():  # first: a run killed from here on leaves the stage stale, never current
-        stamp.unlink()
-        fsync_path(stamp.parent)
+    _unstamp(capture, name)  # first: a run killed from here on leaves the stage stale, never current
     started = time.perf_counter()
     s = config.settings(name)
     result = st.entry(capture, s)
@@ -289,6 +315,12 @@ def run(capture: Capture, config: Config | None = None, *, start: str | None = N
         forced.add(span[0])
     out = PipelineResult(capture.root)
     for name in span:
+        skip = applies(capture, name, config)
+        if skip is not None:
+            _unstamp(capture, name)
+            out.stages.append(StageRun(name, "n/a", 0.0, "", reason=skip))
+            say(f"[{name}] does not apply: {skip}")
+            continue
         current, why, stamp = _currency(capture, name, config)
         if current and name not in forced:
             out.stages.append(StageRun(name, "current", 0.0, stamp.summary))
@@ -313,6 +345,10 @@ def status(capture: Capture, config: Config | None = None) -> list[tuple[str, bo
     config = config or load_config(capture)
     out, stale = [], set()
     for name in STAGES:
+        skip = applies(capture, name, config) if "qc" not in stale else None   # known once qc's verdicts are
+        if skip is not None:
+            out.append((name, True, f"does not apply: {skip}"))
+            continue
         current, why = is_current(capture, name, config)
         behind = [up for up in stage(name).upstream(config) if up in stale]
         if current and behind:
@@ -323,5 +359,5 @@ def status(capture: Capture, config: Config | None = None) -> list[tuple[str, bo
     return out
 
 
-__all__ = ["GRAPH", "PipelineResult", "Stage", "StageRun", "Stamp", "expected", "is_current", "output_identity",
-           "run", "run_stage", "stage", "stage_settings", "status", "takes_identity"]
+__all__ = ["GRAPH", "PipelineResult", "Stage", "StageRun", "Stamp", "applies", "expected", "is_current",
+           "output_identity", "run", "run_stage", "stage", "stage_settings", "status", "takes_identity"]

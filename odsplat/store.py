@@ -645,6 +645,13 @@ class Capture:
         return [t for t in complete if (verdicts.get(t.name, "unchecked") if t.qc == "unchecked" else t.qc)
                 == "accepted"]
 
+    def unchecked_hint(self) -> str:
+        """Why "accepted" may select nothing, for an error message: imported takes that qc has not judged yet."""
+        waiting = [t.name for t in self.manifest.takes if t.status in ("complete", "recovered")
+                   and t.qc == "unchecked" and t.name not in self.qc_verdicts()]
+        return (f" ({len(waiting)} take(s) not checked yet: run `odsplat qc {self.root}` or `odsplat run`)"
+                if waiting else "")
+
     def qc_verdicts(self) -> dict[str, str]:
         """The verdict the qc stage gave each take from its file (`derived/qc.json`), {} before it ran. A take
         recorded as unchecked (an imported one) is selected by this verdict; a recorded verdict stands."""

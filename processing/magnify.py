@@ -272,7 +272,7 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
     s = settings
     jobs = _inputs(capture, s)
     if not jobs:
-        raise OdsplatError(f"{capture.root}: no takes to magnify")
+        raise OdsplatError(f"{capture.root}: no takes to magnify{capture.unchecked_hint()}")
     dest = capture.paths.ensure(capture.paths.magnified_dir(s.method))
     workers = max(1, min(s.workers or os.cpu_count() or 1, len(jobs)))
     threads = max(1, (os.cpu_count() or 1) // workers)

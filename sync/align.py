@@ -421,7 +421,8 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
     m = capture.manifest
     records = capture.select_takes(s.takes)
     if not records:
-        raise OdsplatError(f"{capture.root}: no {'' if s.takes == 'all' else 'accepted '}takes to sync")
+        raise OdsplatError(f"{capture.root}: no {'' if s.takes == 'all' else 'accepted '}takes to sync"
+                           + ("" if s.takes == "all" else capture.unchecked_hint()))
     results: list[TakeSync] = []
     responses: dict[str, tuple[np.ndarray, float]] = {}
     for rec in tqdm(records, desc="sync: timing", unit="take", disable=not progress):

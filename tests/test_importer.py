@@ -219,3 +219,31 @@ def test_a_slow_motion_file_gets_its_true_rate_from_the_rig(tmp_path):
     with pytest.raises(InputError, match="not both") as err:
         import_capture(rig, tmp_path / "both")
     assert err.value.source.endswith("takes[0].recorded_fps")
+
+
+def test_a_png_and_csv_bundle_imports_with_no_edits_and_qc_judges_its_takes(tmp_path):
+    """A plain bundle as a lab exports it: PNG frames, and a CSV whose time column is `time_s` printed to 7
+    significant digits. It imports as it is; qc then accepts the clean hit and rejects the double hit, and the
+    stages select by that verdict."""
+    from odsplat.acquisition import run_qc
+
+    frames = _write_sequence(tmp_path / "seq", 12)
+    fs = 20_480.0
+    for name, hits in (("daq.csv", (0.01,)), ("double.csv", (0.01, 0.03))):
+        t = np.arange(4096) / fs
+        force = sum(np.exp(-(((t - t0) / 0.0005) ** 2)) * 100.0 for t0 in hits)
+        (tmp_path / name).write_text("time_s,hammer [N],acc1 [g]\n" + "".join(
+            f"{a:.7g},{b:.6f},{np.sin(2 * np.pi * 80 * a):.6f}\n" for a, b in zip(t, force)))
+    rig = _rig(tmp_path)
+    rig.write_text(rig.read_text() + '[[takes]]\nname = "again"\nsignals = "double.csv"\npretrigger_samples = 200\n')
+    cap = import_capture(rig, tmp_path / "cap")
+    with cap.open_take("hit") as r:
+        np.testing.assert_array_equal(r.read_frames(), frames)
+        assert r.sample_rate_hz == pytest.approx(fs, rel=1e-6)
+    assert [t.qc for t in cap.manifest.takes] == ["unchecked", "unchecked"] and cap.select_takes() == []
+    report = run_qc(cap)
+    verdicts = {t.name: (t.status, t.reasons) for t in report.takes}
+    assert verdicts == {"hit": ("accepted", ()), "again": ("rejected", ("double_hit",))}
+    assert [t.name for t in Capture.open(cap.root).select_takes()] == ["hit"]
+    assert len(Capture.open(cap.root).select_takes("all")) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "daq.csv", "double.csv", "rig.toml", "seq"]

@@ -1,0 +1,124 @@
+"""What the FRFs themselves say about where to fit: the band the hammer excited, and the clear resonance peaks.
+
+The default fit band follows the DAQ: from a few frequency lines up to where the hammer's force spectrum has
+fallen `FORCE_DROP_DB` below its low-frequency level (the usual rule for impact testing: above it the force no
+longer excites the structure well enough for a trustworthy FRF), and never above 0.4 x the DAQ's sample rate.
+The clear peaks check the automatic pole selection: a clear peak with no pole near it, or a strong peak the
+band leaves out, is said in the result, never passed over in silence.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import find_peaks
+
+from odsplat.errors import InputError
+
+from .frf import FRFResult
+
+FORCE_DROP_DB = 20.0        # the band ends where the force spectrum is this far below its level at low frequency
+MAX_FRACTION_OF_RATE = 0.4  # ... and at most at this fraction of the DAQ's sample rate (anti-aliasing filters)
+MIN_LINES = 3               # the band starts this many frequency lines above 0 Hz
+PEAK_PROMINENCE_DB = 10.0   # a clear peak stands this far above the valleys either side of it
+PEAK_COHERENCE = 0.9        # ... with at least this coherence around it
+PEAK_HEIGHT_DB = 20.0       # ... and within this of the band's highest clear peak
+CUT_PEAK_DB = 10.0          # a peak outside the band is reported when within this of the band's highest peak
+
+
+@dataclass(frozen=True)
+class FRFPeak:
+    freq_hz: float
+    height_db: float        # relative to the highest clear peak in the range searched
+    prominence_db: float
+    coherence: float
+
+
+def force_band_hz(frf: FRFResult, drop_db: float = FORCE_DROP_DB) -> float:
+    """The frequency where the hammer's force spectrum first falls drop_db below its low-frequency level (the
+    median over the lowest 1 % of the lines, at least 3 lines), or the FRF's last line if it never does."""
+    f, s = frf.freq_hz, np.asarray(frf.force_spectrum, float)
+    low = (f > 0) & (f <= max(0.01 * f[-1], 3 * (f[1] - f[0]) if len(f) > 1 else 0.0))
+    if not low.any() or not np.isfinite(s[low]).any():
+        return float(f[-1])
+    level = float(np.nanmedian(s[low]))
+    below = np.flatnonzero((f > 0) & (s < level * 10 ** (-drop_db / 20)))
+    return float(f[below[0]]) if len(below) else float(f[-1])
+
+
+def default_band_hz(frf: FRFResult) -> tuple[float, float]:
+    """The fit band when none is given: MIN_LINES lines up to the force's band, at most 0.4 x the DAQ rate."""
+    df = float(frf.freq_hz[1] - frf.freq_hz[0]) if len(frf.freq_hz) > 1 else 0.0
+    fmax = min(force_band_hz(frf), MAX_FRACTION_OF_RATE * frf.sample_rate_hz, float(frf.freq_hz[-1]))
+    return MIN_LINES * df, fmax
+
+
+def _magnitude_db(frf: FRFResult) -> np.ndarray:
+    """The FRFs' magnitudes in one curve (dB): each output scaled to unit rms, then their rms, so every output
+    counts whatever its level; NaN lines (not excited) count as the floor."""
+    h = np.abs(np.asarray(frf.h1)).reshape(len(frf.freq_hz), -1)
+    h = np.where(np.isfinite(h), h, 0.0)
+    rms = np.sqrt(np.mean(h ** 2, axis=0))
+    h = h / np.where(rms > 0, rms, 1.0)
+    mag = np.sqrt(np.mean(h ** 2, axis=1))
+    return 20 * np.log10(np.maximum(mag, 1e-12 * max(float(mag.max()), 1e-300)))
+
+
+def frf_peaks(frf: FRFResult, fmin_hz: float, fmax_hz: float, *, prominence_db: float = PEAK_PROMINENCE_DB,
+              min_coherence: float = PEAK_COHERENCE, height_db: float | None = PEAK_HEIGHT_DB) -> list[FRFPeak]:
+    """The clear resonance peaks of the FRFs in fmin_hz..fmax_hz, highest first: prominent, coherent and (unless
+    height_db is None) within height_db of the highest of them."""
+    if not fmax_hz > fmin_hz:
+        raise InputError("frf_peaks", f"expected fmin_hz < fmax_hz; got {fmin_hz:g} and {fmax_hz:g}")
+    f = frf.freq_hz
+    db = _magnitude_db(frf)
+    coh = np.asarray(frf.coherence, float).reshape(len(f), -1)
+    coh = np.nanmean(np.where(np.isfinite(coh), coh, 0.0), axis=1)
+    idx, props = find_peaks(db, prominence=prominence_db)
+    rows = []
+    for i, prom in zip(idx, props["prominences"]):
+        if not fmin_hz <= f[i] <= fmax_hz:
+            continue
+        c = float(np.median(coh[max(i - 2, 0):i + 3]))
+        if c >= min_coherence:
+            rows.append((float(f[i]), float(db[i]), float(prom), c))
+    if not rows:
+        return []
+    top = max(r[1] for r in rows)
+    peaks = [FRFPeak(fr, h - top, p, c) for fr, h, p, c in rows]
+    if height_db is not None:
+        peaks = [p for p in peaks if p.height_db >= -height_db]
+    return sorted(peaks, key=lambda p: -p.height_db)
+
+
+def unmatched_peaks(peaks: list[FRFPeak], freq_hz: np.ndarray, df_hz: float, tol: float = 0.005) -> list[FRFPeak]:
+    """The peaks with no mode within tol (relative) or 3 lines of them, whichever is wider."""
+    freq_hz = np.asarray(freq_hz, float)
+    return [p for p in peaks
+            if not len(freq_hz) or np.min(np.abs(freq_hz - p.freq_hz)) > max(tol * p.freq_hz, 3 * df_hz)]
+
+
+def band_notes(frf: FRFResult, band_hz: tuple[float, float], freq_hz: np.ndarray, *, given: bool) -> list[str]:
+    """What the result must say about its band and poles: clear peaks with no mode, and strong peaks outside
+    the band (`given`: whether the user chose the band)."""
+    fmin, fmax = band_hz
+    df = float(frf.freq_hz[1] - frf.freq_hz[0]) if len(frf.freq_hz) > 1 else 0.0
+    notes = []
+    inside = frf_peaks(frf, fmin, fmax)
+    missed = unmatched_peaks(inside, freq_hz, df)
+    if missed:
+        notes.append("clear FRF peaks with no mode: " + ", ".join(
+            f"{p.freq_hz:.1f} Hz ({p.height_db:+.0f} dB)" for p in sorted(missed, key=lambda p: p.freq_hz))
+            + "; pick them with --freq (analyze.approx_freq_hz) or raise max_order")
+    nyq = min(MAX_FRACTION_OF_RATE * frf.sample_rate_hz, float(frf.freq_hz[-1]))
+    everywhere = frf_peaks(frf, float(frf.freq_hz[0]), nyq, height_db=None) if nyq > frf.freq_hz[0] else []
+    if everywhere:   # heights relative to one reference: the highest clear peak below 0.4 x the rate
+        band_top = max((p.height_db for p in everywhere if fmin <= p.freq_hz <= fmax), default=-np.inf)
+        cut = [p for p in everywhere if not fmin <= p.freq_hz <= fmax and p.height_db >= band_top - CUT_PEAK_DB]
+        if cut:
+            why = ("the band was given" if given else
+                   f"the hammer's force is {FORCE_DROP_DB:g} dB down above {fmax:.0f} Hz")
+            notes.append(f"strong FRF peaks outside the fit band {fmin:.0f}-{fmax:.0f} Hz ({why}): " + ", ".join(
+                f"{p.freq_hz:.0f} Hz" for p in sorted(cut, key=lambda p: p.freq_hz))
+                + "; widen it with --fmax (analyze.fmax_hz); a harder hammer tip excites higher")
+    return notes
