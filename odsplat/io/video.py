@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from ..errors import InputError
+from .mraw import unpack_12bit
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +128,7 @@ class _PhotronSource(VideoSource):
     def _read(self, start: int, stop: int) -> np.ndarray:
         raw = self.raw[start:stop]
         if self.stored_bits == 12:
-            frames = _unpack_12bit(raw).reshape((stop - start, *self.frame_shape))
+            frames = unpack_12bit(raw).reshape((stop - start, *self.frame_shape))
         else:
             # A native-endian copy, so callers never hold (or write through) the file's map.
             frames = np.array(raw, dtype=self.dtype)
@@ -135,14 +136,6 @@ class _PhotronSource(VideoSource):
             frames >>= self.shift
         return frames
 
-
-def _unpack_12bit(raw: np.ndarray) -> np.ndarray:
-    """Photron packed 12-bit: 3 bytes hold 2 pixels, big-endian (AAAAAAAA AAAABBBB BBBBBBBB)."""
-    b = raw.reshape(-1, 3).astype(np.uint16)
-    out = np.empty((b.shape[0], 2), dtype=np.uint16)
-    out[:, 0] = (b[:, 0] << 4) | (b[:, 1] >> 4)
-    out[:, 1] = ((b[:, 1] & 0x0F) << 8) | b[:, 2]
-    return out.reshape(-1)
 
 
 # The fields we use: (.cih key, .cihx element path). PFV 4 calls the save step "skipFrame".
