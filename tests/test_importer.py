@@ -219,3 +219,27 @@ def test_a_slow_motion_file_gets_its_true_rate_from_the_rig(tmp_path):
     with pytest.raises(InputError, match="not both") as err:
         import_capture(rig, tmp_path / "both")
     assert err.value.source.endswith("takes[0].recorded_fps")
+
+
+def test_a_phantom_cine_imports_with_its_header(shared_data, tmp_path):
+    """pyidi's .cine sample: 235 frames of 256x32 at 100 fps, packed 10-bit read as linear 12-bit; FirstImageNo 0
+    makes the first frame the trigger frame, counter 0."""
+    from cine_reader import Cine
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "phantom"\n[[takes]]\nname = "cine"\nvideo = "pyidi-samples/data_small_cine.cine"\n'
+                   'camera_trigger_time_s = 0.02\n')
+    cap = import_capture(rig, tmp_path / "cap", data_dir=shared_data)
+    camera = cap.manifest.camera
+    assert (camera.width_px, camera.height_px, camera.fps, camera.bit_depth) == (256, 32, 100.0, 12)
+    assert camera.model == "Phantom, serial 34497"
+    reference = Cine(shared_data / "pyidi-samples" / "data_small_cine.cine", keep_annotations=False)
+    with cap.open_take("cine") as r:
+        assert (r.n_frames, r.frame_shape, r.frames.dtype, r.bit_depth) == (235, (32, 256), np.uint16, 12)
+        assert r.trigger.camera_trigger_frame == 0
+        np.testing.assert_array_equal(r.frame_counter, np.arange(235))
+        np.testing.assert_allclose(r.frame_times_s, 0.02 + np.arange(235) / 100.0)
+        frames = np.concatenate(list(r.iter_frames(64)))
+    for i in (0, 100, 234):
+        reference.load_frame(i)
+        np.testing.assert_array_equal(frames[i], reference.frame)
