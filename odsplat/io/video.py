@@ -52,6 +52,8 @@ class VideoSource(ABC):
     camera_model: str | None
     header: dict[str, Any]  # raw parsed header, JSON-serialisable
     frame_step: int = field(default=1, kw_only=True)  # camera frames between file frames (Photron save step)
+    # False where bit_depth only follows the container (a 16-bit PNG or .npy may hold 12-bit data)
+    bit_depth_known: bool = field(default=True, kw_only=True)
 
     @property
     def frame_shape(self) -> tuple[int, ...]:
@@ -464,13 +466,13 @@ def _open_image_sequence(folder: Path) -> _ImageSequenceSource:
     first = _read_image(files[0])
     if first.dtype not in (np.uint8, np.uint16):
         raise InputError(files[0], f"has pixels of {first.dtype}; image sequences must be uint8 or uint16")
-    # bit_depth follows the container (8 or 16): a 16-bit file of 12-bit data is not told apart by guessing.
+    # bit_depth follows the container (8 or 16): the importer finds a 16-bit file's from its data or the rig.
     return _ImageSequenceSource(
         path=folder, n_frames=len(files), height_px=first.shape[0], width_px=first.shape[1],
         n_colors=1 if first.ndim == 2 else 3, dtype=first.dtype, bit_depth=first.dtype.itemsize * 8,
         fps=None, trigger_frame=None, start_frame=None, camera_model=None,
         header={"n_files": len(files), "first_file": files[0].name, "last_file": files[-1].name},
-        files=files,
+        files=files, bit_depth_known=first.dtype == np.uint8,
     )
 
 
@@ -518,6 +520,7 @@ def _open_npy(path: Path) -> _NpySource:
         n_colors=1 if array.ndim == 3 else 3, dtype=array.dtype, bit_depth=array.dtype.itemsize * 8,
         fps=None, trigger_frame=None, start_frame=None, camera_model=None,
         header={"shape": list(array.shape), "dtype": str(array.dtype)}, array=array,
+        bit_depth_known=array.dtype == np.uint8,
     )
 
 
