@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from odsplat.errors import InputError, OdsplatError
+from odsplat.io.mraw import unpack_12bit
 from odsplat.manifest import CameraInfo
 
 from .camera import CameraTimeout, Frame, RecordingStatus, TriggerSettings
@@ -280,22 +281,6 @@ def frame_bytes(width: int, height: int, bits: int) -> int:
             raise InputError("transfer_bits", f"packed 12-bit frames of {width}x{height} do not fill whole bytes")
         return 3 * n // 2
     raise InputError("transfer_bits", f"expected 8, 12 (packed) or 16, got {bits}")
-
-
-def unpack_12bit(raw: np.ndarray | bytes) -> np.ndarray:
-    """Packed 12-bit, as in Photron's .mraw: 3 bytes hold 2 pixels, big-endian
-    (AAAAAAAA AAAABBBB BBBBBBBB). Returns uint16 values 0..4095, one per pixel."""
-    if isinstance(raw, (bytes, bytearray, memoryview)):
-        b = np.frombuffer(raw, dtype=np.uint8)
-    else:
-        b = np.asarray(raw, np.uint8)
-    if b.size % 3:
-        raise InputError("packed 12-bit data", f"{b.size} bytes is not a whole number of 3-byte pixel pairs")
-    b = b.reshape(-1, 3).astype(np.uint16)
-    out = np.empty((b.shape[0], 2), dtype=np.uint16)
-    out[:, 0] = (b[:, 0] << 4) | (b[:, 1] >> 4)
-    out[:, 1] = ((b[:, 1] & 0x0F) << 8) | b[:, 2]
-    return out.reshape(-1)
 
 
 def unpack_frame(raw: np.ndarray | bytes, width: int, height: int, bits: int) -> np.ndarray:

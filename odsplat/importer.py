@@ -36,6 +36,7 @@ from .store import Capture, QCInfo, TriggerInfo, fsync_path
 log = logging.getLogger(__name__)
 
 RATE_TOLERANCE = 1e-6  # signal files whose rates differ by less (relative) share one clock
+BIT_DEPTHS = (8, 10, 12, 14, 16)  # what [camera] bit_depth accepts, and what detection chooses from
 
 
 @dataclass
@@ -84,6 +85,7 @@ class RigCamera:
     model: str | None = None
     intrinsics: Intrinsics | None = None
     exposure_s: float | None = None
+    bit_depth: int | None = None  # bits of data per sample (12 in 16-bit words); default: the header's, else the data's
 
 
 @dataclass
@@ -149,6 +151,7 @@ def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) 
             raise
         signals.append(_read_take_signals(rig, base, take) if take.signals else None)
         _check_trigger_frame(f"{rig_path}: takes[{i}].trigger_frame", take, videos[-1])
+    _resolve_bit_depth(rig, rig_path, videos, chunk_frames)
     camera = _camera_info(rig, rig_path, videos)
     rates = sorted({s.sample_rate_hz for s in signals if s is not None})
     # Time stamps printed to 7 significant digits put the same clock at rates 1e-7 apart: one rate to 1e-6.
@@ -169,8 +172,9 @@ def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) 
     capture = Capture.create(root, manifest)
     static = [Path(p) for pattern in rig.static for p in sorted(glob.glob(str(_resolve(base, pattern))))]
     capture.copy_static(static)
+    declared = f"{rig_path}: camera.bit_depth" if rig.camera.bit_depth is not None else None
     for take, video, sigs in zip(rig.takes, videos, signals):
-        _write_take(capture, take, video, sigs, chunk_frames)
+        _write_take(capture, take, video, sigs, chunk_frames, declared)
     return capture
 
 
@@ -192,6 +196,31 @@ def _read_take_signals(rig: Rig, base: Path, take: RigTake) -> SignalSet:
             raise InputError(path, f"column {col!r} is in {si}, but channel {ch.name!r} is a {ch.kind} channel "
                                    f"({CHANNEL_KINDS[ch.kind]}); fix the rig's kind or unit")
     return sigs
+
+
+def _resolve_bit_depth(rig: Rig, rig_path: Path, videos: list[VideoSource | None], chunk_frames: int) -> None:
+    """Each video's bit depth: the rig's [camera] bit_depth where given (checked against the container here and
+    against the data as it is written), else the header's, else the smallest of BIT_DEPTHS that holds the data."""
+    declared, where = rig.camera.bit_depth, f"{rig_path}: camera.bit_depth"
+    if declared is not None and declared not in BIT_DEPTHS:
+        raise InputError(where, f"expected one of {', '.join(map(str, BIT_DEPTHS))}; got {declared}")
+    for video in videos:
+        if video is None:
+            continue
+        container = video.dtype.itemsize * 8
+        if declared is not None:
+            if declared > container:
+                raise InputError(where, f"{declared}, but {video.path.name} holds {container}-bit samples "
+                                        f"({video.dtype})")
+            if video.bit_depth_known and video.bit_depth != declared:
+                log.info("%s: its header says %d bit; the rig's camera.bit_depth says %d", video.path.name,
+                         video.bit_depth, declared)
+            video.bit_depth = declared
+        elif not video.bit_depth_known:
+            peak = max(int(chunk.max()) for chunk in video.iter_chunks(chunk_frames))
+            video.bit_depth = next(bits for bits in BIT_DEPTHS if peak < 2**bits)
+            log.info("%s: %d-bit data detected in %d-bit samples (the largest value is %d); give [camera] bit_depth "
+                     "in the rig to say otherwise", video.path.name, video.bit_depth, container, peak)
 
 
 def _camera_info(rig: Rig, rig_path: Path, videos: list[VideoSource | None]) -> CameraInfo:
@@ -217,7 +246,9 @@ def _camera_info(rig: Rig, rig_path: Path, videos: list[VideoSource | None]) -> 
 
 
 def _write_take(capture: Capture, take: RigTake, video: VideoSource | None, sigs: SignalSet | None,
-                chunk_frames: int) -> None:
+                chunk_frames: int, declared_bit_depth: str | None) -> None:
+    """Write one take; `declared_bit_depth` names the rig's bit_depth field when the rig gives one, so that a frame
+    holding more bits is refused."""
     manifest = capture.manifest
     attrs: dict[str, Any] = {"source": "import", "notes": take.notes}
     if video is not None:
@@ -253,6 +284,8 @@ def _write_take(capture: Capture, take: RigTake, video: VideoSource | None, sigs
             k = 0
             for block in video.iter_chunks(chunk_frames):
                 n = len(block)
+                if declared_bit_depth is not None:
+                    _check_bit_depth(declared_bit_depth, video, block, k)
                 writer.append_frames(block, times[k:k + n], counter[k:k + n])
                 k += n
                 progress.update(n)
@@ -267,6 +300,14 @@ def _write_take(capture: Capture, take: RigTake, video: VideoSource | None, sigs
         ))
         writer.set_qc(QCInfo(status="unchecked", notes="imported; hit QC not yet run"))
         writer.finalize()
+
+
+def _check_bit_depth(where: str, video: VideoSource, block: np.ndarray, first: int) -> None:
+    peak = int(block.max()) if block.size else 0
+    if peak >> video.bit_depth:
+        frame = first + int(np.argmax(block.reshape(len(block), -1).max(axis=1)))
+        raise InputError(where, f"{video.bit_depth}, but frame {frame} of {video.path.name} holds {peak}, more than "
+                                f"{2**video.bit_depth - 1}; give the data's bit depth or leave it out to detect it")
 
 
 def _check_trigger_frame(where: str, take: RigTake, video: VideoSource | None) -> None:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from plyfile import PlyData, PlyElement, PlyParseError
 from scipy.spatial import cKDTree
 
 from odsplat.errors import InputError, SchemaError
@@ -110,73 +111,68 @@ def _ply_names(n_colors_rest: int) -> list[str]:
 
 
 def save_ply(g: Gaussians, path: str | Path) -> Path:
-    """Write the INRIA 3DGS layout (binary little-endian float32) that standard splat viewers open.
+    """Write the INRIA 3DGS layout (binary little-endian float32, through plyfile) that standard splat viewers open.
 
     Mono colour goes to all three f_dc channels. Higher SH bands (f_rest_*, 45 of them for degree 3) are written
     as zeros: viewers expect them, and our colour has none.
     """
     path = Path(path)
-    n = len(g)
     with torch.no_grad():
         rgb = g.colors.double().cpu().numpy()
         if rgb.shape[1] == 1:
             rgb = np.repeat(rgb, 3, axis=1)
         elif rgb.shape[1] != 3:
             raise InputError(str(path), f"a .ply holds 1 or 3 colour channels, the Gaussians have {rgb.shape[1]}")
-        names = _ply_names(45)
-        data = np.zeros((n, len(names)), np.float32)
-        col = {name: i for i, name in enumerate(names)}
-        data[:, 0:3] = g.means.double().cpu().numpy()
-        data[:, col["f_dc_0"]:col["f_dc_0"] + 3] = (rgb - 0.5) / SH_C0
-        data[:, col["opacity"]] = g.opacity_logits.double().cpu().numpy()
-        data[:, col["scale_0"]:col["scale_0"] + 3] = g.log_scales.double().cpu().numpy()
-        data[:, col["rot_0"]:col["rot_0"] + 4] = g.unit_quats.double().cpu().numpy()
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
-    header += [f"property float {name}" for name in names] + ["end_header"]
+        columns = {
+            **dict(zip("xyz", g.means.double().cpu().numpy().T)),
+            **{f"f_dc_{i}": c for i, c in enumerate(((rgb - 0.5) / SH_C0).T)},
+            "opacity": g.opacity_logits.double().cpu().numpy(),
+            **{f"scale_{i}": c for i, c in enumerate(g.log_scales.double().cpu().numpy().T)},
+            **{f"rot_{i}": c for i, c in enumerate(g.unit_quats.double().cpu().numpy().T)},
+        }
+    vertex = np.zeros(len(g), dtype=[(name, "<f4") for name in _ply_names(45)])  # normals and f_rest stay 0
+    for name, values in columns.items():
+        vertex[name] = values
+    ply = PlyData([PlyElement.describe(vertex, "vertex")], text=False, byte_order="<")
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            fh.write(("\n".join(header) + "\n").encode("ascii"))
-            fh.write(data.astype("<f4").tobytes())
+            ply.write(fh)
     return path
 
 
 def load_ply(path: str | Path, *, n_colors: int = 3, dtype: torch.dtype = torch.float32) -> Gaussians:
-    """Read a binary INRIA-layout `.ply` (ours or another tool's); mono when n_colors is 1 (the mean of f_dc)."""
+    """Read an INRIA-layout `.ply` (ours or another tool's, any PLY encoding plyfile reads); mono when n_colors is 1
+    (the mean of f_dc)."""
     path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such .ply file")
     try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError(path, "no such .ply file") from None
-    end = raw.find(b"end_header\n")
-    if not raw.startswith(b"ply\n") or end < 0:
-        raise SchemaError(path, "not a PLY file (no 'ply' magic or 'end_header')")
-    lines = raw[:end].decode("ascii", "replace").splitlines()
-    if "format binary_little_endian 1.0" not in lines:
-        raise SchemaError(path, "expected 'format binary_little_endian 1.0'")
-    count, props = None, []
-    for line in lines:
-        parts = line.split()
-        if parts[:2] == ["element", "vertex"]:
-            count = int(parts[2])
-        elif parts[:1] == ["element"] and count is not None:
-            break  # a later element (faces) is not ours to read
-        elif parts[:1] == ["property"] and count is not None:
-            if parts[1] not in ("float", "float32"):
-                raise SchemaError(path, f"property {parts[-1]}: expected float, got {parts[1]}")
-            props.append(parts[-1])
+        ply = PlyData.read(str(path), mmap=False)
+    except (PlyParseError, ValueError, EOFError) as exc:
+        raise SchemaError(path, f"not a readable PLY file ({exc})") from None
+    if "vertex" not in ply:
+        raise SchemaError(path, "not a Gaussian splat .ply (missing element vertex)")
+    vertex = ply["vertex"].data
+    props = vertex.dtype.names or ()
     missing = [p for p in _ply_names(0) if p not in props and p not in ("nx", "ny", "nz")]
-    if count is None or missing:
-        raise SchemaError(path, f"not a Gaussian splat .ply (missing {missing or 'element vertex'})")
-    body = np.frombuffer(raw, dtype="<f4", count=count * len(props), offset=end + len(b"end_header\n"))
-    data = body.reshape(count, len(props)).astype(np.float64)
-    col = {name: data[:, i] for i, name in enumerate(props)}
-    rgb = 0.5 + SH_C0 * np.stack([col["f_dc_0"], col["f_dc_1"], col["f_dc_2"]], axis=1)
+    if missing:
+        raise SchemaError(path, f"not a Gaussian splat .ply (missing {missing})")
+    not_float = [p for p in _ply_names(0) if p in props and vertex.dtype[p].kind != "f"]
+    if not_float:
+        raise SchemaError(path, f"property {not_float[0]}: expected float, got {vertex.dtype[not_float[0]]}")
+
+    def col(name: str) -> np.ndarray:
+        return vertex[name].astype(np.float64)
+
+    def stack(*names: str) -> torch.Tensor:
+        return torch.as_tensor(np.stack([col(n) for n in names], axis=1), dtype=dtype)
+
+    rgb = 0.5 + SH_C0 * np.stack([col("f_dc_0"), col("f_dc_1"), col("f_dc_2")], axis=1)
     colors = rgb.mean(axis=1, keepdims=True) if n_colors == 1 else rgb
-    t = lambda a: torch.as_tensor(np.ascontiguousarray(a), dtype=dtype)  # noqa: E731
-    return Gaussians(means=t(np.stack([col["x"], col["y"], col["z"]], 1)),
-                     quats=t(np.stack([col[f"rot_{i}"] for i in range(4)], 1)),
-                     log_scales=t(np.stack([col[f"scale_{i}"] for i in range(3)], 1)),
-                     opacity_logits=t(col["opacity"]), color_logits=t(_logit(np.clip(colors, 0.0, 1.0))))
+    return Gaussians(means=stack("x", "y", "z"), quats=stack(*(f"rot_{i}" for i in range(4))),
+                     log_scales=stack(*(f"scale_{i}" for i in range(3))),
+                     opacity_logits=torch.as_tensor(col("opacity"), dtype=dtype),
+                     color_logits=torch.as_tensor(_logit(np.clip(colors, 0.0, 1.0)), dtype=dtype))
 
 
 __all__ = ["Gaussians", "SH_C0", "load_ply", "save_ply"]

@@ -60,3 +60,15 @@ def test_errors_are_one_line(tmp_path):
     out = odsplat("import", str(rig), "-o", str(tmp_path / "cap"))
     assert out.returncode == 2 and out.stderr.strip().count("\n") == 0 and "missing" in out.stderr
     assert not (tmp_path / "cap").exists()
+
+
+def test_a_truncated_cine_is_one_line_and_exit_2(shared_data, tmp_path):
+    data = (shared_data / "pyidi-samples" / "data_small_cine.cine").read_bytes()
+    (tmp_path / "take.cine").write_bytes(data[:-5000])
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "x"\n[[takes]]\nvideo = "take.cine"\n')
+    out = odsplat("import", str(rig), "-o", str(tmp_path / "cap"))
+    assert out.returncode == 2 and out.stderr.strip().count("\n") == 0, out.stderr
+    assert "take.cine: truncated: holds 2417424 bytes, 234 whole frames of the 235" in out.stderr
+    assert "Traceback" not in out.stderr and not (tmp_path / "cap").exists()
+    assert not list(tmp_path.glob(".cap.importing-*"))

@@ -91,7 +91,8 @@ def test_sequence_and_csv_with_frame_times(tmp_path):
     cap = import_capture(_rig(tmp_path), tmp_path / "cap")
     with cap.open_take("hit") as r:
         np.testing.assert_array_equal(r.read_frames(), frames)
-        assert r.bit_depth == 16 and r.view == 4
+        # 16-bit PNGs of values below 4096: 12 bits, found in the data.
+        assert r.bit_depth == 12 and cap.manifest.camera.bit_depth == 12 and r.view == 4
         np.testing.assert_allclose(r.frame_times_s, 0.0095 + np.arange(12) / 1000.0)
         assert r.sample_rate_hz == pytest.approx(20_000.0)
         assert r.channel("force").max() == pytest.approx(100.0, rel=1e-3)
@@ -247,3 +248,70 @@ def test_a_png_and_csv_bundle_imports_with_no_edits_and_qc_judges_its_takes(tmp_
     assert [t.name for t in Capture.open(cap.root).select_takes()] == ["hit"]
     assert len(Capture.open(cap.root).select_takes("all")) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "daq.csv", "double.csv", "rig.toml", "seq"]
+
+
+def test_a_phantom_cine_imports_with_its_header(shared_data, tmp_path):
+    """pyidi's .cine sample: 235 frames of 256x32 at 100 fps, packed 10-bit read as linear 12-bit; FirstImageNo 0
+    makes the first frame the trigger frame, counter 0."""
+    from cine_reader import Cine
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "phantom"\n[[takes]]\nname = "cine"\nvideo = "pyidi-samples/data_small_cine.cine"\n'
+                   'camera_trigger_time_s = 0.02\n')
+    cap = import_capture(rig, tmp_path / "cap", data_dir=shared_data)
+    camera = cap.manifest.camera
+    assert (camera.width_px, camera.height_px, camera.fps, camera.bit_depth) == (256, 32, 100.0, 12)
+    assert camera.model == "Phantom, serial 34497"
+    reference = Cine(shared_data / "pyidi-samples" / "data_small_cine.cine", keep_annotations=False)
+    with cap.open_take("cine") as r:
+        assert (r.n_frames, r.frame_shape, r.frames.dtype, r.bit_depth) == (235, (32, 256), np.uint16, 12)
+        assert r.trigger.camera_trigger_frame == 0
+        np.testing.assert_array_equal(r.frame_counter, np.arange(235))
+        np.testing.assert_allclose(r.frame_times_s, 0.02 + np.arange(235) / 100.0)
+        frames = np.concatenate(list(r.iter_frames(64)))
+    for i in (0, 100, 234):
+        reference.load_frame(i)
+        np.testing.assert_array_equal(frames[i], reference.frame)
+
+
+@pytest.mark.parametrize("peak, detected", [(255, 8), (256, 10), (1023, 10), (1024, 12), (4095, 12), (4096, 14),
+                                            (16384, 16), (65535, 16)])
+def test_bit_depth_is_detected_from_the_data(tmp_path, caplog, peak, detected):
+    frames = np.zeros((5, 4, 6), np.uint16)
+    frames[3, 2, 1] = peak
+    np.save(tmp_path / "take.npy", frames)
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "depth"\n[[takes]]\nname = "t"\nvideo = "take.npy"\nfps = 100\n')
+    with caplog.at_level("INFO", logger="odsplat.importer"):
+        cap = import_capture(rig, tmp_path / "cap")
+    assert cap.manifest.camera.bit_depth == detected
+    with cap.open_take("t") as r:
+        assert r.bit_depth == detected
+    assert f"take.npy: {detected}-bit data detected in 16-bit samples (the largest value is {peak})" in caplog.text
+
+
+def test_declared_bit_depth_is_recorded_and_checked(tmp_path):
+    frames = np.zeros((70, 4, 6), np.uint16)
+    frames[:, 0, 0] = 1000
+    np.save(tmp_path / "take.npy", frames)
+    rig = tmp_path / "rig.toml"
+    base = 'name = "depth"\n[[takes]]\nname = "t"\nvideo = "take.npy"\nfps = 100\n'
+    rig.write_text(base + "[camera]\nbit_depth = 12\n")
+    cap = import_capture(rig, tmp_path / "cap12")      # 1000 would be detected as 10 bits; the rig says 12
+    assert cap.manifest.camera.bit_depth == 12
+    with cap.open_take("t") as r:
+        assert r.bit_depth == 12
+    frames[66, 1, 2] = 5000                            # in the second chunk of 64: refused while writing
+    np.save(tmp_path / "take.npy", frames)
+    with pytest.raises(InputError, match="12, but frame 66 of take.npy holds 5000, more than 4095") as err:
+        import_capture(rig, tmp_path / "bad")
+    assert err.value.source == f"{rig}: camera.bit_depth" and _nothing_left(tmp_path / "bad")
+    for value, message in (("11", "expected one of 8, 10, 12, 14, 16; got 11"), ('"12"', "expected")):
+        rig.write_text(base + f"[camera]\nbit_depth = {value}\n")
+        with pytest.raises(InputError, match=message):
+            import_capture(rig, tmp_path / "bad")
+        assert _nothing_left(tmp_path / "bad")
+    np.save(tmp_path / "take.npy", np.zeros((2, 4, 6), np.uint8))
+    rig.write_text(base + "[camera]\nbit_depth = 12\n")
+    with pytest.raises(InputError, match=r"12, but take.npy holds 8-bit samples \(uint8\)"):
+        import_capture(rig, tmp_path / "bad")

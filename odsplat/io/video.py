@@ -1,4 +1,4 @@
-"""Open a filmed test (Photron .cih/.cihx + .mraw, an image folder, a .npy array or a video file)
+"""Open a filmed test (Photron .cih/.cihx + .mraw, Phantom .cine, an image folder, a .npy array or a video file)
 as one streaming `VideoSource` that never loads the frames whole."""
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import glob
 import logging
 import math
 import re
+import struct
 import xml.etree.ElementTree as ET
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
@@ -16,13 +17,15 @@ from typing import Any
 
 import cv2
 import numpy as np
+from cine_reader import Cine, unpack_10bit_data
 
 from ..errors import InputError
+from .mraw import unpack_12bit
 
 log = logging.getLogger(__name__)
 
 SUPPORTED_KINDS = (
-    "a Photron .cih/.cihx header beside its .mraw, a folder of .png/.tif/.tiff images, "
+    "a Photron .cih/.cihx header beside its .mraw, a Phantom .cine, a folder of .png/.tif/.tiff images, "
     "a .npy array (T, H, W) or (T, H, W, 3), or a .mp4/.avi/.mov/.mkv video"
 )
 _IMAGE_SUFFIXES = {".png", ".tif", ".tiff"}
@@ -49,6 +52,8 @@ class VideoSource(ABC):
     camera_model: str | None
     header: dict[str, Any]  # raw parsed header, JSON-serialisable
     frame_step: int = field(default=1, kw_only=True)  # camera frames between file frames (Photron save step)
+    # False where bit_depth only follows the container (a 16-bit PNG or .npy may hold 12-bit data)
+    bit_depth_known: bool = field(default=True, kw_only=True)
 
     @property
     def frame_shape(self) -> tuple[int, ...]:
@@ -92,6 +97,8 @@ def open_video(path: str | PathLike, fps: float | None = None, *, recorded_fps: 
         source = _open_image_sequence(path)
     elif suffix in (".cih", ".cihx", ".mraw"):
         source = _open_photron(path)
+    elif suffix == ".cine":
+        source = _open_cine(path)
     elif suffix == ".npy":
         source = _open_npy(path)
     elif suffix in _VIDEO_SUFFIXES:
@@ -127,7 +134,7 @@ class _PhotronSource(VideoSource):
     def _read(self, start: int, stop: int) -> np.ndarray:
         raw = self.raw[start:stop]
         if self.stored_bits == 12:
-            frames = _unpack_12bit(raw).reshape((stop - start, *self.frame_shape))
+            frames = unpack_12bit(raw).reshape((stop - start, *self.frame_shape))
         else:
             # A native-endian copy, so callers never hold (or write through) the file's map.
             frames = np.array(raw, dtype=self.dtype)
@@ -135,14 +142,6 @@ class _PhotronSource(VideoSource):
             frames >>= self.shift
         return frames
 
-
-def _unpack_12bit(raw: np.ndarray) -> np.ndarray:
-    """Photron packed 12-bit: 3 bytes hold 2 pixels, big-endian (AAAAAAAA AAAABBBB BBBBBBBB)."""
-    b = raw.reshape(-1, 3).astype(np.uint16)
-    out = np.empty((b.shape[0], 2), dtype=np.uint16)
-    out[:, 0] = (b[:, 0] << 4) | (b[:, 1] >> 4)
-    out[:, 1] = ((b[:, 1] & 0x0F) << 8) | b[:, 2]
-    return out.reshape(-1)
 
 
 # The fields we use: (.cih key, .cihx element path). PFV 4 calls the save step "skipFrame".
@@ -325,6 +324,123 @@ def _lookup(tree: dict[str, Any], key: str) -> Any:
     return node
 
 
+# ---------------------------------------------------------------- Phantom .cine
+
+# CINEFILEHEADER (44 bytes, little-endian): Type "CI", Headersize, Compression, Version, FirstMovieImage,
+# TotalImageCount, FirstImageNo, ImageCount, OffImageHeader, OffSetup, OffImageOffsets, TriggerTime.
+_CINE_HEADER = struct.Struct("<2sHHHiIiIIIIQ")
+_CINE_PACKED_10BIT = 256  # BITMAPINFOHEADER.biCompression of Phantom's packed 10-bit frames
+_CINE_GRAY = 0  # CINEFILEHEADER.Compression of grey frames (1: JPEG, 2: raw colour, not read)
+
+
+@dataclass
+class _CineSource(VideoSource):
+    offsets: np.ndarray = field(repr=False)  # file position of each frame's annotation block
+    image_bytes: int  # bytes of one frame's pixels
+    packed: bool  # Phantom packed 10-bit, linearised to 12 bit on reading
+    bottom_up: bool  # rows stored bottom first (a BMP's positive biHeight)
+
+    def _read(self, start: int, stop: int) -> np.ndarray:
+        out = np.empty((stop - start, *self.frame_shape), dtype=self.dtype)
+        with self.path.open("rb") as f:
+            for i in range(start, stop):
+                f.seek(int(self.offsets[i]))
+                annotation = int.from_bytes(f.read(4), "little")  # its size, these 4 bytes included
+                f.seek(int(self.offsets[i]) + annotation)
+                data = f.read(self.image_bytes)
+                if len(data) != self.image_bytes or annotation < 8:
+                    raise InputError(self.path, f"truncated: frame {i} ends past the end of the file")
+                if self.packed:
+                    # Phantom's 10-bit codes are not linear: cine-handler unpacks them and maps each through
+                    # Vision Research's LinLUT to its linear 12-bit value.
+                    frame = unpack_10bit_data(data)[: self.height_px * self.width_px]
+                else:
+                    frame = np.frombuffer(data, dtype=self.dtype)
+                frame = frame.reshape(self.frame_shape)
+                out[i - start] = frame[::-1] if self.bottom_up else frame
+        return out
+
+
+def _open_cine(path: Path) -> _CineSource:
+    """A Phantom .cine of grey frames (8 or 16 bit, or packed 10 bit). The headers are read with cine-handler
+    (`cine_reader`, what pyidi uses); the frames are located and decoded here, so that each is checked against
+    the file's size and a header field the file does not hold (a field past an older SETUP's end) is never used."""
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        head = f.read(_CINE_HEADER.size)
+    if len(head) < _CINE_HEADER.size:
+        raise InputError(path, f"truncated: holds {size} bytes, less than the {_CINE_HEADER.size}-byte file header")
+    (kind, _, compression, version, _, total, first_no, count, _, off_setup, off_offsets,
+     _) = _CINE_HEADER.unpack(head)
+    if kind != b"CI":
+        raise InputError(path, f"Type is {kind!r}, not b'CI': not a Phantom .cine file")
+    if version not in (0, 1):
+        raise InputError(path, f"Version is {version}; a .cine header says 0 or 1")
+    if compression != _CINE_GRAY:
+        raise InputError(path, f"Compression is {compression} (1: JPEG, 2: raw colour); only grey frames (0) "
+                               "are read: save the cine uncompressed from PCC")
+    if count < 1:
+        raise InputError(path, "ImageCount is 0: the file holds no frames")
+    offset_bytes = 8 if version == 1 else 4
+    table_end = off_offsets + count * offset_bytes
+    if off_setup >= off_offsets or table_end > size:
+        raise InputError(path, f"truncated or garbled: OffImageOffsets {off_offsets} + ImageCount {count} x "
+                               f"{offset_bytes} bytes = {table_end}, but the file holds {size} bytes")
+    try:
+        cine = Cine(path, keep_annotations=False)
+        cine.close_file()
+    except (ValueError, EOFError, IndexError, struct.error) as exc:
+        raise InputError(path, f"its headers cannot be read as a Phantom .cine ({exc})") from None
+    bitmap, setup = cine.image_header, cine.camera_setup
+    width, height, bits = int(bitmap.biWidth), abs(int(bitmap.biHeight)), int(bitmap.biBitCount)
+    if width < 1 or height < 1:
+        raise InputError(path, f"biWidth {width} x biHeight {bitmap.biHeight}: no frame to read")
+    if bits not in (8, 16) or int(getattr(setup, "CFA", 0)) or bool(setup.bEnableColor):
+        raise InputError(path, f"holds colour frames (biBitCount {bits}, CFA {getattr(setup, 'CFA', 0)}); only "
+                               "grey cines are read")
+    packed = int(bitmap.biCompression) == _CINE_PACKED_10BIT
+    if int(bitmap.biCompression) not in (0, _CINE_PACKED_10BIT):
+        raise InputError(path, f"biCompression is {bitmap.biCompression}; expected 0 or 256 (packed 10-bit)")
+    image_bytes = width * height * (10 if packed else bits) // 8
+    if int(bitmap.biSizeImage) not in (0, image_bytes):
+        raise InputError(path, f"biSizeImage is {bitmap.biSizeImage} bytes, but {width}x{height} at "
+                               f"{10 if packed else bits} bit is {image_bytes}")
+    offsets = np.asarray(cine.image_locations.pImage[:count], dtype=np.int64)
+    beyond = np.flatnonzero(offsets + 8 + image_bytes > size)
+    if beyond.size:
+        raise InputError(path, f"truncated: holds {size} bytes, {beyond[0]} whole frames of the {count} its "
+                               f"header (ImageCount) declares")
+    # The integer FrameRate is always there; the exact dFrameRate only in newer SETUPs (the sample's, of
+    # software 717, ends before it, and what lies there is not a rate): it is trusted where it rounds to it.
+    rate = float(setup.FrameRate)
+    exact = float(setup.dFrameRate)
+    if math.isfinite(exact) and exact > 0 and abs(exact - rate) <= 1.0:
+        rate = exact
+    if rate <= 0:
+        raise InputError(path, f"FrameRate is {setup.FrameRate}; a .cine header says a positive rate")
+    real_bpp = int(setup.RealBPP)
+    if packed:
+        bit_depth = 12  # linearised
+    elif bits == 8:
+        bit_depth = 8
+    else:
+        bit_depth = real_bpp if 8 < real_bpp <= 16 else 16
+    # Phantom numbers images from the trigger (image 0); FirstImageNo is the number of the file's first.
+    trigger = -first_no if 0 <= -first_no < count else None
+    serial = getattr(setup, "Serial", None)
+    model = f"Phantom, serial {serial}" if serial else "Phantom"
+    header = {"FirstImageNo": first_no, "ImageCount": count, "TotalImageCount": total, "FrameRate": rate,
+              "ShutterNs": int(setup.ShutterNs), "RealBPP": real_bpp, "biBitCount": bits,
+              "biCompression": int(bitmap.biCompression), "biWidth": width, "biHeight": int(bitmap.biHeight),
+              "Version": version}
+    return _CineSource(
+        path=path, n_frames=count, height_px=height, width_px=width, n_colors=1,
+        dtype=np.dtype(np.uint8 if bits == 8 else np.uint16), bit_depth=bit_depth, fps=rate,
+        trigger_frame=trigger, start_frame=first_no, camera_model=model, header=header,
+        offsets=offsets, image_bytes=image_bytes, packed=packed, bottom_up=not packed and int(bitmap.biHeight) > 0,
+    )
+
+
 # ---------------------------------------------------------------- image sequences
 
 @dataclass
@@ -350,13 +466,13 @@ def _open_image_sequence(folder: Path) -> _ImageSequenceSource:
     first = _read_image(files[0])
     if first.dtype not in (np.uint8, np.uint16):
         raise InputError(files[0], f"has pixels of {first.dtype}; image sequences must be uint8 or uint16")
-    # bit_depth follows the container (8 or 16): a 16-bit file of 12-bit data is not told apart by guessing.
+    # bit_depth follows the container (8 or 16): the importer finds a 16-bit file's from its data or the rig.
     return _ImageSequenceSource(
         path=folder, n_frames=len(files), height_px=first.shape[0], width_px=first.shape[1],
         n_colors=1 if first.ndim == 2 else 3, dtype=first.dtype, bit_depth=first.dtype.itemsize * 8,
         fps=None, trigger_frame=None, start_frame=None, camera_model=None,
         header={"n_files": len(files), "first_file": files[0].name, "last_file": files[-1].name},
-        files=files,
+        files=files, bit_depth_known=first.dtype == np.uint8,
     )
 
 
@@ -404,6 +520,7 @@ def _open_npy(path: Path) -> _NpySource:
         n_colors=1 if array.ndim == 3 else 3, dtype=array.dtype, bit_depth=array.dtype.itemsize * 8,
         fps=None, trigger_frame=None, start_frame=None, camera_model=None,
         header={"shape": list(array.shape), "dtype": str(array.dtype)}, array=array,
+        bit_depth_known=array.dtype == np.uint8,
     )
 
 

@@ -34,6 +34,25 @@ def test_ladisk_lvm(shared_data: Path, name, first_g, first_n, last_g, last_n):
         assert force.values[-1] == pytest.approx(last_n, rel=1e-6)
 
 
+@pytest.mark.parametrize("name", ["acceleration.lvm", "camera.lvm"])
+def test_ladisk_lvm_equals_lvm_read(shared_data: Path, name):
+    """lvm-read (LADISK's reader) parses the same files to the same numbers, rates and units."""
+    lvm_read = pytest.importorskip("lvm_read")
+    path = shared_data / "ladisk-imaging-tutorial" / name
+    reference = lvm_read.read(str(path), read_from_pickle=False, dump_file=False)  # no .pkl beside the file
+    segment = reference[0]
+    assert reference["Segments"] == 1
+    signals = read_signals(path)
+    assert signals.sample_rate_hz == pytest.approx(1.0 / segment["Delta_X"][0], rel=1e-12)
+    assert signals.t0_s == segment["X0"][0]
+    assert [c.name for c in signals.channels] == segment["Channel names"][:2]
+    assert [c.source_unit for c in signals.channels] == segment["Y_Unit_Label"][:2]
+    assert signals.n_samples == segment["Samples"][0] == len(segment["data"])
+    for k, channel in enumerate(signals.channels):
+        expected = segment["data"][:, k] * (G if channel.source_unit == "g" else 1.0)
+        np.testing.assert_array_equal(channel.values, expected.astype(np.float32))
+
+
 def test_lvm_columns_select_and_missing(shared_data: Path):
     path = shared_data / "ladisk-imaging-tutorial" / "acceleration.lvm"
     signals = read_signals(path, columns=["Force (Trigger)"])

@@ -192,9 +192,9 @@ def test_empty_folder_and_unknown_kind(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="no .png"):
         open_video(tmp_path / "empty")
-    (tmp_path / "take.cine").write_bytes(b"\0")
-    with pytest.raises(InputError, match=r"take.cine: is not a supported recording; expected .*\.npy"):
-        open_video(tmp_path / "take.cine")
+    (tmp_path / "take.raw").write_bytes(b"\0")
+    with pytest.raises(InputError, match=r"take.raw: is not a supported recording; expected .*\.cine.*\.npy"):
+        open_video(tmp_path / "take.raw")
     with pytest.raises(InputError, match="does not exist"):
         open_video(tmp_path / "nowhere.mp4")
 

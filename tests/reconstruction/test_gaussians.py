@@ -45,6 +45,34 @@ def test_ply_round_trip_and_inria_fields(tmp_path):
     assert np.allclose(0.5 + SH_C0 * raw[:, 6], g.colors[:, 0].numpy(), atol=1e-5)
 
 
+def test_ply_header_is_inria_and_other_encodings_read_back(tmp_path):
+    """The header is exactly the INRIA layout (62 float properties); an ASCII copy written by plyfile, as other
+    tools may write, reads back to the same Gaussians; a truncated body is refused naming the file."""
+    from plyfile import PlyData
+
+    pts, col = _cloud()
+    g = Gaussians.from_points(pts, np.repeat(col, 3, axis=1))
+    path = save_ply(g, tmp_path / "g.ply")
+    names = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)]
+             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    header = path.read_bytes().split(b"end_header\n")[0].decode().splitlines()
+    assert header == ["ply", "format binary_little_endian 1.0", f"element vertex {len(g)}",
+                      *(f"property float {n}" for n in names)]
+    assert path.stat().st_size == len("\n".join(header)) + len("\nend_header\n") + len(g) * len(names) * 4
+    ply = PlyData.read(str(path))
+    assert ply["vertex"].count == len(g) and np.allclose(ply["vertex"]["x"], g.means[:, 0].numpy(), atol=1e-6)
+    ascii_copy = tmp_path / "ascii.ply"
+    PlyData(ply.elements, text=True).write(str(ascii_copy))
+    assert ascii_copy.read_bytes().startswith(b"ply\nformat ascii 1.0\n")
+    back = load_ply(ascii_copy)
+    assert torch.allclose(back.means, g.means, atol=1e-6) and torch.allclose(back.colors, g.colors, atol=1e-5)
+    assert torch.allclose(back.unit_quats, g.unit_quats, atol=1e-6)
+    cut = tmp_path / "cut.ply"
+    cut.write_bytes(path.read_bytes()[:-100])
+    with pytest.raises(SchemaError, match="cut.ply"):
+        load_ply(cut)
+
+
 def test_mono_ply_and_transform(tmp_path):
     pts, col = _cloud()
     g = Gaussians.from_points(pts, col)
