@@ -214,11 +214,6 @@ class Manifest:
             if take.qc not in QC_STATUSES:
                 raise InputError(f"{where}: takes[{i}].qc", f"expected one of {QC_STATUSES}; got {take.qc!r}")
 
-    @property
-    def daq_channels(self) -> list[ChannelInfo]:
-        """The channels the DAQ records, in order (the CAN nodes' channels left out)."""
-        return [c for c in self.channels if c.can_node is None]
-
     def channel(self, name: str) -> ChannelInfo:
         for ch in self.channels:
             if ch.name == name:
