@@ -7,6 +7,7 @@ Drivers for particular hardware (`opencv_camera`, `photron`) and the session's i
 modules."""
 from . import canproto, daqproto, hammerproto  # the wire protocols, shared with hil_sim's devices
 from .camera import CameraDriver, CameraTimeout, Frame, RecordingStatus, TriggerSettings
+from .can_nodes import CANAccelerometers, CANError, CANNode, CANRecord, CANSetup, record_window
 from .daq import DAQChannel, DAQError, SerialDAQ
 from .hammer import AutoHammer, CANHammerLink, SerialHammerLink
 from .lab import LabConfig, load_lab_config
@@ -36,6 +37,7 @@ from .trigger import HammerTrigger, NoTrigger, TriggeredRecord, wait_for_hit
 __all__ = [
     "canproto", "daqproto", "hammerproto",
     "CameraDriver", "CameraTimeout", "Frame", "RecordingStatus", "TriggerSettings",
+    "CANAccelerometers", "CANError", "CANNode", "CANRecord", "CANSetup", "record_window",
     "DAQChannel", "DAQError", "SerialDAQ",
     "AutoHammer", "CANHammerLink", "SerialHammerLink",
     "LabConfig", "load_lab_config", "PlotFeedback", "TextFeedback", "display_available",

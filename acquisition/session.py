@@ -1,6 +1,7 @@
 """The guided multi-view capture session: for each planned view, place the camera, arm, hit, record, QC, accept or redo.
 
 The session talks to the lab through a `Bench`: the camera (any `CameraDriver`), a way to open the DAQ,
+optionally CAN accelerometer nodes (recorded into every take at their own rate, on the DAQ's time base),
 and the engineer (where to put the camera, when to hit, accept or redo). `LabBench` asks a person;
 `odsplat.hil_sim.bench.SimBench` plays the engineer on the simulated rig. The session's state is the
 capture store itself, so it can be stopped and resumed (after a crash too): views with an accepted take
@@ -25,6 +26,7 @@ from odsplat.store import Capture, QCInfo, TriggerInfo, atomic_open
 from odsplat.tags import camera_pose_from_tags, detect_tags
 
 from .camera import CameraDriver, CameraTimeout, TriggerSettings
+from .can_nodes import CANAccelerometers, CANError, CANRecord, CANSetup, record_window
 from .daq import DAQChannel, DAQError, SerialDAQ
 from .hammer import AutoHammer, FireRecord, HammerError, InterlockError
 from .plan import PlanSettings, PoseCheck, check_pose, coverage, describe_view, plan_views, top_view_map
@@ -41,9 +43,14 @@ class Bench(Protocol):
     channels: Sequence[DAQChannel]  # what open_daq() records
     tags: TagLayout | None
     hammer: AutoHammer | None       # an automatic hammer, fired by the session when its settings say so
+    can: CANSetup | None            # CAN accelerometer nodes recorded into every take (optional attribute)
 
     def open_daq(self) -> SerialDAQ:
         """The DAQ for one take, configured on start (opened per take, closed by the session)."""
+
+    def open_can(self) -> CANAccelerometers:
+        """The driver of `can`'s nodes on its bus (only called when `can` is set; once per session, the bench
+        closes the bus)."""
 
     def place_camera(self, view: Viewpoint, instructions: str) -> None:
         """Tell the engineer where to put the camera (and wait until it is there)."""
@@ -188,6 +195,8 @@ class CaptureSession:
                              "the session is set to fire an automatic hammer, but the bench has none")
             self.settings = replace(settings, limits=replace(settings.limits, force_band_n=settings.hammer.band_n))
         self._gains: list[float] = []      # DAQ peak / commanded level, of recent clean shots
+        self.can: CANSetup | None = getattr(bench, "can", None)
+        self._can: CANAccelerometers | None = None  # opened on the first take
         self._hammer_reset_due = False     # the session itself faulted or e-stopped the hammer: reset before firing
 
     # ------------------------------------------------------------------------------ the store
@@ -208,7 +217,7 @@ class CaptureSession:
                      len(self._done(cap)))
             return cap, recovered
         cam = self.bench.camera.describe()
-        channels = [c.info() for c in self.bench.channels]
+        channels = [c.info() for c in self.bench.channels] + (self.can.channels() if self.can else [])
         manifest = Manifest(name=self.settings.name, camera=cam, channels=channels, tags=self.bench.tags,
                             views=list(self.views), notes="recorded by odsplat capture")
         return Capture.create(self.root, manifest), []
@@ -228,6 +237,8 @@ class CaptureSession:
         try:
             return self._run(cap, recovered)
         finally:
+            if self._can is not None:
+                self._can.stop()
             if self.hammer is not None and self.hammer.armed:
                 try:
                     self.hammer.disarm()
@@ -321,6 +332,8 @@ class CaptureSession:
         fire: FireRecord | None = None
         error: str | None = None
         clipped: set[str] = set()
+        can_records: list[CANRecord] = []
+        can_error = self._start_can()
         try:
             daq.start()
             if cap.manifest.daq_sample_rate_hz != daq.sample_rate_hz:
@@ -341,14 +354,21 @@ class CaptureSession:
                     return self._no_hit(name, view, fire), None
             soft = getattr(camera, "software_trigger", None)
             record = wait_for_hit(daq, s.trigger, s.hit_timeout_s, on_trigger=(lambda _: soft()) if soft else None)
+            if self._can is not None and can_error is None:  # before the DAQ stops: the nodes keep its pace
+                can_records = record_window(self._can, self.can, record.t0_s, record.stop_sample / daq.sample_rate_hz)
             daq.stop()
             clipped = set(daq.clipped)
         except DAQError as e:
             error = str(e)
             log.error("view %d: %s", view.index, error)
             record = self._salvage(daq)
+            if record is not None and self._can is not None and can_error is None:
+                can_records = record_window(self._can, self.can, record.t0_s,
+                                            record.stop_sample / record.sample_rate_hz, wait=False)
         finally:
             daq.close()
+            if self._can is not None:
+                self._can.stop()
         camera_error: str | None = None
         try:
             status = camera.wait(s.camera_timeout_s)
@@ -357,10 +377,24 @@ class CaptureSession:
             camera_error = str(e)
             log.error("view %d: %s", view.index, camera_error)
             camera.stop()
-        outcome = self._write(cap, name, view, record, status, clipped, error, daq.channels, camera_error, fire)
+        outcome = self._write(cap, name, view, record, status, clipped, error, daq.channels, camera_error, fire,
+                              can_records, can_error)
         if self.hammer is not None and fire is not None and outcome.qc is not None:
             self._learn_gain(fire, outcome.qc)
         return outcome, record
+
+    def _start_can(self) -> str | None:
+        """START the CAN nodes for this take (sample 0 again); what went wrong, or None."""
+        if self.can is None:
+            return None
+        if self._can is None:
+            self._can = self.bench.open_can()
+        try:
+            self._can.start()
+        except (InputError, CANError) as e:  # a silent node: this take has no CAN samples, QC says so
+            log.error("CAN: %s", e)
+            return str(e)
+        return None
 
     # ------------------------------------------------------------------------------ the automatic hammer
 
@@ -418,7 +452,8 @@ class CaptureSession:
 
     def _write(self, cap: Capture, name: str, view: Viewpoint, record: TriggeredRecord | None, status,
                clipped: set[str], error: str | None, channels: Sequence[DAQChannel], camera_error: str | None = None,
-               fire: FireRecord | None = None) -> TakeOutcome:
+               fire: FireRecord | None = None, can_records: Sequence[CANRecord] = (),
+               can_error: str | None = None) -> TakeOutcome:
         camera = self.bench.camera
         info = camera.describe()
         frames = camera.frames() if status is not None else iter(())
@@ -438,6 +473,15 @@ class CaptureSession:
         with writer:
             if record is not None:
                 writer.append_samples({c: record.data[k] for k, c in enumerate(record.channels)})
+            can_problems = [can_error] if can_error and writer.can_channels else []
+            for rec in can_records:
+                if rec.node.name not in writer.can_channels:
+                    log.warning("take %s: CAN node %s is not in the capture's channels; not stored", name,
+                                rec.node.name)
+                    continue
+                writer.append_can_samples(rec.node.name, rec.times_s, rec.block())
+                if rec.problem or rec.lost_samples:
+                    can_problems.append(rec.problem or f"CAN {rec.node.name}: {rec.lost_samples} sample(s) lost")
             trigger_index = None
             # One frame at a time, straight from the camera into the take file (flushed per frame).
             for k, frame in enumerate(itertools.chain([first] if first is not None else [], frames)):
@@ -453,6 +497,9 @@ class CaptureSession:
                 if camera_error:
                     qc = replace(qc, reasons=qc.reasons + ("camera_timeout",),
                                  details=qc.details + (f"no frames: {camera_error}",))
+                if can_problems:
+                    qc = replace(qc, reasons=qc.reasons + ("can_samples_lost",),
+                                 details=qc.details + tuple(can_problems))
                 writer.set_qc(qc.to_qcinfo())
             else:
                 qc = None

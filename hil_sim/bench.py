@@ -5,6 +5,9 @@ structure, accepts what QC accepts, and saves each take's ground truth beside it
 by take number (0 = the first take of this run): a double hit, an overload, a dropped packet, a
 disconnect mid-record, or dropped camera frames.
 
+With `SimBenchSettings.can_rate_hz` set, the rig's CAN accelerometer nodes run on a python-can `virtual` bus, paced
+by the rig's clock, and the session records them into every take.
+
 With `hammer="serial"` or `"can"` the bench has an automatic hammer instead (`hil_sim.hammer`), which the
 session fires through the real driver; its faults are a rebound, not ready, stuck and no response.
 """
@@ -21,7 +24,9 @@ import numpy as np
 from odsplat.acquisition import (
     AutoHammer,
     AutoHammerSettings,
+    CANAccelerometers,
     CANHammerLink,
+    CANSetup,
     HitQC,
     SerialDAQ,
     SerialHammerLink,
@@ -34,6 +39,7 @@ from odsplat.geometry import spherical_eye, viewing_angle_deg
 from odsplat.manifest import Viewpoint
 
 from .camera import SimCamera, SimCameraConfig
+from .can_nodes import SimAccelNode
 from .daq import register_url_handler
 from .hammer import HammerFaults, SimAutoHammer, SimHammerCAN, SimHammerSerial, SimHammerSettings
 from .render import PinholeCamera
@@ -72,6 +78,8 @@ class SimBenchSettings:
     random_clock_phase: bool = True   # camera and DAQ clocks are independent: each take's frames fall anywhere
     force_scatter: float | None = None  # relative rms of the hit force, take to take (None: the rig hammer's own)
     auto_hammer: SimHammerSettings = SimHammerSettings()  # the automatic hammer, when the bench has one
+    can_rate_hz: float | None = None  # the rig's CAN nodes, recorded at this rate (None: not wired to the session)
+    can_range_m_s2: float = 490.3325  # +-50 g: the arm's node sees about 26 g from the default hit
     seed: int = 0
 
 
@@ -106,6 +114,18 @@ class SimBench:
         self.hammer: AutoHammer | None = None
         self.hammer_model: SimAutoHammer | None = None  # the simulated device behind it: its ground truth
         self._hammer_device: SimHammerSerial | SimHammerCAN | None = None
+        self.can: CANSetup | None = None
+        self.can_nodes: list[SimAccelNode] = []  # the simulated nodes: their ground truth (lost samples, ...)
+        self._can_buses: list[can.BusABC] = []
+        self._can_channel = f"simcan-{self.rig.name}-{id(self)}"
+        if s.can_rate_hz is not None:
+            self.can = CANSetup(self.rig.can_nodes(), s.can_rate_hz, s.can_range_m_s2)
+            for mount in self.rig.config.can_nodes:
+                self._can_buses.append(can.Bus(interface="virtual", channel=self._can_channel))
+                self.can_nodes.append(SimAccelNode(self._can_buses[-1], mount.node_id, self.rig,
+                                                   sample_rate_hz=s.can_rate_hz, range_m_s2=s.can_range_m_s2,
+                                                   paced=True))
+                self.can_nodes[-1].start()
         if hammer is not None:
             if "overload" in self.faults.values():
                 raise InputError("SimBench.faults",
@@ -133,8 +153,22 @@ class SimBench:
             raise InputError("SimBench.hammer", f"expected None, 'serial' or 'can'; got {link!r}")
         self.hammer_model, self._hammer_device = model, device
 
+    def open_can(self) -> CANAccelerometers:
+        """The CAN driver on its own instance of the nodes' virtual bus (closed by `close`)."""
+        if self.can is None:
+            raise InputError("SimBench.open_can", "this bench has no CAN nodes (SimBenchSettings.can_rate_hz)")
+        self._can_buses.append(can.Bus(interface="virtual", channel=self._can_channel))
+        return CANAccelerometers(self._can_buses[-1], [n.node_id for n in self.can.nodes],
+                                 sample_rate_hz=self.can.sample_rate_hz, range_m_s2=self.can.range_m_s2,
+                                 name=f"CAN virtual:{self._can_channel}")
+
     def close(self) -> None:
-        """Close the automatic hammer's driver and device, if any."""
+        """Close the automatic hammer's driver and device and the CAN nodes, if any."""
+        for node in self.can_nodes:
+            node.stop()
+        for bus in self._can_buses:
+            bus.shutdown()
+        self._can_buses = []
         if self.hammer is not None:
             self.hammer.close()
             self.hammer = None

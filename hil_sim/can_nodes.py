@@ -21,6 +21,10 @@ _HEARTBEAT_S = 1.0  # NODE_STATUS period while running, in node time
 
 
 class AccelSource(Protocol):
+    """What a node measures. A source with its own clock (the rig, whose time is the DAQ's) also has
+    `samples_available(node_id, sample_rate_hz) -> int`: how many samples of the node lie before its present;
+    a `paced` node takes no more than that (its samples then never precede a hit scheduled later)."""
+
     def acceleration(self, node_id: int, start_sample: int, n: int, sample_rate_hz: float) -> np.ndarray:
         """(n, 3) m/s^2 in the node's axes for samples start_sample.., taken at sample_rate_hz (the node's true
         rate)."""
@@ -54,14 +58,16 @@ class CANFaults:
 
 class SimAccelNode:
     """One node: a daemon thread answers NODE_CMD and, while running, sends one ACC_DATA frame per sample.
-    Give each node its own bus instance, as each real node has its own CAN controller."""
+    Give each node its own bus instance, as each real node has its own CAN controller. `paced`: the node keeps
+    to its source's clock (`samples_available`), as nodes on the rig beside the DAQ must."""
 
     def __init__(self, bus: can.BusABC, node_id: int, source: AccelSource, *, sample_rate_hz: float = 1000.0,
                  range_m_s2: float = 156.9, realtime: bool = False, faults: CANFaults = CANFaults(),
-                 firmware: tuple[int, int] = (1, 0)):
+                 firmware: tuple[int, int] = (1, 0), paced: bool = False):
         self._bus, self.node_id, self._source = bus, cp.check_node_id(node_id), source
         self._rate, self._range = cp.rate_code(sample_rate_hz), cp.range_code(range_m_s2)  # power-on settings
         self._realtime, self.faults, self.firmware = realtime, faults, firmware
+        self._available = source.samples_available if paced else None
         self._rng = np.random.default_rng(faults.seed)
         self._drop = frozenset(faults.drop_frames)
         self.state = cp.NodeState.IDLE
@@ -149,6 +155,11 @@ class SimAccelNode:
 
     def _stream(self) -> None:
         n = _CHUNK
+        if self._available is not None:
+            n = min(n, self._available(self.node_id, self.true_rate_hz) - self._next)
+            if n <= 0:
+                self._stop.wait(0.001)
+                return
         if self._realtime:
             n = min(n, int((time.monotonic() - self._t0) * self.true_rate_hz) + 1 - self._next)
             if n <= 0:

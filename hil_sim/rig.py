@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from odsplat.acquisition import DAQChannel
+from odsplat.acquisition import CANNode, DAQChannel
 from odsplat.errors import InputError, OdsplatError
 from odsplat.manifest import CameraInfo, Intrinsics
 from odsplat.store import atomic_open
@@ -297,10 +297,7 @@ class SimRig:
 
     def acceleration(self, node_id: int, start_sample: int, n: int, sample_rate_hz: float) -> np.ndarray:
         """(n, 3) m/s^2 in the node's axes."""
-        try:
-            mount = self._nodes[node_id]
-        except KeyError:
-            raise InputError(f"CAN node {node_id}", f"not mounted on the rig; mounted: {sorted(self._nodes)}") from None
+        mount = self._mount(node_id)
         t = mount.t0_s + (start_sample + np.arange(n)) / sample_rate_hz
         with self._lock:
             qdd = self.structure.modal_response(self.impacts, t).qdd
@@ -311,7 +308,25 @@ class SimRig:
             local = local + mount.noise_m_s2 * rng.standard_normal(local.shape)
         return local
 
+    def samples_available(self, node_id: int, sample_rate_hz: float) -> int:
+        """How many of the node's samples lie before now_s(): a node paced by the rig takes no more, so a hit
+        scheduled at or after now_s() shows in every later sample, as with the DAQ's."""
+        t0 = self._mount(node_id).t0_s
+        return max(0, int(np.ceil((self.now_s() - t0) * sample_rate_hz)))
+
+    def _mount(self, node_id: int) -> CANNodeMount:
+        try:
+            return self._nodes[node_id]
+        except KeyError:
+            raise InputError(f"CAN node {node_id}", f"not mounted on the rig; mounted: {sorted(self._nodes)}") from None
+
     # ------------------------------------------------------------------------------ metadata
+
+    def can_nodes(self) -> tuple[CANNode, ...]:
+        """The CAN nodes as the session knows them: where they sit, their axes, and their sample 0 on the DAQ's
+        time base (the mount's t0_s: rig time is the DAQ's, less its drift)."""
+        return tuple(CANNode(n.node_id, tuple(n.point_m), tuple(tuple(a) for a in n.axes), n.t0_s)
+                     for n in self.config.can_nodes)
 
     def daq_channels(self, *, force_range_v: float = 10.0, acc_range_v: float = 10.0) -> tuple[DAQChannel, ...]:
         """The DAQ inputs as a driver configures them: input numbers, sensitivities, ranges, sensor places."""

@@ -16,7 +16,9 @@ import numpy as np
 from .errors import InputError, SchemaError
 from .units import SI_UNITS
 
-SCHEMA_VERSION = "1.0"
+# 1.1: channels carry `source` ("daq" or "can:NODE") and a CAN channel its own `sample_rate_hz`; take files may hold
+# /can/NODE groups. A 1.0 file is read as before (every channel from the DAQ).
+SCHEMA_VERSION = "1.1"
 SCHEMA_MAJOR = 1
 
 CHANNEL_KINDS: dict[str, str] = {
@@ -86,9 +88,21 @@ class CameraInfo:
     intrinsics: Intrinsics | None = None
 
 
+DAQ_SOURCE = "daq"
+CAN_SOURCE_PREFIX = "can:"
+
+
+def can_source(node: str) -> str:
+    """The `source` of a channel recorded by CAN node `node` (its group name in a take file, e.g. "node1")."""
+    return CAN_SOURCE_PREFIX + node
+
+
 @dataclass
 class ChannelInfo:
-    """One DAQ channel; `position_m` and `direction` place the sensor on the structure (world frame)."""
+    """One measured channel; `position_m` and `direction` place the sensor on the structure (world frame).
+
+    `source` says where its samples come from: "daq" (the DAQ, at the capture's `daq_sample_rate_hz`) or
+    "can:NODE" (a CAN accelerometer node, at its own `sample_rate_hz`, stored in the take's /can/NODE group)."""
 
     name: str
     kind: str
@@ -98,10 +112,27 @@ class ChannelInfo:
     direction: list[float] | None = None
     node: int | None = None
     device: str = ""
+    source: str = DAQ_SOURCE
+    sample_rate_hz: float | None = None  # a CAN channel's own rate; None for a DAQ channel (the DAQ's rate)
+
+    @property
+    def can_node(self) -> str | None:
+        """The CAN node group this channel is stored in, or None for a DAQ channel."""
+        return self.source[len(CAN_SOURCE_PREFIX):] if self.source.startswith(CAN_SOURCE_PREFIX) else None
 
     def validate(self, where: str) -> None:
         if not self.name or "/" in self.name:
             raise InputError(where, f"channel name {self.name!r} must be non-empty and contain no '/'")
+        node = self.can_node
+        if self.source != DAQ_SOURCE and (not node or "/" in node):
+            raise InputError(f"{where}.source", f"expected 'daq' or 'can:NODE' (NODE without '/'); got {self.source!r}")
+        if node is None and self.sample_rate_hz is not None:
+            raise InputError(f"{where}.sample_rate_hz",
+                             "a DAQ channel is sampled at the capture's daq_sample_rate_hz; leave it out")
+        if node is not None and not (self.sample_rate_hz is not None and np.isfinite(self.sample_rate_hz)
+                                     and self.sample_rate_hz > 0):
+            raise InputError(f"{where}.sample_rate_hz",
+                             f"a CAN channel needs its node's sample rate (> 0 Hz); got {self.sample_rate_hz!r}")
         if self.kind not in CHANNEL_KINDS:
             raise InputError(f"{where}.kind", f"expected one of {', '.join(CHANNEL_KINDS)}; got {self.kind!r}")
         if self.unit not in SI_UNITS:

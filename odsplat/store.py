@@ -13,11 +13,14 @@ Layout of a take file (schema 1.x), see docs/store.md::
     /frame_times_s        (T,) float64, frame exposure starts in the DAQ time base (NaN when unknown)
     /frame_counter        (T,) int64, the camera's own frame number (gaps reveal dropped frames)
     /daq/<channel>        (N,) float32 in SI units, attrs unit, kind
+    /can/<node>/times_s   (M,) float64, each CAN sample's time in the DAQ time base (schema 1.1)
+    /can/<node>/<channel> (M,) float32 in SI units at the node's own rate, NaN where a sample was lost
     /trigger, /qc         attributes, written when the take is finalised
 """
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -35,6 +38,7 @@ import numpy as np
 from .contract import check, digest
 from .errors import IncompleteTakeError, InputError, OdsplatError, SchemaError
 from .manifest import (
+    CAN_SOURCE_PREFIX,
     QC_KIND,
     QC_SCHEMA,
     SCHEMA_VERSION,
@@ -46,6 +50,7 @@ from .manifest import (
     utc_now,
 )
 from .paths import DerivedPaths
+from .timebase import resample_onto
 
 log = logging.getLogger(__name__)
 
@@ -129,9 +134,11 @@ class RecoveryReport:
 
 
 class TakeWriter:
-    """Records one take into `<name>.h5.partial` (SWMR, flushed per frame), then finalises it.
+    """Records one take into `<name>.h5.partial` (SWMR, flushed per frame and per block), then finalises it.
 
-    All datasets are created up front, because an HDF5 SWMR writer may only append.
+    All datasets are created up front, because an HDF5 SWMR writer may only append. `channels` may mix the
+    DAQ's channels (`source` "daq", appended with `append_samples`) and CAN nodes' (`source` "can:NODE", each
+    node a group of its own at its own rate, appended with `append_can_samples`).
     `finalize()` writes the trigger and QC attributes, verifies, fsyncs and renames to `<name>.h5`.
     """
 
@@ -167,7 +174,11 @@ class TakeWriter:
         self.bit_depth = int(bit_depth or self.dtype.itemsize * 8)
         if self.bit_depth > self.dtype.itemsize * 8:
             raise InputError(self.name, f"bit depth {self.bit_depth} does not fit in {self.dtype}")
-        self.channels = list(channels)
+        self.channels = [c for c in channels if c.can_node is None]
+        self.can_channels: dict[str, list[ChannelInfo]] = {}
+        for c in channels:
+            if c.can_node is not None:
+                self.can_channels.setdefault(c.can_node, []).append(c)
         if self.channels and not daq_sample_rate_hz:
             raise InputError(self.name, "DAQ channels need a sample rate")
         self._on_finalize = on_finalize
@@ -175,6 +186,7 @@ class TakeWriter:
         self._qc = QCInfo()
         self._n_frames = 0
         self._n_samples = {c.name: 0 for c in self.channels}
+        self._n_can = {node: 0 for node in self.can_channels}
         self._closed = False
         self._view = (attrs or {}).get("view")
 
@@ -217,8 +229,36 @@ class TakeWriter:
             ds.attrs["kind"] = ch.kind
             ds.attrs["info"] = json.dumps(asdict(ch))
             self._daq[ch.name] = ds
+        self._can: dict[str, dict[str, h5py.Dataset]] = {}
+        if self.can_channels:
+            self._create_can(f)
         if swmr:
             f.swmr_mode = True
+
+    def _create_can(self, f: h5py.File) -> None:
+        can = f.create_group("can")
+        can.attrs["node_order"] = json.dumps(list(self.can_channels))
+        for node, chans in self.can_channels.items():
+            for ch in chans:
+                ch.validate(f"{self.name}: channel {ch.name!r}")
+            rates = {c.sample_rate_hz for c in chans}
+            if len(rates) != 1:
+                raise InputError(f"{self.name}: CAN node {node!r}",
+                                 f"its channels disagree on the sample rate: {sorted(rates)}")
+            g = can.create_group(node)
+            g.attrs["sample_rate_hz"] = float(rates.pop())
+            g.attrs["source"] = CAN_SOURCE_PREFIX + node
+            g.attrs["channel_order"] = json.dumps([c.name for c in chans])
+            sets = {"times_s": g.create_dataset("times_s", shape=(0,), maxshape=(None,), chunks=(4096,), dtype="f8")}
+            for ch in chans:
+                if ch.name in self._daq or ch.name in sets or any(ch.name in d for d in self._can.values()):
+                    raise InputError(f"{self.name}: channel {ch.name!r}", "the name is used twice")
+                ds = g.create_dataset(ch.name, shape=(0,), maxshape=(None,), chunks=(4096,), dtype="f4")
+                ds.attrs["unit"] = ch.unit
+                ds.attrs["kind"] = ch.kind
+                ds.attrs["info"] = json.dumps(asdict(ch))
+                sets[ch.name] = ds
+            self._can[node] = sets
 
     # -- recording -------------------------------------------------------------------------
 
@@ -276,6 +316,34 @@ class TakeWriter:
             ds[k:] = np.asarray(values, dtype="f4")
             ds.flush()
             self._n_samples[name] = k + n
+
+    def append_can_samples(self, node: str, times_s: np.ndarray, block: Mapping[str, np.ndarray]) -> None:
+        """Append consecutive samples of one CAN node: their times in the DAQ time base and every channel of the
+        node (SI units, NaN where lost). The times are written after the values, so that their length counts the
+        samples whose values reached the file, which is what recovery trusts."""
+        if node not in self._can:
+            raise InputError(f"{self.name}: CAN node {node!r}", f"not in this take; its nodes are {list(self._can)}")
+        sets = self._can[node]
+        names = [c.name for c in self.can_channels[node]]
+        if set(block) != set(names):
+            raise InputError(f"{self.name}: CAN node {node!r}", f"sample block has channels {sorted(block)}; "
+                             f"expected {sorted(names)}")
+        times = np.asarray(times_s, dtype="f8").reshape(-1)
+        n = len(times)
+        bad = {k: len(v) for k, v in block.items() if len(v) != n}
+        if bad:
+            raise InputError(f"{self.name}: CAN node {node!r}", f"{n} times but channel lengths {bad}")
+        k = self._n_can[node]
+        for name in names:
+            ds = sets[name]
+            ds.resize(k + n, axis=0)
+            ds[k:] = np.asarray(block[name], dtype="f4")
+            ds.flush()
+        ds = sets["times_s"]
+        ds.resize(k + n, axis=0)
+        ds[k:] = times
+        ds.flush()
+        self._n_can[node] = k + n
 
     def set_trigger(self, trigger: TriggerInfo) -> None:
         self._trigger = trigger
@@ -338,6 +406,9 @@ class TakeWriter:
             for name, k in self._n_samples.items():
                 if f["daq"][name].shape[0] != k:
                     raise OdsplatError(f"{self.partial_path}: verification failed for channel {name}")
+            for node, k in self._n_can.items():
+                if any(f["can"][node][name].shape[0] != k for name in self._can[node]):
+                    raise OdsplatError(f"{self.partial_path}: verification failed for CAN node {node}")
 
     def __enter__(self) -> TakeWriter:
         return self
@@ -461,20 +532,80 @@ class TakeReader:
         return self._file["daq"][names[0]].shape[0] if names else 0
 
     def channel_info(self, name: str) -> ChannelInfo:
-        return ChannelInfo(**json.loads(self._channel(name).attrs["info"]))
+        """A DAQ or CAN channel's manifest entry, as recorded in the take."""
+        ds = self._file["can"][self._can_node_of(name)][name] if name in self._can_index else self._channel(name)
+        return ChannelInfo(**json.loads(ds.attrs["info"]))
 
     def channels_of_kind(self, kind: str) -> list[str]:
         """The DAQ channels of one kind (`manifest.CHANNEL_KINDS`: force, acceleration, ttl, ...), in order."""
         return [n for n in self.channel_names if self.channel_info(n).kind == kind]
 
     def channel(self, name: str) -> np.ndarray:
-        """A DAQ channel's samples in SI units (float32)."""
+        """A channel's samples in SI units on the DAQ's sample grid (`daq_t0_s + k / sample_rate_hz`).
+
+        A DAQ channel: its samples (float32). A CAN channel: its samples resampled onto that grid
+        (`odsplat.timebase.resample_onto`: band-limited, linear within 16 CAN samples of the record's ends or of
+        a lost sample, NaN outside the CAN record), so that it can be used as a DAQ channel; its own samples
+        are `can_channel(name)`."""
+        if name in self._can_index:
+            times, values = self.can_channel(name)
+            node = self._can_node_of(name)
+            grid = self.daq_t0_s + np.arange(self.n_samples) / self.sample_rate_hz
+            rate = self.can_sample_rate_hz(node)
+            if len(times) > 1 and np.max(np.abs(times - (times[0] + np.arange(len(times)) / rate))) < 1e-3 / rate:
+                return resample_onto(values, float(times[0]), rate, grid).astype(np.float32)
+            log.warning("%s: CAN node %s's times are not regular at %g Hz; %s is interpolated linearly",
+                        self.path, node, rate, name)
+            return np.interp(grid, times, values, left=np.nan, right=np.nan).astype(np.float32)
         return self._channel(name)[:]
 
     def _channel(self, name: str) -> h5py.Dataset:
         if name not in self.channel_names:
-            raise InputError(self.path, f"no DAQ channel {name!r}; the take has {self.channel_names}")
+            raise InputError(self.path,
+                             f"no DAQ channel {name!r} (nor a CAN channel of that name); the take has "
+                             f"{self.channel_names + self.can_channel_names}")
         return self._file["daq"][name]
+
+    # -- CAN nodes (schema 1.1) ---------------------------------------------------------------
+
+    @property
+    def can_nodes(self) -> list[str]:
+        """The CAN nodes recorded in this take (each a group /can/NODE at its own rate); [] in older takes."""
+        return json.loads(self._file["can"].attrs["node_order"]) if "can" in self._file else []
+
+    @property
+    def can_channel_names(self) -> list[str]:
+        return list(self._can_index)
+
+    def can_sample_rate_hz(self, node: str) -> float:
+        return float(self._can_group(node).attrs["sample_rate_hz"])
+
+    def can_times_s(self, node: str) -> np.ndarray:
+        """The node's sample times in the DAQ time base (float64)."""
+        return self._can_group(node)["times_s"][:]
+
+    def can_channel(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """A CAN channel's own samples: (times in the DAQ time base, float64; values in SI units, float32, NaN
+        where a sample was lost)."""
+        g = self._can_group(self._can_node_of(name))
+        return g["times_s"][:], g[name][:]
+
+    @functools.cached_property
+    def _can_index(self) -> dict[str, str]:
+        """CAN channel name -> its node."""
+        return {name: node for node in self.can_nodes
+                for name in json.loads(self._file["can"][node].attrs["channel_order"])}
+
+    def _can_node_of(self, name: str) -> str:
+        try:
+            return self._can_index[name]
+        except KeyError:
+            raise InputError(self.path, f"no CAN channel {name!r}; the take has {self.can_channel_names}") from None
+
+    def _can_group(self, node: str) -> h5py.Group:
+        if node not in self.can_nodes:
+            raise InputError(self.path, f"no CAN node {node!r}; the take has {self.can_nodes}")
+        return self._file["can"][node]
 
     @property
     def trigger(self) -> TriggerInfo:
@@ -542,6 +673,13 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
             names = json.loads(daq.attrs["channel_order"])
             n_samples = min((daq[n].shape[0] for n in names), default=0)
             channels = [ChannelInfo(**json.loads(daq[n].attrs["info"])) for n in names]
+            can = {}  # node -> (its channel names, samples whose values and times were both flushed)
+            if "can" in src:
+                for node in json.loads(src["can"].attrs["node_order"]):
+                    g = src["can"][node]
+                    node_names = json.loads(g.attrs["channel_order"])
+                    channels += [ChannelInfo(**json.loads(g[n].attrs["info"])) for n in node_names]
+                    can[node] = (node_names, min(g[n].shape[0] for n in ["times_s", *node_names]))
             attrs = {k: v for k, v in src.attrs.items() if k not in ("odsplat_schema", "kind", "complete", "recovered")}
             tmp_final = final_path.with_name(name + ".recovering.h5")
             for leftover in (tmp_final, tmp_final.with_name(name + ".recovering" + PARTIAL_SUFFIX)):
@@ -562,6 +700,10 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
                 writer.append_frames(src["frames"][k:stop], src["frame_times_s"][k:stop], src["frame_counter"][k:stop])
             if names and n_samples:
                 writer.append_samples({n: daq[n][:n_samples] for n in names})
+            for node, (node_names, m) in can.items():
+                if m:
+                    g = src["can"][node]
+                    writer.append_can_samples(node, g["times_s"][:m], {n: g[n][:m] for n in node_names})
         except (OSError, KeyError, ValueError) as exc:
             return RecoveryReport(name, False, 0, 0, f"{partial_path}: could not be recovered, left in place ({exc})")
     message = (f"recovered after a crash: {n_frames} frames and {n_samples} samples were flushed before the writer "

@@ -52,7 +52,9 @@ class CaptureSummary:
         ]
         for ch in self.channels:
             where = f" at {ch['position_m']} dir {ch['direction']}" if ch.get("position_m") else ""
-            lines.append(f"  {ch['name']:<12} {ch['kind']:<13} [{ch['unit']}]{where}")
+            source = ch.get("source", "daq")
+            src = f" from {source} at {ch['sample_rate_hz']:g} Hz" if source != "daq" else ""
+            lines.append(f"  {ch['name']:<12} {ch['kind']:<13} [{ch['unit']}]{where}{src}")
         lines.append(f"takes   {len(self.takes)}, {self.total_bytes / 1e6:.1f} MB")
         header = (f"  {'name':<12} {'view':>4} {'frames':>7} {'shape':<12} {'bit':>3} {'dur_s':>8} {'samples':>8} "
                   f"{'MB':>8}  status/QC")
