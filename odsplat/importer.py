@@ -77,6 +77,8 @@ class RigTake:
     camera_trigger_time_s: float | None = None
     trigger_frame: int | None = None   # file index of the camera's trigger frame (image sequences, .npy, video files)
     recorded_fps: float | None = None  # the rate a slow-motion file was filmed at (its own says its playback)
+    time_column: str | None = None     # the signal file's time column, when not the first with a time name
+    sample_rate_hz: float | None = None  # the DAQ's rate: used as the rate; needed by a CSV without a time column
     notes: str = ""
 
 
@@ -189,7 +191,8 @@ def _read_take_signals(rig: Rig, base: Path, take: RigTake) -> SignalSet:
     if not columns:
         raise InputError(path, "the rig declares no [[channels]], so there is nothing to read from the signal file")
     units = {c.column or c.name: c.unit for c in rig.channels if c.unit}
-    sigs = read_signals(path, units=units, columns=columns)
+    sigs = read_signals(path, units=units, columns=columns, time_column=take.time_column,
+                        sample_rate_hz=take.sample_rate_hz)
     for ch, col in zip(rig.channels, columns):
         si = sigs.channel(col).unit
         if si != CHANNEL_KINDS[ch.kind]:

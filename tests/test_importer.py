@@ -315,3 +315,34 @@ def test_declared_bit_depth_is_recorded_and_checked(tmp_path):
     rig.write_text(base + "[camera]\nbit_depth = 12\n")
     with pytest.raises(InputError, match=r"12, but take.npy holds 8-bit samples \(uint8\)"):
         import_capture(rig, tmp_path / "bad")
+
+
+def test_the_rig_names_the_time_column_or_declares_the_rate(tmp_path):
+    """A lab's own heading for time (`Zeit [ms]`, not first) is named in the rig; a file with no time column
+    takes the declared rate; a declared rate the time column contradicts is refused naming the field."""
+    fs = 10_000.0
+    t = np.arange(2000) / fs
+    force = np.exp(-(((t - 0.01) / 0.0005) ** 2)) * 50.0
+    (tmp_path / "zeit.csv").write_text("hammer [N];Zeit [ms];acc1 [g]\n" + "".join(
+        f"{b:.6f};{1e3 * a:.4f};{np.sin(2 * np.pi * 80 * a):.6f}\n" for a, b in zip(t, force)))
+    (tmp_path / "bare.csv").write_text("hammer [N],acc1 [g]\n" + "".join(
+        f"{b:.6f},{np.sin(2 * np.pi * 80 * a):.6f}\n" for a, b in zip(t, force)))
+    rig = tmp_path / "rig.toml"
+    body = ('name = "lab"\n[[channels]]\nname = "force"\nkind = "force"\ncolumn = "hammer"\n'
+            '[[channels]]\nname = "acc1"\nkind = "acceleration"\n')
+    rig.write_text(body + '[[takes]]\nname = "a"\nsignals = "zeit.csv"\ntime_column = "Zeit"\n'
+                   '[[takes]]\nname = "b"\nsignals = "bare.csv"\nsample_rate_hz = 10000\n')
+    cap = import_capture(rig, tmp_path / "cap")
+    assert cap.manifest.daq_sample_rate_hz == fs
+    for name in ("a", "b"):
+        with cap.open_take(name) as r:
+            assert r.n_samples == 2000 and r.channel("force").max() == pytest.approx(50.0, rel=1e-3)
+    rig.write_text(body + '[[takes]]\nname = "a"\nsignals = "zeit.csv"\ntime_column = "Zeit"\n'
+                   'sample_rate_hz = 12000\n')
+    with pytest.raises(InputError, match=r"zeit\.csv: sample_rate_hz: the file's time axis gives 10000 Hz, "
+                                         r"not the 12000 Hz declared"):
+        import_capture(rig, tmp_path / "bad")
+    rig.write_text(body + '[[takes]]\nname = "b"\nsignals = "bare.csv"\n')
+    with pytest.raises(InputError, match=r"bare\.csv: first column must be time .* or declare sample_rate_hz"):
+        import_capture(rig, tmp_path / "bad")
+    assert not (tmp_path / "bad").exists()

@@ -77,11 +77,16 @@ def read_signals(
     *,
     units: dict[str, str] | None = None,
     columns: Sequence[str] | None = None,
+    time_column: str | None = None,
+    sample_rate_hz: float | None = None,
 ) -> SignalSet:
     """Read a signal file, choosing the format by suffix (.csv/.txt, .lvm, .uff/.unv).
 
     `units` maps channel name -> unit spelling, overriding or supplying the file's; `columns` selects
-    and orders channels. Every value is converted to SI and stored as float32.
+    and orders channels. Every value is converted to SI and stored as float32. A CSV's time column is the first
+    one with a common time name, or `time_column`; a CSV without one needs `sample_rate_hz`. A declared
+    `sample_rate_hz` is used as the rate (the time stamps' printed rounding does not enter it); a file whose own
+    rate disagrees with it by more than RATE_AGREEMENT is refused.
     """
     path = Path(path)
     reader = _READERS.get(path.suffix.lower())
@@ -89,7 +94,20 @@ def read_signals(
         raise InputError(path, f"unsupported suffix {path.suffix!r}; expected one of {', '.join(_READERS)}")
     if not path.is_file():
         raise InputError(path, "no such file")
-    raw = reader(path)
+    if sample_rate_hz is not None and not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
+        raise InputError(f"{path}: sample_rate_hz", f"expected a positive rate in Hz; got {sample_rate_hz}")
+    if reader is _read_csv:
+        raw = _read_csv(path, time_column=time_column, sample_rate_hz=sample_rate_hz)
+    elif time_column is not None:
+        raise InputError(f"{path}: time_column", f"a {path.suffix} file's time axis is in its header; "
+                                                 "time_column is for CSV files")
+    else:
+        raw = reader(path)
+    if sample_rate_hz is not None:
+        if abs(raw.sample_rate_hz - sample_rate_hz) > RATE_AGREEMENT * sample_rate_hz:
+            raise InputError(f"{path}: sample_rate_hz", f"the file's time axis gives {raw.sample_rate_hz:.10g} Hz, "
+                                                        f"not the {sample_rate_hz:g} Hz declared")
+        raw = raw._replace(sample_rate_hz=float(sample_rate_hz))
     signals = _assemble(path, raw, units or {}, columns)
     log.debug("read %s: %d channels x %d samples at %g Hz", path, len(signals.channels), signals.n_samples,
               signals.sample_rate_hz)
@@ -231,7 +249,31 @@ def _print_resolution(t: np.ndarray) -> np.ndarray:
     return np.maximum(fixed, significant)
 
 
-def _read_csv(path: Path) -> _Raw:
+RATE_AGREEMENT = 1e-4   # a declared rate and a file's time axis agree to this (relative): printed rounding only
+
+
+def _time_index(path: Path, parsed: list[tuple[str, str | None]], time_column: str | None,
+                declared: bool) -> int | None:
+    """Which column is time: the one named `time_column`, else the first if it has a time name; None when there
+    is none and the rate is declared."""
+    if time_column is not None:
+        want = time_column.strip().lower()
+        hits = [i for i, (name, unit) in enumerate(parsed)
+                if name.strip().lower() == want or f"{name} [{unit}]".lower() == want]
+        if not hits:
+            raise InputError(f"{path}: time_column", f"no column {time_column!r}; the columns are "
+                                                     f"{[name for name, _ in parsed]}")
+        return hits[0]
+    if _time_unit(*parsed[0]) is not False:
+        return 0
+    if declared:
+        return None
+    raise InputError(path, f"first column must be time ({', '.join(map(repr, TIME_NAMES))}, with its unit in "
+                           f"brackets or as a suffix such as 'time_s' or 't_ms'), not {parsed[0][0]!r}; or name it "
+                           "with time_column, or declare sample_rate_hz, in the rig's take")
+
+
+def _read_csv(path: Path, *, time_column: str | None = None, sample_rate_hz: float | None = None) -> _Raw:
     # utf-8-sig: spreadsheet programs start UTF-8 CSV with a byte-order mark.
     with path.open(encoding="utf-8-sig", errors="replace") as f:
         header_no, header = 0, ""
@@ -245,25 +287,27 @@ def _read_csv(path: Path) -> _Raw:
         headings = header.split(sep)
         if headings[-1].strip() == "":  # a trailing delimiter, as some exporters write
             headings.pop()
-        if len(headings) < 2:
+        parsed = [_split_heading(h) for h in headings]
+        ti = _time_index(path, parsed, time_column, sample_rate_hz is not None) if headings else None
+        if len(headings) < 2 - (ti is None):
             raise InputError(path, f"header {header!r} needs a time column and at least one channel, "
                                    "separated by ',', ';' or tab")
-        parsed = [_split_heading(h) for h in headings]
         names = [name for name, _ in parsed]
         rows = functools.partial(_csv_rows, path, header_no)
         table = _load_table(path, f, sep, range(len(names)), names, rows, "#")
-
-    time_unit = _time_unit(*parsed[0])
-    if time_unit is False:
-        raise InputError(path, f"first column must be time ({', '.join(map(repr, TIME_NAMES))}, with its unit in "
-                               f"brackets or as a suffix such as 'time_s' or 't_ms'), not {headings[0]!r}")
-    time_si, time_scale = _parse_unit(path, headings[0], time_unit or "s")
-    if time_si != "s":
-        raise InputError(path, f"time column {headings[0]!r} has unit {time_unit!r}, not a unit of time")
     if table.shape[0] < 2:
         raise InputError(path, f"only {table.shape[0]} data row(s); a signal needs at least 2")
+    if ti is None:   # no time column: sample k at k / the declared rate
+        channels = [_RawChannel(name, unit, table[:, i]) for i, (name, unit) in enumerate(parsed)]
+        return _Raw(float(sample_rate_hz), 0.0, channels)
 
-    t = table[:, 0]
+    time_unit = _time_unit(*parsed[ti])
+    time_unit = parsed[ti][1] if time_unit is False else time_unit   # named by time_column: its unit, or s
+    time_si, time_scale = _parse_unit(path, headings[ti], time_unit or "s")
+    if time_si != "s":
+        raise InputError(path, f"time column {headings[ti]!r} has unit {time_unit!r}, not a unit of time")
+
+    t = table[:, ti]
     step = np.diff(t)
     if (step <= 0).any():
         row = int(np.argmax(step <= 0)) + 1
@@ -281,7 +325,7 @@ def _read_csv(path: Path) -> _Raw:
         unit = time_unit or "s"
         raise InputError(path, f"time step at line {_csv_line(path, header_no, row)} is {step[row - 1]:g} {unit}, "
                                f"not the mean {mean_step:g} {unit}: the file is not uniformly sampled")
-    channels = [_RawChannel(name, unit, table[:, i]) for i, (name, unit) in enumerate(parsed) if i > 0]
+    channels = [_RawChannel(name, unit, table[:, i]) for i, (name, unit) in enumerate(parsed) if i != ti]
     return _Raw(1.0 / (mean_step * time_scale), float(t[0] * time_scale), channels)
 
 
