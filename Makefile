@@ -35,8 +35,8 @@ lint: $(STAMP)
 # one impact-locked timeline, phase-based magnification of every view (2D videos to watch), camera poses
 # (pycolmap + tags), dynamic 3D Gaussians (the rest state at 128 px, then 64 timesteps of motion from the raw
 # frames in one linear solve), the analysis (modes from the accelerometers, the video's 3D shapes, MAC,
-# UFF/HDF5) and the report; then an orbit render magnified 30x in 3D, and real recordings imported from
-# $(SHARED_DATA) when that folder exists.
+# UFF/HDF5) and the report; then an orbit render magnified 30x in 3D, and the real LADISK recordings imported
+# from $(SHARED_DATA) and run through the same pipeline (their known modes) when that folder exists.
 demo: $(STAMP)
 	rm -rf $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat capture $(DEMO_OUT)/sim-rig --sim --auto --no-window --frames 100 --sim-faults 3:double_hit,9:dropped_packet
@@ -47,7 +47,8 @@ demo: $(STAMP)
 	@if test -d $(SHARED_DATA); then \
 	  rm -rf $(DEMO_OUT)/ladisk-beam && \
 	  $(BIN)/odsplat import examples/ladisk-beam.toml --data $(SHARED_DATA) -o $(DEMO_OUT)/ladisk-beam && \
-	  $(BIN)/odsplat info $(DEMO_OUT)/ladisk-beam; \
+	  $(BIN)/odsplat info $(DEMO_OUT)/ladisk-beam && \
+	  $(BIN)/odsplat run $(DEMO_OUT)/ladisk-beam; \
 	else echo "demo: $(SHARED_DATA) not found; skipping the import of real recordings (set SHARED_DATA=...)"; fi
 
 bench: $(STAMP)
