@@ -24,6 +24,7 @@ PEAK_PROMINENCE_DB = 10.0   # a clear peak stands this far above the valleys eit
 PEAK_COHERENCE = 0.9        # ... with at least this coherence around it
 PEAK_HEIGHT_DB = 20.0       # ... and within this of the band's highest clear peak
 CUT_PEAK_DB = 10.0          # a peak outside the band is reported when within this of the band's highest peak
+PEAK_FORCE_DB = 40.0        # no peak counts where the force is further down than this (the FRF is noise there)
 
 
 @dataclass(frozen=True)
@@ -34,15 +35,22 @@ class FRFPeak:
     coherence: float
 
 
-def force_band_hz(frf: FRFResult, drop_db: float = FORCE_DROP_DB) -> float:
-    """The frequency where the hammer's force spectrum first falls drop_db below its low-frequency level (the
-    median over the lowest 1 % of the lines, at least 3 lines), or the FRF's last line if it never does."""
+def force_db(frf: FRFResult) -> np.ndarray:
+    """The hammer's force spectrum in dB against its low-frequency level (the median over the lowest 1 % of the
+    lines, at least 3 lines); 0 everywhere when that level is unknown."""
     f, s = frf.freq_hz, np.asarray(frf.force_spectrum, float)
     low = (f > 0) & (f <= max(0.01 * f[-1], 3 * (f[1] - f[0]) if len(f) > 1 else 0.0))
-    if not low.any() or not np.isfinite(s[low]).any():
-        return float(f[-1])
-    level = float(np.nanmedian(s[low]))
-    below = np.flatnonzero((f > 0) & (s < level * 10 ** (-drop_db / 20)))
+    if not low.any() or not np.isfinite(s[low]).any() or not np.nanmedian(s[low]) > 0:
+        return np.zeros(len(f))
+    ratio = np.where(np.isfinite(s), s, 0.0) / float(np.nanmedian(s[low]))
+    return 20 * np.log10(np.maximum(ratio, 1e-15))
+
+
+def force_band_hz(frf: FRFResult, drop_db: float = FORCE_DROP_DB) -> float:
+    """The frequency where the hammer's force spectrum first falls drop_db below its low-frequency level, or the
+    FRF's last line if it never does."""
+    f = frf.freq_hz
+    below = np.flatnonzero((f > 0) & (force_db(frf) < -drop_db))
     return float(f[below[0]]) if len(below) else float(f[-1])
 
 
@@ -66,8 +74,9 @@ def _magnitude_db(frf: FRFResult) -> np.ndarray:
 
 def frf_peaks(frf: FRFResult, fmin_hz: float, fmax_hz: float, *, prominence_db: float = PEAK_PROMINENCE_DB,
               min_coherence: float = PEAK_COHERENCE, height_db: float | None = PEAK_HEIGHT_DB) -> list[FRFPeak]:
-    """The clear resonance peaks of the FRFs in fmin_hz..fmax_hz, highest first: prominent, coherent and (unless
-    height_db is None) within height_db of the highest of them."""
+    """The clear resonance peaks of the FRFs in fmin_hz..fmax_hz, highest first: prominent, coherent, where the
+    hammer still excites (force within PEAK_FORCE_DB of its level) and (unless height_db is None) within
+    height_db of the highest of them. With one hit the coherence is 1 by construction and checks nothing."""
     if not fmax_hz > fmin_hz:
         raise InputError("frf_peaks", f"expected fmin_hz < fmax_hz; got {fmin_hz:g} and {fmax_hz:g}")
     f = frf.freq_hz
@@ -75,9 +84,10 @@ def frf_peaks(frf: FRFResult, fmin_hz: float, fmax_hz: float, *, prominence_db: 
     coh = np.asarray(frf.coherence, float).reshape(len(f), -1)
     coh = np.nanmean(np.where(np.isfinite(coh), coh, 0.0), axis=1)
     idx, props = find_peaks(db, prominence=prominence_db)
+    excited = force_db(frf) >= -PEAK_FORCE_DB
     rows = []
     for i, prom in zip(idx, props["prominences"]):
-        if not fmin_hz <= f[i] <= fmax_hz:
+        if not fmin_hz <= f[i] <= fmax_hz or not excited[i]:
             continue
         c = float(np.median(coh[max(i - 2, 0):i + 3]))
         if c >= min_coherence:
