@@ -116,7 +116,8 @@ def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int 
     except InputError as e:
         log.info("no 2D cross-check: %s", e)
         return []
-    synced = load_sync(capture).ok
+    sync = load_sync(capture)
+    synced = sync.ok
     takes = [tk for tk in synced if tk.aligned_file and tk.name in poses
              and (capture.paths.root / tk.aligned_file).is_file()]
     if not takes:
@@ -127,7 +128,7 @@ def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int 
     chosen = [takes[int(i)] for i in np.unique(np.linspace(0, len(takes) - 1, min(max_views, len(takes))).round())]
     out = []
     for tk in chosen:
-        with AlignedTake(capture.paths.root / tk.aligned_file) as ff:
+        with AlignedTake(capture.paths.root / tk.aligned_file, sync.generation) as ff:
             frames, times = ff.read_frames(), ff.times_s
         if frames.ndim == 4:
             frames = frames.mean(axis=-1)

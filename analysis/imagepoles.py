@@ -93,7 +93,7 @@ def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] = (1
     gram, times, n_pix = None, None, 0
     for tk in tqdm(takes, desc="analysis: image poles", unit="take", disable=not progress):
         path = capture.paths.root / tk.aligned_file
-        with AlignedTake(path) as f:
+        with AlignedTake(path, sync.generation) as f:
             frames, t = f.read_frames(), f.times_s
         if times is None:
             times = t

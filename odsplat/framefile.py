@@ -2,7 +2,9 @@
 take, written once (temporary file, fsync, rename) and read back in chunks. One layout for every stage.
 
 Layout (HDF5): attributes `kind` (what the file holds: `ALIGNED_KIND` or `MAGNIFIED_KIND`) and `schema_version`
-(`SCHEMA`), as every derived file describes itself (odsplat.contract); dataset `frames` (n, H, W[, C]) uint16 holds
+(`SCHEMA`), as every derived file describes itself (odsplat.contract), and `generation`, the id of the stage
+run that wrote it, which the stage's index file (sync.json, magnify.json) records too: a reader given the index's
+generation refuses a file of another run (`begin_outputs`); dataset `frames` (n, H, W[, C]) uint16 holds
 value * `value_scale`, value in the source take's digital numbers (DN), `value_scale` 4 (1 for 15- and
 16-bit cameras) so that a quarter DN of the sub-DN detail resampling and filtering create survives, far
 below the sensor's noise; dataset `times_s` (n,), each frame's time; `bit_depth` of the source.
@@ -10,7 +12,8 @@ below the sensor's noise; dataset `times_s` (n,), each frame's time; `bit_depth`
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping
+import uuid
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -18,11 +21,40 @@ import h5py
 import numpy as np
 
 from .errors import InputError, SchemaError
-from .store import atomic_path, frame_compression
+from .store import atomic_path, frame_compression, fsync_path, remove_stale_temporaries
 
 ALIGNED_KIND = "odsplat.aligned-take"        # sync's frames on the common grid
 MAGNIFIED_KIND = "odsplat.magnified-take"    # processing's magnified frames
-SCHEMA = 2
+SCHEMA = 3   # 3: the generation attribute
+
+
+# ------------------------------------------------------------------ a stage's outputs, committed together
+
+def begin_outputs(index: Path, folder: Path) -> str:
+    """Start a run of a stage that writes a folder of frame files and then their index (sync, magnify): the old
+    index goes first, durably, so a run killed from here on leaves no index and no reader takes its files as a
+    set; temporaries of killed runs are removed. Returns the new run's generation id, for every file it writes."""
+    if index.exists():
+        index.unlink()
+        fsync_path(index.parent)
+    remove_stale_temporaries(folder)
+    return uuid.uuid4().hex[:16]
+
+
+def discard_outputs(folder: Path) -> None:
+    """After a failed run: remove the folder's frame files, which no index lists any more (`begin_outputs`
+    removed the old one), so no reader finds half a set."""
+    for path in folder.glob("*.h5") if folder.is_dir() else ():
+        path.unlink(missing_ok=True)
+
+
+def prune_outputs(folder: Path, keep: Iterable[Path]) -> None:
+    """After the index is written: remove the frame files in `folder` it does not list (a take no longer
+    selected, another run's leftovers)."""
+    keep = {Path(p).resolve() for p in keep}
+    for path in folder.glob("*.h5") if folder.is_dir() else ():
+        if path.resolve() not in keep:
+            path.unlink()
 
 
 def value_scale(bit_depth: int) -> float:
@@ -69,7 +101,8 @@ class FrameFile:
     WHAT: ClassVar[str] = "derived frame file"
     MISSING: ClassVar[str] = "no such file"
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, generation: str | None = None):
+        """`generation`: the index's (sync.json's, magnify.json's); a file of another run is refused."""
         self.path = Path(path)
         try:
             self._file = h5py.File(self.path, "r")
@@ -88,6 +121,10 @@ class FrameFile:
                               + (" (update odsplat)" if isinstance(version, (int, np.integer)) and version > SCHEMA
                                  else " (run its stage again)"))
         self.scale = float(self._file.attrs["value_scale"])
+        if generation is not None and self._file.attrs.get("generation") != generation:
+            self._file.close()
+            raise InputError(self.path, "written by another run of its stage than its index lists (a run was "
+                                        "interrupted): run the stage again")
 
     @property
     def attrs(self) -> dict[str, Any]:
@@ -123,4 +160,5 @@ class FrameFile:
         self.close()
 
 
-__all__ = ["FrameFile", "atomic_h5", "create_frames", "to_stored", "value_scale"]
+__all__ = ["FrameFile", "atomic_h5", "begin_outputs", "create_frames", "discard_outputs", "prune_outputs", "to_stored",
+           "value_scale"]

@@ -25,7 +25,7 @@ from .contract import Provenance, check, describe, digest, plain
 from .errors import InputError, OdsplatError
 from .manifest import load_json
 from .sensors import geometry_identity
-from .store import Capture, atomic_write_text, fsync_path
+from .store import Capture, atomic_write_text, fsync_path, remove_stale_temporaries
 
 log = logging.getLogger(__name__)
 
@@ -265,6 +265,7 @@ def run_stage(capture: Capture, name: str, config: Config | None = None, setting
     st = stage(name)
     prov = expected(capture, name, config)
     _unstamp(capture, name)  # first: a run killed from here on leaves the stage stale, never current
+    remove_stale_temporaries(capture.paths.root)     # what killed runs left half-written
     started = time.perf_counter()
     s = config.settings(name)
     result = st.entry(capture, s)

@@ -91,6 +91,35 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     fsync_path(path.parent)
 
 
+def remove_stale_temporaries(folder: str | Path) -> list[Path]:
+    """Remove the temporaries `atomic_path` leaves when its writer is killed (`.NAME.PID.tmp`, in `folder` and
+    below) whose process is gone; a live writer's are left alone. Returns what was removed."""
+    folder = Path(folder)
+    removed = []
+    if not folder.is_dir():
+        return removed
+    for tmp in folder.rglob(".*.tmp"):
+        pid = tmp.name[:-len(".tmp")].rpartition(".")[2]
+        if not pid.isdigit() or _alive(int(pid)):
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+            removed.append(tmp)
+    if removed:
+        log.info("removed %d temporaries of killed runs under %s", len(removed), folder)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
 @contextlib.contextmanager
 def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[IO]:
     """Open a temporary file beside `path`, made durable and renamed over `path` on a clean exit (`atomic_path`)."""

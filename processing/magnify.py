@@ -22,7 +22,16 @@ from tqdm import tqdm
 
 from odsplat.contract import check, describe
 from odsplat.errors import InputError, OdsplatError
-from odsplat.framefile import MAGNIFIED_KIND, FrameFile, atomic_h5, create_frames, to_stored
+from odsplat.framefile import (
+    MAGNIFIED_KIND,
+    FrameFile,
+    atomic_h5,
+    begin_outputs,
+    create_frames,
+    discard_outputs,
+    prune_outputs,
+    to_stored,
+)
 from odsplat.manifest import load_json, utc_now
 from odsplat.store import Capture, atomic_write_text
 
@@ -33,7 +42,7 @@ log = logging.getLogger(__name__)
 
 METHODS = ("phase", "linear", "learned")
 KIND = "odsplat.magnify"
-SCHEMA = 1
+SCHEMA = 2   # 2: generation, the run id its magnified files carry
 
 
 @dataclass(frozen=True)
@@ -126,6 +135,7 @@ class MagnifyResult:
     takes: list[MagnifiedTake] = field(default_factory=list)
     settings: dict[str, Any] = field(default_factory=dict)
     created_utc: str = field(default_factory=utc_now)
+    generation: str = ""              # the run's id; every magnified file it wrote carries it
 
     def write(self, capture: Capture) -> Path:
         """magnify.json beside the magnified takes (written after them)."""
@@ -141,7 +151,8 @@ class MagnifyResult:
         check(d, path, kind=KIND, schema_version=SCHEMA, capture_id=capture.id)
         try:
             takes = [MagnifiedTake(**t) for t in d["takes"]]
-            return cls(d["method"], d["alpha"], d["band_hz"], d["filter"], takes, d["settings"], d["created_utc"])
+            return cls(d["method"], d["alpha"], d["band_hz"], d["filter"], takes, d["settings"], d["created_utc"],
+                       d["generation"])
         except (TypeError, KeyError) as exc:
             raise InputError(path, f"not a readable magnification summary: {exc}") from None
 
@@ -158,12 +169,12 @@ class MagnifyResult:
 class _Source:
     """Frames of one take as DN float32 chunks (T, H, W[, C]), from sync's grid or the raw take."""
 
-    def __init__(self, capture: Capture, name: str, aligned_file: str | None):
+    def __init__(self, capture: Capture, name: str, aligned_file: str | None, sync_generation: str | None = None):
         self.name = name
         if aligned_file:
             from odsplat.sync import AlignedTake
 
-            self._r = AlignedTake(Path(aligned_file))
+            self._r = AlignedTake(Path(aligned_file), sync_generation)
             self.kind = "aligned"
             self.bit_depth = int(self._r.attrs["bit_depth"])
             self.times_s = self._r.times_s
@@ -199,13 +210,15 @@ def _from_tensor(x: torch.Tensor, full_scale: float, rgb: bool) -> np.ndarray:
 
 
 def magnify_take(capture_root: str, name: str, aligned_file: str | None, settings: MagnifySettings,
-                 out_path: str, threads: int = 1, derived_root: str | None = None) -> MagnifiedTake:
-    """Stream one take (`aligned_file`: the path of its aligned frames, or None for the raw take) through a fresh
-    magnifier into out_path (temporary file, fsync, rename)."""
+                 out_path: str, threads: int = 1, derived_root: str | None = None, generation: str = "",
+                 sync_generation: str | None = None) -> MagnifiedTake:
+    """Stream one take (`aligned_file`: the path of its aligned frames, of sync's run `sync_generation`, or None
+    for the raw take) through a fresh magnifier into out_path (temporary file, fsync, rename), marked as this
+    run's (`generation`)."""
     torch.set_num_threads(threads)
     t0 = time.perf_counter()
     capture = Capture.open(capture_root, derived=derived_root)
-    src = _Source(capture, name, aligned_file)
+    src = _Source(capture, name, aligned_file, sync_generation)
     try:
         if not src.fps:
             raise InputError(name, "the take has no frame rate: a temporal band cannot be placed")
@@ -218,7 +231,7 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
             attrs = dict(take=name, source=src.kind, method=settings.method, alpha=settings.alpha,
                          filter=settings.filter_kind, mode=settings.mode,
                          band_hz=json.dumps(list(settings.band_hz) if settings.band_hz else None),
-                         view=None if src.view is None else int(src.view))
+                         view=None if src.view is None else int(src.view), generation=generation)
             ds, scale = create_frames(f, MAGNIFIED_KIND, frame_shape=src.frame_shape, bit_depth=src.bit_depth,
                                       times_s=src.times_s, attrs=attrs)
 
@@ -243,14 +256,15 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
 
 # ---------------------------------------------------------------------------------------------- a capture
 
-def _inputs(capture: Capture, s: MagnifySettings) -> list[tuple[str, str | None]]:
-    """(take, aligned file or None) for each take to magnify."""
+def _inputs(capture: Capture, s: MagnifySettings) -> tuple[list[tuple[str, str | None]], str | None]:
+    """(take, aligned file or None) for each take to magnify, and the generation of sync's run (None: raw)."""
     synced = None
     sync_json = capture.paths.sync_json
     if s.source in ("auto", "aligned") and sync_json.exists():
         from odsplat.sync import load_sync
 
-        synced = {t.name: str(capture.paths.root / t.aligned_file) for t in load_sync(capture).ok if t.aligned_file}
+        sync = load_sync(capture)
+        synced = {t.name: str(capture.paths.root / t.aligned_file) for t in sync.ok if t.aligned_file}
     if s.source == "aligned" and not synced:
         raise InputError(sync_json, "no aligned frames: run `odsplat sync` first (or --source raw)")
     if synced:
@@ -258,40 +272,48 @@ def _inputs(capture: Capture, s: MagnifySettings) -> list[tuple[str, str | None]
         missing = [n for n in names if n not in synced]
         if missing:
             raise InputError(sync_json, f"takes {missing} are not on sync's grid (excluded or not synced)")
-        return [(n, synced[n]) for n in names]
-    names = list(s.takes) or [t.name for t in capture.select_takes("accepted")]
+        return [(n, synced[n]) for n in names], sync.generation
+    names = list(s.takes) or [t.name for t in capture.select_takes("accepted") if t.n_frames > 0]
     known = set(capture.take_names())
     missing = [n for n in names if n not in known]
     if missing:
         raise InputError(capture.root, f"no takes named {missing}")
-    return [(n, None) for n in names]
+    return [(n, None) for n in names], None
 
 
 def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bool = True) -> MagnifyResult:
     """Magnify every selected view; writes derived/magnified/METHOD/NAME.h5 and magnify.json beside them."""
     s = settings
-    jobs = _inputs(capture, s)
+    jobs, sync_generation = _inputs(capture, s)
     if not jobs:
         raise OdsplatError(f"{capture.root}: no takes to magnify{capture.unchecked_hint()}")
-    dest = capture.paths.ensure(capture.paths.magnified_dir(s.method))
+    dest = capture.paths.magnified_dir(s.method)
+    generation = begin_outputs(capture.paths.magnify_json(s.method), dest)
+    capture.paths.ensure(dest)
     workers = max(1, min(s.workers or os.cpu_count() or 1, len(jobs)))
     threads = max(1, (os.cpu_count() or 1) // workers)
     result = MagnifyResult(s.method, s.alpha, list(s.band_hz) if s.band_hz else None, s.filter_kind,
-                           settings=asdict(s))
-    args = [(str(capture.root), n, a, s, str(capture.paths.magnified(s.method, n)), threads, str(capture.paths.root))
-            for n, a in jobs]
+                           settings=asdict(s), generation=generation)
+    args = [(str(capture.root), n, a, s, str(capture.paths.magnified(s.method, n)), threads, str(capture.paths.root),
+             generation, sync_generation) for n, a in jobs]
     bar = tqdm(total=len(args), desc=f"magnify ({s.method})", unit="view", disable=not progress)
-    if workers == 1:
-        for a in args:
-            result.takes.append(magnify_take(*a))
-            bar.update()
-    else:
-        with ProcessPoolExecutor(workers) as pool:
-            for done in pool.map(magnify_take, *zip(*args)):
-                result.takes.append(done)
+    try:
+        if workers == 1:
+            for a in args:
+                result.takes.append(magnify_take(*a))
                 bar.update()
-    bar.close()
+        else:
+            with ProcessPoolExecutor(workers) as pool:
+                for done in pool.map(magnify_take, *zip(*args)):
+                    result.takes.append(done)
+                    bar.update()
+    except BaseException:
+        discard_outputs(dest)   # no index lists them
+        raise
+    finally:
+        bar.close()
     result.write(capture)
+    prune_outputs(dest, [capture.paths.root / t.file for t in result.takes])
     log.info("magnified %d view(s) into %s", len(result.takes), dest)
     return result
 

@@ -49,7 +49,7 @@ from odsplat.store import Capture
 from .dynamic import render
 from .gaussians import Gaussians
 from .modal import ModalMotion
-from .views import Camera, SceneFrame, SourceFrames, ViewSet, pose_camera, source_path
+from .views import Camera, SceneFrame, SourceFrames, ViewSet, pose_camera, source_generation, source_path
 
 log = logging.getLogger(__name__)
 
@@ -247,9 +247,10 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
     smooth = lambda im: blur(_filter(im, PREFILTER, PREFILTER))  # noqa: E731
     bg = background.to(g0.means.dtype)
     views: list[ViewRows] = []
+    generation = source_generation(capture, "sync")
     for v, cam in tqdm(list(zip(vs.views, cameras)), desc="linear motion", unit="view", disable=not s.progress):
         path = source_path(capture, "sync", v.name)
-        with SourceFrames(path) as ff:
+        with SourceFrames(path, generation) as ff:
             times = ff.times_s
             if frames.max() >= len(times) or not np.allclose(times[frames], vs.times_s, atol=1e-9):
                 raise InputError(path, "times_s differ from the training grid's")

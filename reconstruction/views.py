@@ -30,6 +30,18 @@ class SourceFrames(FrameFile):
     MISSING = "no such frame file (run `odsplat sync`, and `odsplat magnify` for a magnified source)"
 
 
+def source_generation(capture: Capture, source: str) -> str:
+    """The run id the source's index records (sync.json, magnify.json): its frame files must carry it."""
+    if source == "sync":
+        from odsplat.sync import load_sync
+
+        return load_sync(capture).generation
+    from odsplat.processing import MagnifyResult
+
+    source_path(capture, source, "")  # checks the name
+    return MagnifyResult.read(capture, source.split("/", 1)[1]).generation
+
+
 def source_path(capture: Capture, source: str, name: str) -> Path:
     """'sync' -> derived/sync/NAME.h5; 'magnified/METHOD' -> derived/magnified/METHOD/NAME.h5."""
     if source == "sync" or source.startswith("magnified/"):
@@ -174,12 +186,13 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
         raise InputError(capture.paths.poses_json, "no posed takes to train on")
     notes: list[str] = []
     views, grid, bit_depth, frames, alphas = [], None, None, None, set()
+    generation = source_generation(capture, source)
     for vp in take_poses:
         path = source_path(capture, source, vp.name)
         if not path.exists():
             notes.append(f"{vp.name}: no {source} frames, left out")
             continue
-        with SourceFrames(path) as ff:
+        with SourceFrames(path, generation) as ff:
             times = ff.times_s
             if grid is None:
                 grid, bit_depth = times, int(ff.attrs["bit_depth"])

@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from odsplat.contract import check, describe
 from odsplat.errors import InputError, OdsplatError
+from odsplat.framefile import begin_outputs, discard_outputs, prune_outputs
 from odsplat.impulse import find_impacts, fit_pulse
 from odsplat.manifest import CameraInfo, TagLayout, load_json, utc_now
 from odsplat.store import TAKE_SELECTIONS, Capture, TakeReader, atomic_write_text
@@ -35,7 +36,7 @@ from .strobe import fit_strobe
 log = logging.getLogger(__name__)
 
 KIND = "odsplat.sync"
-SCHEMA = 2
+SCHEMA = 3   # 3: generation, the run id its aligned files carry
 METHODS = ("auto", "ttl", "image")
 RESPONSE_S = 0.05  # how much of each take's response the cross-check compares
 
@@ -117,6 +118,7 @@ class SyncResult:
     takes: list[TakeSync]
     settings: dict[str, Any]
     created_utc: str = field(default_factory=utc_now)
+    generation: str = ""                     # the run's id; every aligned file it wrote carries it
 
     @property
     def ok(self) -> list[TakeSync]:
@@ -379,7 +381,7 @@ def _grid(takes: list[TakeSync], fps: float) -> tuple[float, int]:
 
 
 def _write_aligned(capture: Capture, t: TakeSync, reader: TakeReader, rest_counters: np.ndarray, t0: float, fps: float,
-                   n_grid: int, settings: SyncSettings, out_dir: Path) -> None:
+                   n_grid: int, settings: SyncSettings, out_dir: Path, generation: str) -> None:
     counters = np.asarray(t.counters)
     full, pos = fill_dropped(counters)
     grid = t0 + np.arange(n_grid) / fps
@@ -401,7 +403,7 @@ def _write_aligned(capture: Capture, t: TakeSync, reader: TakeReader, rest_count
     with write_aligned(path, n_frames=n_grid, frame_shape=shape, band_rows=band, bit_depth=reader.bit_depth,
                        times_s=grid, attrs=dict(take=t.name, view=t.view, offset_s=t.offset_s, method=t.method,
                                                 impulse_scale=t.impulse_scale or 1.0,
-                                                grid_shift_frames=mean_shift)) as write_band:
+                                                grid_shift_frames=mean_shift, generation=generation)) as write_band:
         for r0 in range(0, shape[0], band):
             rows = slice(r0, min(r0 + band, shape[0]))
             x = np.empty((full.size, rows.stop - r0, *shape[1:]), np.float64)
@@ -418,11 +420,21 @@ def _write_aligned(capture: Capture, t: TakeSync, reader: TakeReader, rest_count
 def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, progress: bool = True) -> SyncResult:
     """Sync every selected take of the capture; writes derived/sync.json and, if asked, the aligned frames."""
     s = settings or SyncSettings()
-    m = capture.manifest
     records = capture.select_takes(s.takes)
     if not records:
         raise OdsplatError(f"{capture.root}: no {'' if s.takes == 'all' else 'accepted '}takes to sync"
                            + ("" if s.takes == "all" else capture.unchecked_hint()))
+    out_dir = capture.paths.aligned_dir
+    generation = begin_outputs(capture.paths.sync_json, out_dir)
+    try:
+        return _sync(capture, s, records, generation, out_dir, progress)
+    except BaseException:
+        discard_outputs(out_dir)
+        raise
+
+
+def _sync(capture: Capture, s: SyncSettings, records, generation: str, out_dir: Path, progress: bool) -> SyncResult:
+    m = capture.manifest
     results: list[TakeSync] = []
     responses: dict[str, tuple[np.ndarray, float]] = {}
     for rec in tqdm(records, desc="sync: timing", unit="take", disable=not progress):
@@ -448,7 +460,7 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
         with capture.open_take(ok[0].name) as r:
             shape = list(r.frame_shape)
         if s.write_frames:
-            out_dir = capture.paths.ensure(capture.paths.aligned_dir)
+            capture.paths.ensure(out_dir)
             for t in tqdm(ok, desc="sync: aligning frames", unit="take", disable=not progress):
                 with capture.open_take(t.name) as r:
                     if list(r.frame_shape) != shape:
@@ -456,11 +468,12 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
                         continue
                     hit_counter = (t.hit_daq_time_s - t.frame0_daq_time_s) / t.period_s
                     rest = np.asarray(t.counters)[np.asarray(t.counters) + 1 < hit_counter]
-                    _write_aligned(capture, t, r, rest, t0, fps, n_grid, s, out_dir)
+                    _write_aligned(capture, t, r, rest, t0, fps, n_grid, s, out_dir, generation)
     result = SyncResult(capture=m.name, fps=fps, n_frames=n_grid, t0_s=t0, frame_shape=shape,
                         reference_impulse_n_s=ref_impulse, normalized=s.normalize_impulse, takes=results,
-                        settings=asdict(s))
+                        settings=asdict(s), generation=generation)
     path = result.write(capture)
+    prune_outputs(out_dir, [capture.paths.root / t.aligned_file for t in result.ok if t.aligned_file])
     log.info("sync: %d/%d takes on the common grid (%d frames); %s", len(result.ok), len(results), n_grid, path)
     if s.plot and result.ok:
         from .plot import plot_sync

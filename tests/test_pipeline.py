@@ -22,6 +22,7 @@ from odsplat.config import STAGES, load_config
 from odsplat.errors import InputError
 from odsplat.hil_sim import SimBench, SimBenchSettings
 from odsplat.pipeline import is_current, status
+from odsplat.processing import MagnifyResult
 from odsplat.store import Capture
 from odsplat.sync import AlignedTake, SyncSettings, load_sync
 
@@ -166,6 +167,58 @@ def test_sigkill_during_a_stage_then_run_gives_a_complete_correct_result(piped, 
     for name, frames in frames_before.items():
         np.testing.assert_array_equal(AlignedTake(cap.paths.aligned(name)).read_frames(), frames)
     assert all(current for _, current, _ in status(cap))
+
+
+def _derived_files(cap: Capture) -> list[str]:
+    return sorted(str(p.relative_to(cap.paths.root)) for p in cap.paths.root.rglob("*") if p.is_file())
+
+
+def test_sync_and_magnify_killed_at_random_points_then_rerun_leave_one_consistent_set(piped, tmp_path):
+    """A stage's frame files and their index are committed together: killed anywhere (seeded points in each
+    stage's run), the index is gone or lists only files of its own run, and the rerun gives the same result as
+    an uninterrupted run with no temporaries left."""
+    cap = _copy(piped, tmp_path)
+    before = {t.name: AlignedTake(cap.paths.aligned(t.name)).read_frames() for t in load_sync(cap).ok[:2]}
+    files_before = _derived_files(cap)
+    rng = np.random.default_rng(29)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    for stage, index in (("sync", cap.paths.sync_json), ("magnify", cap.paths.magnify_json("phase"))):
+        for _ in range(2):
+            proc = subprocess.Popen([sys.executable, "-m", "odsplat", stage, str(cap.root)], env=env,
+                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            deadline = time.monotonic() + 60
+            while index.exists() and time.monotonic() < deadline:     # the run has begun once its index is gone
+                time.sleep(0.02)
+            time.sleep(float(rng.uniform(0.0, 2.5)))
+            proc.send_signal(signal.SIGKILL)
+            proc.wait()
+            if proc.returncode == 0:
+                continue                                                # finished first: nothing to check
+            assert not index.exists(), f"a killed {stage} left an index"
+            with pytest.raises(InputError, match="no sync result|no phase magnification"):
+                load_sync(cap) if stage == "sync" else MagnifyResult.read(cap, "phase")
+    text = _cli(["run", cap.root])
+    assert _statuses(text)["sync"] == "ran" and _statuses(text)["report"] == "ran"
+    assert not [p for p in cap.paths.root.rglob("*.tmp")]
+    assert _derived_files(cap) == files_before
+    for name, frames in before.items():
+        np.testing.assert_array_equal(AlignedTake(cap.paths.aligned(name)).read_frames(), frames)
+
+
+def test_a_frame_file_of_another_run_is_refused(piped, tmp_path):
+    """An aligned file that its index does not vouch for (left by an interrupted run) stops the reader."""
+    import h5py
+
+    cap = _copy(piped, tmp_path)
+    name = load_sync(cap).ok[0].name
+    with h5py.File(cap.paths.aligned(name), "r+") as f:
+        f.attrs["generation"] = "0123456789abcdef"
+    out = _cli(["magnify", cap.root], code=2)
+    errors = [line for line in out.splitlines() if "odsplat: error:" in line]
+    assert len(errors) == 1 and f"{name}.h5: written by another run of its stage" in errors[0]
+    assert "Traceback" not in out
+    assert not cap.paths.magnify_json("phase").exists()          # that run wrote no index
+    assert not list(cap.paths.magnified_dir("phase").glob("*.h5"))  # ... and left no files of its own
 
 
 def test_foreign_and_newer_derived_files_are_refused_with_one_line(piped, tmp_path):
