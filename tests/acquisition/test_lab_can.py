@@ -215,3 +215,14 @@ def test_a_can_bus_that_cannot_open_stops_the_capture_before_the_first_view(tmp_
     assert run.exit_code == 2, run.output
     assert "odsplat: error: CAN bus nosuch:can0: cannot open" in run.output and "Place the camera" not in run.output
     assert not (tmp_path / "c").exists()
+
+
+def test_the_lab_file_example_in_the_docs_loads(tmp_path):
+    doc = (REPO / "docs" / "acquisition.md").read_text()
+    example = doc.split("### The lab file", 1)[1].split("```toml\n", 1)[1].split("```", 1)[0]
+    lab = tmp_path / "lab.toml"
+    lab.write_text(example)
+    cfg = load_lab_config(lab)
+    assert cfg.can_bus == {"interface": "socketcan", "channel": "can0", "bitrate": 1_000_000}
+    assert cfg.can.nodes[1].axes == ((0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    assert cfg.can.nodes[0].axes == ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
