@@ -539,11 +539,15 @@ class CaptureSession:
 
 
 class LabBench:
-    """A person at the rig: prompts on the terminal. The camera and the DAQ are real devices."""
+    """A person at the rig: prompts on the terminal. The camera and the DAQ are real devices, and so are the CAN
+    accelerometer nodes when `can` is given (`open_can` opens their bus: `LabConfig.open_can`)."""
 
     def __init__(self, camera: CameraDriver, daq_url: str, channels: Sequence[DAQChannel], sample_rate_hz: float,
                  tags: TagLayout | None, *, ask: Callable[[str], str] = input, tell: Callable[[str], None] = print,
-                 hammer: AutoHammer | None = None):
+                 hammer: AutoHammer | None = None, can: CANSetup | None = None,
+                 open_can: Callable[[], CANAccelerometers] | None = None):
+        if (can is None) != (open_can is None):
+            raise InputError("LabBench", "give both the CAN nodes (can) and the way to open their bus (open_can)")
         self.camera = camera
         self.hammer = hammer
         self.tags = tags
@@ -552,9 +556,33 @@ class LabBench:
         self.sample_rate_hz = sample_rate_hz
         self._ask = ask
         self._tell = tell
+        self.can = can
+        # Opened now, so that a bus that is down or misnamed stops the session before the first view.
+        self._can: CANAccelerometers | None = open_can() if open_can is not None else None
 
     def open_daq(self) -> SerialDAQ:
         return SerialDAQ.from_url(self.daq_url, self.channels, self.sample_rate_hz)
+
+    def open_can(self) -> CANAccelerometers:
+        if self._can is None:
+            raise InputError("LabBench.open_can", "this bench has no CAN nodes (the lab file has no [can] section)")
+        return self._can
+
+    def close(self) -> None:
+        """Close the automatic hammer's driver and shut the CAN nodes' bus down, if any (idempotent). The session
+        has already STOPped the nodes."""
+        if self._can is not None:
+            self._can.bus.shutdown()
+            self._can = None
+        if self.hammer is not None:
+            self.hammer.close()
+            self.hammer = None
+
+    def __enter__(self) -> LabBench:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     def place_camera(self, view: Viewpoint, instructions: str) -> None:
         self._tell(instructions)

@@ -276,15 +276,15 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
     else:
         bench = LabBench(lab.open_camera(), lab.daq_url, lab.channels, lab.sample_rate_hz, lab.tags,
                          ask=lambda q: click.prompt(q, default="", show_default=False), tell=click.echo,
-                         hammer=lab.open_hammer() if hammer_settings else None)
+                         hammer=lab.open_hammer() if hammer_settings else None,
+                         can=lab.can, open_can=lab.open_can if lab.can is not None else None)
     if window is None:
         window = display_available() and not auto
     feedback = PlotFeedback(click.echo, settings and _plan(settings)) if window else TextFeedback(click.echo)
     try:
         report = CaptureSession(out, settings, bench, feedback=feedback).run()
     finally:
-        if bench.hammer is not None:   # every bench has one, or None (acquisition's Bench protocol)
-            bench.hammer.close()
+        bench.close()  # SimBench and LabBench: the hammer's driver, the CAN bus, the simulated devices
     click.echo(report.summary())
     if not report.complete:
         sys.exit(1)
