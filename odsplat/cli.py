@@ -97,15 +97,42 @@ def import_(rig: Path, out: Path, data: Path | None) -> None:
 @click.argument("capture", type=click.Path(path_type=Path))
 def recover(capture: Path) -> None:
     """Recover takes left unfinished by a crash, keeping every flushed frame and sample."""
+    from .integrity import listed_take_problems
     from .store import Capture
 
     cap = Capture.open(capture)
     reports = cap.recover()
-    if not reports:
-        click.echo("nothing to recover")
+    lost = listed_take_problems(cap)
+    if not reports and not lost:
+        click.echo("nothing to recover: every listed take's file is there and whole, and no take is unfinished")
     for r in reports:
         click.echo(f"{r.name}: {'recovered' if r.recovered else 'NOT recovered'}: {r.message}")
-    if any(not r.recovered for r in reports):
+    for check in lost:
+        click.echo(f"{check.name}: NOT recoverable here: {check.status}: {'; '.join(check.details)} (a raw take is "
+                   "written once: restore the file from a copy; `odsplat verify` checks the others)")
+    if any(not r.recovered for r in reports) or lost:
+        sys.exit(1)
+
+
+@main.command()
+@click.argument("capture", type=click.Path(path_type=Path))
+def verify(capture: Path) -> None:
+    """Read every take of CAPTURE whole through its checksums: each take OK, damaged (which frames or samples),
+    missing, truncated, unfinished, not listed, or without checksums (an older take: readable, but damage cannot be
+    detected). Exit 1 when anything is wrong."""
+    from .integrity import verify_capture
+    from .store import Capture
+
+    cap = Capture.open(capture)
+    checks = verify_capture(cap)
+    for check in checks:
+        click.echo(check.line())
+    bad = [c for c in checks if not c.ok]
+    unchecked = [c for c in checks if c.status == "no checksums"]
+    click.echo(f"{len(checks)} take(s): {len(checks) - len(bad)} whole"
+               + (f" ({len(unchecked)} without checksums)" if unchecked else "")
+               + (f", {len(bad)} with problems" if bad else ""))
+    if bad:
         sys.exit(1)
 
 
