@@ -322,7 +322,9 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
 @click.option("--method", type=click.Choice(["auto", "ttl", "image"]), default="auto", show_default=True,
               help="Frame timing: the exposure strobe (ttl), the trigger frame refined by the images, "
                    "or ttl where recorded.")
-@click.option("--all-takes", is_flag=True, help="Sync rejected takes too (default: those QC accepted).")
+@click.option("--all-takes", is_flag=True,
+              help="Sync every take, complete or recovered after a crash, whatever QC said (default: those QC "
+                   "accepted).")
 @click.option("--normalize-impulse", is_flag=True, help="Scale each take's motion to the median hammer impulse.")
 @click.option("--frames/--no-frames", default=True, show_default=True,
               help="Write the aligned frames to derived/sync/.")
@@ -471,15 +473,20 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
            alpha: float | None, fps: float, no_mp4: bool) -> None:
     """Render the reconstruction of CAPTURE_DIR from any camera path over any time range."""
     from .errors import InputError
-    from .reconstruction import DynamicScene, camera_path, parse_times, render_sequence
+    from .reconstruction import DynamicScene, camera_path, check_camera_spec, parse_times, render_sequence
     from .store import Capture
 
+    if alpha is not None and not 0 <= alpha < float("inf"):
+        raise InputError("--alpha", f"expected a magnification >= 0, got {alpha}")
+    if width_px is not None and width_px < 8:
+        raise InputError("--width", f"expected an image width of at least 8 px, got {width_px}")
+    if not 0 < fps < float("inf"):
+        raise InputError("--fps", f"expected a frame rate > 0, got {fps}")
     cap = Capture.open(capture_dir)
+    check_camera_spec(camera_spec)
     scene = DynamicScene.load(cap)
     times = parse_times(times_spec, scene.times_s)
     cameras = camera_path(cap, camera_spec, len(times), width_px)
-    if alpha is not None and not 0 <= alpha < float("inf"):
-        raise InputError("--alpha", f"expected a magnification >= 0, got {alpha}")
     paths = render_sequence(scene, cameras, times, out or cap.paths.render_dir, alpha=alpha, fps=fps,
                             mp4=not no_mp4)
     click.echo(f"{sum(p.suffix == '.png' for p in paths)} frames -> {paths[0].parent}"
@@ -492,7 +499,9 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
               help="Force channel (default: the capture's one force channel).")
 @click.option("--response", "responses", multiple=True,
               help="Response channel (repeatable; default: every acceleration channel placed on the structure).")
-@click.option("--all-takes", is_flag=True, help="Use every complete take, not only those QC accepted.")
+@click.option("--all-takes", is_flag=True,
+              help="Use every take, complete or recovered after a crash, whatever QC said (default: those QC "
+                   "accepted). A recovered take holds what was flushed before the crash; `odsplat info` marks it.")
 @click.option("--fmin", "fmin_hz", type=float, default=None, help="Modal fit band, low end (Hz).")
 @click.option("--fmax", "fmax_hz", type=float, default=None,
               help="Modal fit band, high end (Hz; default 0.45 x the frame rate, or 0.4 x the DAQ rate).")
