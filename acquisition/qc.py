@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from odsplat.checks import NON_NEGATIVE, Range, check_fields, maybe
 from odsplat.contract import check, describe
 from odsplat.errors import InputError
 from odsplat.impulse import impact_onsets
@@ -138,6 +139,11 @@ class QCSettings:
 
     force_band_n: tuple[float, float] | None = None  # the planned peak force (N); None: any
     double_hit_fraction: float = 0.05
+
+    def __post_init__(self) -> None:
+        check_fields(self, {"force_band_n": maybe(NON_NEGATIVE), "double_hit_fraction": Range(above=0, below=1)})
+        if self.force_band_n is not None and not self.force_band_n[0] < self.force_band_n[1]:
+            raise InputError("QCSettings.force_band_n", f"expected LOW < HIGH in N, got {list(self.force_band_n)}")
 
     def limits(self) -> QCLimits:
         band = self.force_band_n if self.force_band_n is not None else (0.0, float("inf"))

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from odsplat.checks import COUNT, FRACTION, NON_NEGATIVE, POSITIVE, Range, check_fields, maybe
 from odsplat.contract import describe, plain
 from odsplat.errors import InputError
 from odsplat.manifest import utc_now
@@ -62,13 +63,17 @@ class AnalyzeSettings:
     def __post_init__(self) -> None:
         if self.takes not in ("accepted", "all"):
             raise InputError("AnalyzeSettings.takes", f"expected 'accepted' or 'all'; got {self.takes!r}")
-        for name in ("pretrigger_s", "record_s", "fmin_hz", "fmax_hz"):
-            v = getattr(self, name)
-            if v is not None and v < 0:
-                raise InputError(f"AnalyzeSettings.{name}", f"expected a value >= 0; got {v}")
-        if self.k_neighbours < 1:
-            raise InputError("AnalyzeSettings.k_neighbours", f"expected at least 1; got {self.k_neighbours}")
-        if self.outlier_factor is not None and not self.outlier_factor >= 1:
+        check_fields(self, {
+            "pretrigger_s": NON_NEGATIVE, "record_s": maybe(POSITIVE), "fmin_hz": maybe(NON_NEGATIVE),
+            "fmax_hz": maybe(POSITIVE), "max_order": COUNT, "approx_freq_hz": maybe(POSITIVE),
+            "ods_freq_hz": maybe(POSITIVE),
+            "min_opacity": FRACTION, "k_neighbours": COUNT, "video_ranks": COUNT,
+            "crosscheck_views": Range(at_least=0, integer=True), "crosscheck_points": COUNT, "image_ranks": COUNT,
+            "image_pixel_fraction": Range(above=0, at_most=1)})
+        if self.fmin_hz is not None and self.fmax_hz is not None and not self.fmin_hz < self.fmax_hz:
+            raise InputError("AnalyzeSettings.fmin_hz",
+                             f"expected below fmax_hz={self.fmax_hz:g}; got {self.fmin_hz:g}")
+        if self.outlier_factor is not None and not Range(at_least=1).holds(self.outlier_factor):
             raise InputError("AnalyzeSettings.outlier_factor",
                              "expected None or a factor >= 1 (below 1 it can leave no Gaussian); "
                              f"got {self.outlier_factor}")
@@ -143,10 +148,19 @@ def _hit_segments(capture: Capture, takes: list[str], force: str, sensors, s: An
 def _band(frf: FRFResult, s: AnalyzeSettings) -> tuple[float, float]:
     """The modal fit band: the DAQ's (analysis/band.py) unless given; the camera's band is the video side's."""
     lo, hi = default_band_hz(frf)
-    fmax = min(s.fmax_hz or hi, float(frf.freq_hz[-1]))
+    top = float(frf.freq_hz[-1])
+    if s.fmax_hz is not None and s.fmax_hz > top:
+        raise InputError("AnalyzeSettings.fmax_hz", f"expected at most the FRF's last line, {top:g} Hz (the DAQ's "
+                         f"Nyquist frequency is {frf.sample_rate_hz / 2:g} Hz); got {s.fmax_hz:g}")
+    fmax = s.fmax_hz if s.fmax_hz is not None else min(hi, top)
     fmin = s.fmin_hz if s.fmin_hz is not None else lo
     if fmin >= fmax:
         raise InputError("AnalyzeSettings.fmin_hz", f"expected below fmax_hz={fmax:g}; got {fmin:g}")
+    for name in ("approx_freq_hz", "ods_freq_hz"):
+        outside = [f for f in getattr(s, name) or () if not 0 < f <= top]
+        if outside:
+            raise InputError(f"AnalyzeSettings.{name}", f"expected frequencies inside the FRF's band, 0 to {top:g} Hz; "
+                             f"got {', '.join(f'{f:g}' for f in outside)}")
     return fmin, fmax
 
 

@@ -9,6 +9,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
+from odsplat.checks import COUNT, POSITIVE, Range, check_fields, maybe
 from odsplat.errors import InputError
 from odsplat.impulse import fit_pulse
 
@@ -215,6 +216,13 @@ class FRFSettings:
     overload_n: float | None = None
     full_scale_n: float | None = None
     response_full_scale: float | None = None
+
+    def __post_init__(self) -> None:
+        check_fields(self, {
+            "force_window_s": maybe(POSITIVE), "exponential_end": maybe(Range(above=0, below=1)),
+            "fmax_hz": maybe(POSITIVE), "n_fft": maybe(COUNT), "double_hit_ratio": Range(above=0, below=1),
+            "overload_n": maybe(POSITIVE), "full_scale_n": maybe(POSITIVE), "response_full_scale": maybe(POSITIVE)},
+            name="estimate_frf: settings")
 
 
 @dataclass(frozen=True)

@@ -97,15 +97,42 @@ def import_(rig: Path, out: Path, data: Path | None) -> None:
 @click.argument("capture", type=click.Path(path_type=Path))
 def recover(capture: Path) -> None:
     """Recover takes left unfinished by a crash, keeping every flushed frame and sample."""
+    from .integrity import listed_take_problems
     from .store import Capture
 
     cap = Capture.open(capture)
     reports = cap.recover()
-    if not reports:
-        click.echo("nothing to recover")
+    lost = listed_take_problems(cap)
+    if not reports and not lost:
+        click.echo("nothing to recover: every listed take's file is there and whole, and no take is unfinished")
     for r in reports:
         click.echo(f"{r.name}: {'recovered' if r.recovered else 'NOT recovered'}: {r.message}")
-    if any(not r.recovered for r in reports):
+    for check in lost:
+        click.echo(f"{check.name}: NOT recoverable here: {check.status}: {'; '.join(check.details)} (a raw take is "
+                   "written once: restore the file from a copy; `odsplat verify` checks the others)")
+    if any(not r.recovered for r in reports) or lost:
+        sys.exit(1)
+
+
+@main.command()
+@click.argument("capture", type=click.Path(path_type=Path))
+def verify(capture: Path) -> None:
+    """Read every take of CAPTURE whole through its checksums: each take OK, damaged (which frames or samples),
+    missing, truncated, unfinished, not listed, or without checksums (an older take: readable, but damage cannot be
+    detected). Exit 1 when anything is wrong."""
+    from .integrity import verify_capture
+    from .store import Capture
+
+    cap = Capture.open(capture)
+    checks = verify_capture(cap)
+    for check in checks:
+        click.echo(check.line())
+    bad = [c for c in checks if not c.ok]
+    unchecked = [c for c in checks if c.status == "no checksums"]
+    click.echo(f"{len(checks)} take(s): {len(checks) - len(bad)} whole"
+               + (f" ({len(unchecked)} without checksums)" if unchecked else "")
+               + (f", {len(bad)} with problems" if bad else ""))
+    if bad:
         sys.exit(1)
 
 
@@ -295,7 +322,9 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
 @click.option("--method", type=click.Choice(["auto", "ttl", "image"]), default="auto", show_default=True,
               help="Frame timing: the exposure strobe (ttl), the trigger frame refined by the images, "
                    "or ttl where recorded.")
-@click.option("--all-takes", is_flag=True, help="Sync rejected takes too (default: those QC accepted).")
+@click.option("--all-takes", is_flag=True,
+              help="Sync every take, complete or recovered after a crash, whatever QC said (default: those QC "
+                   "accepted).")
 @click.option("--normalize-impulse", is_flag=True, help="Scale each take's motion to the median hammer impulse.")
 @click.option("--frames/--no-frames", default=True, show_default=True,
               help="Write the aligned frames to derived/sync/.")
@@ -444,15 +473,20 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
            alpha: float | None, fps: float, no_mp4: bool) -> None:
     """Render the reconstruction of CAPTURE_DIR from any camera path over any time range."""
     from .errors import InputError
-    from .reconstruction import DynamicScene, camera_path, parse_times, render_sequence
+    from .reconstruction import DynamicScene, camera_path, check_camera_spec, parse_times, render_sequence
     from .store import Capture
 
+    if alpha is not None and not 0 <= alpha < float("inf"):
+        raise InputError("--alpha", f"expected a magnification >= 0, got {alpha}")
+    if width_px is not None and width_px < 8:
+        raise InputError("--width", f"expected an image width of at least 8 px, got {width_px}")
+    if not 0 < fps < float("inf"):
+        raise InputError("--fps", f"expected a frame rate > 0, got {fps}")
     cap = Capture.open(capture_dir)
+    check_camera_spec(camera_spec)
     scene = DynamicScene.load(cap)
     times = parse_times(times_spec, scene.times_s)
     cameras = camera_path(cap, camera_spec, len(times), width_px)
-    if alpha is not None and not 0 <= alpha < float("inf"):
-        raise InputError("--alpha", f"expected a magnification >= 0, got {alpha}")
     paths = render_sequence(scene, cameras, times, out or cap.paths.render_dir, alpha=alpha, fps=fps,
                             mp4=not no_mp4)
     click.echo(f"{sum(p.suffix == '.png' for p in paths)} frames -> {paths[0].parent}"
@@ -465,7 +499,9 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
               help="Force channel (default: the capture's one force channel).")
 @click.option("--response", "responses", multiple=True,
               help="Response channel (repeatable; default: every acceleration channel placed on the structure).")
-@click.option("--all-takes", is_flag=True, help="Use every complete take, not only those QC accepted.")
+@click.option("--all-takes", is_flag=True,
+              help="Use every take, complete or recovered after a crash, whatever QC said (default: those QC "
+                   "accepted). A recovered take holds what was flushed before the crash; `odsplat info` marks it.")
 @click.option("--fmin", "fmin_hz", type=float, default=None, help="Modal fit band, low end (Hz).")
 @click.option("--fmax", "fmax_hz", type=float, default=None,
               help="Modal fit band, high end (Hz; default 0.45 x the frame rate, or 0.4 x the DAQ rate).")

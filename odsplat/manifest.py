@@ -254,11 +254,16 @@ def load_toml(path: str | Path, *, missing: str) -> dict[str, Any]:
 def _load_text(path: str | Path, parse, error: type[Exception], fmt: str, missing: str) -> Any:
     path = Path(path)
     try:
-        return parse(path.read_text())
+        return parse(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise InputError(path, missing) from None
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"not {fmt}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start})"
+                         ) from None
     except error as exc:
         raise InputError(path, f"not valid {fmt}: {exc}") from None
+    except OSError as exc:
+        raise InputError(path, f"cannot be read: {exc.strerror or exc}") from None
 
 
 def from_plain(cls: type, data: Any, where: str) -> Any:

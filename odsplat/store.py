@@ -241,11 +241,14 @@ class TakeWriter:
                 maxshape=(None, *self.frame_shape),
                 chunks=(1, *self.frame_shape),
                 dtype=self.dtype,
+                fletcher32=True,
                 **frame_compression(),
             )
             self._frames.attrs["bit_depth"] = self.bit_depth
-            self._times = f.create_dataset("frame_times_s", shape=(0,), maxshape=(None,), chunks=(4096,), dtype="f8")
-            self._counter = f.create_dataset("frame_counter", shape=(0,), maxshape=(None,), chunks=(4096,), dtype="i8")
+            self._times = f.create_dataset("frame_times_s", shape=(0,), maxshape=(None,), chunks=(4096,), dtype="f8",
+                                           fletcher32=True)
+            self._counter = f.create_dataset("frame_counter", shape=(0,), maxshape=(None,), chunks=(4096,), dtype="i8",
+                                             fletcher32=True)
         daq = f.create_group("daq")
         daq.attrs["sample_rate_hz"] = float(daq_sample_rate_hz or 0.0)
         daq.attrs["t0_s"] = float(daq_t0_s)
@@ -253,7 +256,7 @@ class TakeWriter:
         self._daq = {}
         for ch in self.channels:
             ch.validate(f"{self.name}: channel {ch.name!r}")
-            ds = daq.create_dataset(ch.name, shape=(0,), maxshape=(None,), chunks=(16384,), dtype="f4")
+            ds = daq.create_dataset(ch.name, shape=(0,), maxshape=(None,), chunks=(16384,), dtype="f4", fletcher32=True)
             ds.attrs["unit"] = ch.unit
             ds.attrs["kind"] = ch.kind
             ds.attrs["info"] = json.dumps(asdict(ch))
@@ -278,11 +281,13 @@ class TakeWriter:
             g.attrs["sample_rate_hz"] = float(rates.pop())
             g.attrs["source"] = CAN_SOURCE_PREFIX + node
             g.attrs["channel_order"] = json.dumps([c.name for c in chans])
-            sets = {"times_s": g.create_dataset("times_s", shape=(0,), maxshape=(None,), chunks=(4096,), dtype="f8")}
+            sets = {"times_s": g.create_dataset("times_s", shape=(0,), maxshape=(None,), chunks=(4096,), dtype="f8",
+                                                fletcher32=True)}
             for ch in chans:
                 if ch.name in self._daq or ch.name in sets or any(ch.name in d for d in self._can.values()):
                     raise InputError(f"{self.name}: channel {ch.name!r}", "the name is used twice")
-                ds = g.create_dataset(ch.name, shape=(0,), maxshape=(None,), chunks=(4096,), dtype="f4")
+                ds = g.create_dataset(ch.name, shape=(0,), maxshape=(None,), chunks=(4096,), dtype="f4",
+                                      fletcher32=True)
                 ds.attrs["unit"] = ch.unit
                 ds.attrs["kind"] = ch.kind
                 ds.attrs["info"] = json.dumps(asdict(ch))
@@ -470,8 +475,77 @@ def _view_or_none(value: Any) -> int | None:
     return None if view is None or view < 0 else view
 
 
+def _ranges(indices: Sequence[int]) -> str:
+    """[3, 4, 5, 9] -> "3-5, 9" (inclusive ranges)."""
+    runs: list[list[int]] = []
+    for k in sorted(indices):
+        if runs and k == runs[-1][1] + 1:
+            runs[-1][1] = k
+        else:
+            runs.append([k, k])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
+
+
+def damaged_chunks(ds: h5py.Dataset, start: int = 0, stop: int | None = None) -> list[tuple[int, int]]:
+    """The chunks along the first axis of `ds` within [start, stop) that cannot be read back (a Fletcher-32 mismatch,
+    a chunk that does not decode, or one beyond the end of a truncated file), as (first, stop) index pairs."""
+    n = ds.shape[0] if ds.shape else 0
+    stop = n if stop is None else min(stop, n)
+    step = ds.chunks[0] if ds.chunks else max(n, 1)
+    bad = []
+    for a in range(start - start % step, stop, step):
+        b = min(a + step, n)
+        try:
+            ds[a:b]
+        except OSError:
+            bad.append((max(a, start), min(b, stop)))
+    return bad
+
+
+def damage_text(ds: h5py.Dataset, bad: Sequence[tuple[int, int]]) -> str:
+    """What a reader says of damaged chunks: which frames or samples, and why they cannot be trusted."""
+    unit = "frames" if ds.name in ("/frames", "/frame_times_s", "/frame_counter") else "samples"
+    where = _ranges([k for a, b in bad for k in range(a, b)])
+    why = "their checksum (Fletcher-32) fails" if ds.fletcher32 else "they cannot be decoded (no checksum stored)"
+    return f"{unit} {where} of {ds.shape[0]} damaged: {why}"
+
+
+class CheckedDataset:
+    """A raw take dataset read through its per-chunk checksums: a read that meets a damaged chunk raises one
+    `InputError` naming the take file, the dataset and the frames or samples, never h5py's OSError. Everything
+    else (shape, dtype, attrs, chunks, id) is the dataset's own."""
+
+    def __init__(self, ds: h5py.Dataset, path: Path):
+        self._ds = ds
+        self._path = path
+
+    def __getitem__(self, selection: Any) -> np.ndarray:
+        try:
+            return self._ds[selection]
+        except OSError:
+            first = selection[0] if isinstance(selection, tuple) and selection else selection
+            n = self._ds.shape[0]
+            if isinstance(first, slice):
+                start, stop, _ = first.indices(n)
+            elif isinstance(first, (int, np.integer)):
+                start = int(first) % n if n else 0
+                stop = start + 1
+            else:
+                start, stop = 0, n
+            bad = damaged_chunks(self._ds, start, max(stop, start + 1)) or damaged_chunks(self._ds)
+            what = damage_text(self._ds, bad) if bad else "cannot be read"
+            raise InputError(f"{self._path}: {self._ds.name}", what) from None
+
+    def __len__(self) -> int:
+        return len(self._ds)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._ds, name)
+
+
 class TakeReader:
-    """Reads a finalised take file; frames are streamed in chunks, never loaded whole."""
+    """Reads a finalised take file; frames are streamed in chunks, never loaded whole. Every read of a raw dataset
+    goes through its checksums (`CheckedDataset`)."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -513,11 +587,15 @@ class TakeReader:
         return "frames" in self._file
 
     @property
-    def frames(self) -> h5py.Dataset:
-        """The frames dataset itself: index it to read a slice, it is never read whole here."""
+    def frames(self) -> CheckedDataset:
+        """The frames dataset, read through its checksums: index it to read a slice, it is never read whole here."""
         if not self.has_frames:
             raise InputError(self.path, "this take holds no frames")
-        return self._file["frames"]
+        return self.dataset("frames")
+
+    def dataset(self, key: str) -> CheckedDataset:
+        """A raw dataset of the take (`frames`, `daq/NAME`, `can/NODE/times_s`, ...) read through its checksums."""
+        return CheckedDataset(self._file[key], self.path)
 
     @property
     def n_frames(self) -> int:
@@ -537,11 +615,11 @@ class TakeReader:
 
     @property
     def frame_times_s(self) -> np.ndarray:
-        return self._file["frame_times_s"][:] if self.has_frames else np.empty(0)
+        return self.dataset("frame_times_s")[:] if self.has_frames else np.empty(0)
 
     @property
     def frame_counter(self) -> np.ndarray:
-        return self._file["frame_counter"][:] if self.has_frames else np.empty(0, dtype="i8")
+        return self.dataset("frame_counter")[:] if self.has_frames else np.empty(0, dtype="i8")
 
     @property
     def sample_rate_hz(self) -> float:
@@ -588,12 +666,12 @@ class TakeReader:
             return np.interp(grid, times, values, left=np.nan, right=np.nan).astype(np.float32)
         return self._channel(name)[:]
 
-    def _channel(self, name: str) -> h5py.Dataset:
+    def _channel(self, name: str) -> CheckedDataset:
         if name not in self.channel_names:
             raise InputError(self.path,
                              f"no DAQ channel {name!r} (nor a CAN channel of that name); the take has "
                              f"{self.channel_names + self.can_channel_names}")
-        return self._file["daq"][name]
+        return self.dataset(f"daq/{name}")
 
     # -- CAN nodes (schema 1.1) ---------------------------------------------------------------
 
@@ -611,13 +689,14 @@ class TakeReader:
 
     def can_times_s(self, node: str) -> np.ndarray:
         """The node's sample times in the DAQ time base (float64)."""
-        return self._can_group(node)["times_s"][:]
+        self._can_group(node)
+        return self.dataset(f"can/{node}/times_s")[:]
 
     def can_channel(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """A CAN channel's own samples: (times in the DAQ time base, float64; values in SI units, float32, NaN
         where a sample was lost)."""
-        g = self._can_group(self._can_node_of(name))
-        return g["times_s"][:], g[name][:]
+        node = self._can_node_of(name)
+        return self.dataset(f"can/{node}/times_s")[:], self.dataset(f"can/{node}/{name}")[:]
 
     @functools.cached_property
     def _can_index(self) -> dict[str, str]:

@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import OdsplatError
+from .integrity import file_problem
 from .store import Capture, TakeReader
 
 
@@ -63,12 +64,15 @@ class CaptureSummary:
             shape = "x".join(map(str, t.frame_shape)) or "-"
             dur = f"{t.duration_s:.4f}" if t.duration_s is not None else "-"
             flags = f" {','.join(t.qc_flags)}" if t.qc_flags else ""
-            problem = f"  PROBLEM: {t.problem}" if t.problem else ""
+            problem = "  PROBLEM (see below)" if t.problem else ""
             lines.append(
                 f"  {t.name:<12} {'-' if t.view is None else t.view:>4} {t.n_frames:>7} {shape:<12} "
                 f"{t.bit_depth or '-':>3} {dur:>8} {t.n_samples:>8} {t.size_bytes / 1e6:>8.2f}  "
                 f"{t.status}/{t.qc}{flags}{problem}"
             )
+        for t in self.takes:
+            if t.problem:
+                lines.append(f"WARNING take {t.name}: {t.problem}; `odsplat verify {self.root}` checks every take")
         for name in self.unfinished:
             lines.append(f"WARNING unfinished take {name}: its writer stopped; run `odsplat recover {self.root}`")
         for name in self.unlisted:
@@ -90,6 +94,8 @@ def summarize(root: str | Path) -> CaptureSummary:
     )
     for record in m.takes:
         path = cap.root / record.file
+        found = file_problem(path, record)
+        problem = f"{found[0]}: {found[1]}" if found is not None else ""
         try:
             with TakeReader(path) as r:
                 qc = r.qc
@@ -109,10 +115,11 @@ def summarize(root: str | Path) -> CaptureSummary:
                         r.n_samples / r.sample_rate_hz if r.n_samples and r.sample_rate_hz else None),
                     n_samples=r.n_samples,
                     size_bytes=r.size_bytes,
+                    problem=problem,
                 )
         except OdsplatError as exc:
             t = TakeSummary(record.name, record.view, record.status, record.qc, [], 0, [], "", None, None, None, 0,
-                            path.stat().st_size if path.exists() else 0, problem=str(exc))
+                            path.stat().st_size if path.exists() else 0, problem=problem or str(exc))
         summary.takes.append(t)
         summary.total_bytes += t.size_bytes
     return summary

@@ -6,8 +6,10 @@ view's magnified motion shares one timeline; otherwise the raw takes (flagged in
 """
 from __future__ import annotations
 
+import inspect
 import json
 import logging
+import math
 import os
 import time
 from collections.abc import Iterator
@@ -20,6 +22,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from odsplat.checks import COUNT, POSITIVE, check_fields, maybe
 from odsplat.contract import check, describe
 from odsplat.errors import InputError, OdsplatError
 from odsplat.framefile import (
@@ -68,8 +71,10 @@ class MagnifySettings:
             raise InputError("--band", f"the {self.filter} filter needs a band LOW HIGH in Hz")
         if self.source not in ("auto", "aligned", "raw"):
             raise InputError("--source", f"expected auto, aligned or raw, got {self.source!r}")
-        if self.chunk_frames < 1:
-            raise InputError("chunk_frames", f"must be at least 1, got {self.chunk_frames}")
+        check_fields(self, {"band_hz": maybe(POSITIVE), "chunk_frames": COUNT, "workers": maybe(COUNT)})
+        if self.band_hz is not None and not self.band_hz[0] < self.band_hz[1]:
+            raise InputError("MagnifySettings.band_hz", f"expected LOW < HIGH in Hz, got {list(self.band_hz)}")
+        check_options(self.method, self.options)
 
     @property
     def filter_kind(self) -> str:
@@ -89,6 +94,43 @@ def parse_options(items) -> tuple[tuple[str, Any], ...]:
         except json.JSONDecodeError:
             parsed.append((key, value))
     return tuple(parsed)
+
+
+def _magnifier_class(method: str) -> type[Magnifier]:
+    if method == "phase":
+        from .phase import PhaseMagnifier
+
+        return PhaseMagnifier
+    if method == "linear":
+        from .eulerian import LinearMagnifier
+
+        return LinearMagnifier
+    from .learned.magnifier import LearnedMagnifier
+
+    return LearnedMagnifier
+
+
+_OPTION_TYPES = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
+
+
+def check_options(method: str, options: tuple[tuple[str, Any], ...]) -> None:
+    """Each option must be a keyword of the method's magnifier, of the type it declares (a finite number where it
+    takes one), so that a bad one is refused by name before any frame is read."""
+    if not options:
+        return
+    params = {n: p for n, p in inspect.signature(_magnifier_class(method).__init__).parameters.items()
+              if p.kind is inspect.Parameter.KEYWORD_ONLY and n != "mode"}
+    for key, value in options:
+        where = f"MagnifySettings.options.{key}"
+        if key not in params:
+            raise InputError(where, f"the {method} method has no such option; it has {', '.join(params)}")
+        names = {t.strip() for t in str(params[key].annotation).split("|")}
+        if value is None and "None" in names:
+            continue
+        kinds = tuple(t for n in names for t in _OPTION_TYPES.get(n, ()))
+        fits = "bool" in names if isinstance(value, bool) else isinstance(value, kinds)
+        if not fits or (isinstance(value, float) and not math.isfinite(value)):
+            raise InputError(where, f"expected {' or '.join(sorted(names))} for the {method} method; got {value!r}")
 
 
 def make_magnifier(settings: MagnifySettings, fps: float) -> Magnifier:

@@ -14,6 +14,7 @@ from .model import (
     ReconstructResult,
     ReconstructSettings,
     camera_path,
+    check_camera_spec,
     default_source,
     parse_times,
     reconstruct,
@@ -28,6 +29,7 @@ run = reconstruct  # the reconstruct stage's entry
 
 __all__ = ["Camera", "DynamicScene", "FitSettings", "Gaussians", "LinearSettings", "ModalSettings", "MotionRecord",
            "PoseResult", "PoseSettings", "RasterOutput", "ReconstructResult", "ReconstructSettings", "SceneFrame",
-           "Trajectory", "TrainView", "ViewSet", "camera_path", "default_source", "estimate_poses", "fit_dynamic",
+           "Trajectory", "TrainView", "ViewSet", "camera_path", "check_camera_spec", "default_source", "estimate_poses",
+           "fit_dynamic",
            "fit_static", "gsplat_available", "load_ply", "load_views", "parse_times", "rasterize",
            "rasterize_reference", "reconstruct", "render_sequence", "run", "run_poses", "save_ply", "train"]

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from odsplat.checks import FRACTION, NON_NEGATIVE, POSITIVE, Range, check_fields, maybe
 from odsplat.errors import InputError
 
 from .gaussians import Gaussians
@@ -82,6 +83,15 @@ class FitSettings:
                 raise InputError(name, f"expected a positive integer, got {getattr(self, name)}")
         if not 0 <= self.ssim_weight <= 1:
             raise InputError("ssim_weight", f"expected a weight in [0, 1], got {self.ssim_weight}")
+        check_fields(self, {
+            "iters_first_step": maybe(Range(at_least=0, integer=True)), "lr_means": POSITIVE,
+            "lr_means_final": POSITIVE, "lr_quats": POSITIVE, "lr_scales": POSITIVE, "lr_opacity": POSITIVE,
+            "lr_colors": POSITIVE,
+            "densify_from": Range(at_least=0, integer=True), "densify_until_frac": FRACTION,
+            "grad_threshold": POSITIVE, "percent_dense": POSITIVE, "prune_opacity": FRACTION, "max_scale": POSITIVE,
+            "opacity_reset_every": Range(at_least=0, integer=True), "lr_means_dynamic": POSITIVE,
+            "lr_quats_dynamic": POSITIVE, "rigid_weight": NON_NEGATIVE, "rot_weight": NON_NEGATIVE,
+            "iso_weight": NON_NEGATIVE, "neighbour_width": POSITIVE, "background": maybe(FRACTION)})
 
 
 def render(g: Gaussians, camera: Camera, *, means: torch.Tensor | None = None, quats: torch.Tensor | None = None,

@@ -43,6 +43,7 @@ from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
+from odsplat.checks import COUNT, FRACTION, NON_NEGATIVE, POSITIVE, Range, check_fields
 from odsplat.errors import InputError
 from odsplat.store import Capture
 
@@ -78,8 +79,11 @@ class LinearSettings:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        if self.node_spacing_m is not None and not self.node_spacing_m > 0:
+        if self.node_spacing_m is not None and not Range(above=0).holds(self.node_spacing_m):
             raise InputError("node_spacing_m", f"expected a positive spacing in metres, got {self.node_spacing_m}")
+        check_fields(self, {"max_nodes": COUNT, "smoothing": NON_NEGATIVE, "blur_px": NON_NEGATIVE,
+                            "min_alpha": FRACTION, "min_opacity": FRACTION, "rank_factor": POSITIVE,
+                            "max_components": COUNT, "chunk_frames": COUNT})
         if self.smoothing < 0:
             raise InputError("smoothing", f"expected a weight >= 0, got {self.smoothing}")
         if not 0 <= self.gradient_quantile < 1:

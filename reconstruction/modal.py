@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from odsplat.checks import COUNT, NON_NEGATIVE, POSITIVE, Range, check_fields
 from odsplat.errors import InputError
 
 from .dynamic import Trajectory, render
@@ -78,6 +79,9 @@ class ModalSettings:
             raise InputError("iters", f"expected iterations >= 0, got {self.iters}")
         if self.loss not in LOSSES:
             raise InputError("loss", f"expected one of {', '.join(LOSSES)}, got {self.loss!r}")
+        check_fields(self, {"lr": POSITIVE, "lr_final_frac": Range(above=0, at_most=1), "blur_px": NON_NEGATIVE,
+                            "rigid_weight": NON_NEGATIVE, "rot_weight": NON_NEGATIVE, "k_neighbours": COUNT,
+                            "neighbour_width": POSITIVE})
         if not self.blur_px >= 0:
             raise InputError("blur_px", f"expected a blur >= 0 px, got {self.blur_px}")
         if self.k_neighbours < 1:

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from odsplat.checks import COUNT, Range, check_fields, maybe
 from odsplat.contract import check, describe, plain
 from odsplat.errors import InputError
 from odsplat.geometry import look_at
@@ -69,6 +70,9 @@ class ReconstructSettings:
     def __post_init__(self) -> None:
         if self.motion not in MOTIONS:
             raise InputError("motion", f"expected one of {', '.join(MOTIONS)}, got {self.motion!r}")
+        check_fields(self, {"width_px": Range(at_least=8, integer=True), "n_timesteps": COUNT, "step": COUNT,
+                            "start": maybe(Range(at_least=0, integer=True)), "init_opacity": Range(above=0, below=1),
+                            "threads": maybe(COUNT)})
         if self.source is None:
             object.__setattr__(self, "source", default_source(self.motion))
         if self.source != "sync" and not (self.source.startswith("magnified/") and len(self.source) > 10):
@@ -437,7 +441,8 @@ def cameras_from_json(path: Path, width_px: int | None = None) -> list[Camera]:
 
 
 def parse_times(spec: str, trained_s: np.ndarray) -> np.ndarray:
-    """'all' (the trained timesteps), 'A:B:N' (N times from A to B s), or 'a,b,c' (s)."""
+    """'all' (the trained timesteps), 'A:B:N' (N times from A to B s), or 'a,b,c' (s); every time inside the trained
+    span (outside it the model would only repeat its first or last state)."""
     spec = spec.strip()
     try:
         if spec == "all":
@@ -453,7 +458,33 @@ def parse_times(spec: str, trained_s: np.ndarray) -> np.ndarray:
         raise InputError("--times", f"expected 'all', 'A:B:N' or 'a,b,c' in seconds, got {spec!r}") from None
     if not np.all(np.isfinite(times)):
         raise InputError("--times", f"expected finite times in seconds, got {spec!r}")
+    lo, hi = float(np.min(trained_s)), float(np.max(trained_s))
+    slack = 1e-9 + 1e-9 * max(abs(lo), abs(hi))
+    outside = times[(times < lo - slack) | (times > hi + slack)]
+    if len(outside):
+        raise InputError("--times", f"expected times inside the reconstruction's span, {lo:g} to {hi:g} s; got "
+                         f"{', '.join(f'{t:g}' for t in outside[:3])}{' ...' if len(outside) > 3 else ''}")
     return times
+
+
+def check_camera_spec(spec: str) -> tuple[int | None, float, float | None] | None:
+    """An orbit spec's (N or None, elevation, distance or None), checked: N >= 1, the elevation within +-90 degrees,
+    the distance finite and > 0; None for a take name or a JSON path."""
+    if spec.split(":")[0] != "orbit":
+        return None
+    parts = spec.split(":")[1:]
+    if len(parts) > 3:
+        raise InputError("--camera", f"expected orbit[:N[:ELEVATION_DEG[:DISTANCE_M]]], got {spec!r}")
+    try:
+        n = int(parts[0]) if parts else None
+        elev = float(parts[1]) if len(parts) > 1 else 30.0
+        dist = float(parts[2]) if len(parts) > 2 else None
+    except ValueError:
+        raise InputError("--camera", f"expected orbit[:N[:ELEVATION_DEG[:DISTANCE_M]]], got {spec!r}") from None
+    if (n is not None and n < 1) or not -90 <= elev <= 90 or (dist is not None and not 0 < dist < np.inf):
+        raise InputError("--camera", "expected orbit:N:ELEVATION_DEG:DISTANCE_M with N >= 1, an elevation within "
+                                     f"+-90 degrees and a distance > 0 m; got {spec!r}")
+    return n, elev, dist
 
 
 def camera_path(capture: Capture, spec: str, n_times: int, width_px: int | None = None) -> list[Camera]:
@@ -461,17 +492,10 @@ def camera_path(capture: Capture, spec: str, n_times: int, width_px: int | None 
     (N: one camera per time by default) or a JSON camera path file."""
     if spec.endswith(".json"):
         return cameras_from_json(Path(spec), width_px)
-    if spec.split(":")[0] == "orbit":
-        parts = spec.split(":")[1:]
-        try:
-            n = int(parts[0]) if parts else max(2, n_times)
-            elev = float(parts[1]) if len(parts) > 1 else 30.0
-            dist = float(parts[2]) if len(parts) > 2 else None
-        except ValueError:
-            raise InputError("--camera", f"expected orbit[:N[:ELEVATION_DEG[:DISTANCE_M]]], got {spec!r}") from None
-        if n < 1 or not np.isfinite(elev) or (dist is not None and not 0 < dist < np.inf):
-            raise InputError("--camera", f"expected N >= 1, a finite elevation and a distance > 0; got {spec!r}")
-        return orbit(_poses(capture), n, elevation_deg=elev, distance_m=dist, width_px=width_px)
+    orbit_spec = check_camera_spec(spec)
+    if orbit_spec is not None:
+        n, elev, dist = orbit_spec
+        return orbit(_poses(capture), n or max(2, n_times), elevation_deg=elev, distance_m=dist, width_px=width_px)
     return [pose_camera(_poses(capture), spec, width_px)]
 
 

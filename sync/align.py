@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from odsplat.checks import POSITIVE, Range, check_fields
 from odsplat.contract import check, describe
 from odsplat.errors import InputError, OdsplatError
 from odsplat.framefile import begin_outputs, discard_outputs, prune_outputs
@@ -60,10 +61,9 @@ class SyncSettings:
             raise InputError("sync method", f"expected one of {METHODS}, got {self.method!r}")
         if self.takes not in TAKE_SELECTIONS:
             raise InputError("sync takes", f"expected one of {TAKE_SELECTIONS}, got {self.takes!r}")
-        if not (self.camera_trigger_delay_s == self.camera_trigger_delay_s and abs(self.camera_trigger_delay_s) < 1):
-            raise InputError("--trigger-delay-s", f"expected a delay below 1 s, got {self.camera_trigger_delay_s}")
-        if not (self.search_frames > 0 and 0 < self.max_memory_mb < float("inf")):
-            raise InputError("SyncSettings", "search_frames and max_memory_mb must be positive")
+        check_fields(self, {"camera_trigger_delay_s": Range(above=-1, below=1), "search_frames": POSITIVE,
+                            "double_hit_fraction": Range(above=0, below=1), "min_peak_n": POSITIVE,
+                            "max_memory_mb": POSITIVE})
 
 
 @dataclass

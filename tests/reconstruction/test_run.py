@@ -164,10 +164,11 @@ def test_render_errors(reconstructed, tmp_path):
 def test_parse_times_and_frame_selection():
     trained = np.array([-0.0002, 0.0003, 0.0008])
     assert np.allclose(parse_times("all", trained), trained)
-    assert np.allclose(parse_times("0:0.001:3", trained), [0, 0.0005, 0.001])
-    assert np.allclose(parse_times("0.001, 0.002", trained), [0.001, 0.002])
-    with pytest.raises(InputError, match="--times"):
-        parse_times("soon", trained)
+    assert np.allclose(parse_times("0:0.0008:3", trained), [0, 0.0004, 0.0008])
+    assert np.allclose(parse_times("0.0001, -0.0002", trained), [0.0001, -0.0002])
+    for spec in ("soon", "nan", "0:nan:3", "1e9", "0.0009", "-1:0:2"):
+        with pytest.raises(InputError, match="--times"):
+            parse_times(spec, trained)
     times = np.arange(-3, 7) * 5e-4
     assert list(select_frames(times, 3)) == [2, 3, 4]          # from the last frame before the impact
     assert list(select_frames(times, 3, step=2, start=1)) == [1, 3, 5]
