@@ -65,7 +65,7 @@ def test_raw_source_and_bad_settings(synced, tmp_path):
     res = magnify_capture(synced, MagnifySettings(method="linear", alpha=4.0, source="raw", takes=("v00_000",)),
                           progress=False)
     assert [t.source for t in res.takes] == ["raw"]
-    with pytest.raises(InputError, match="the magnification must be positive, got 0"):
+    with pytest.raises(InputError, match="the magnification must be positive and finite, got 0"):
         MagnifySettings(alpha=0.0)
     with pytest.raises(InputError, match="fps/2 = 1000 Hz; got 50 to 1500 Hz"):
         magnify_capture(synced, MagnifySettings(method="linear", band_hz=(50.0, 1500.0), takes=("v00_000",), workers=1),

@@ -16,6 +16,7 @@ from odsplat.reconstruction.model import ReconstructSettings
 from odsplat.reconstruction.poses import PoseResult, ViewPose
 from odsplat.reconstruction.views import Camera, load_views
 from odsplat.store import Capture
+from odsplat.sync import SyncResult
 from odsplat.sync.aligned import write_aligned
 
 
@@ -100,9 +101,12 @@ def moving_beam(tmp_path_factory):
                 frames.append(render(g, cam, means=means, background=0.3).image[..., 0].numpy())
         dn = np.clip(np.stack(frames) + rng.normal(0, 0.002, (len(q), H, W)), 0, 1) * 4095
         with write_aligned(cap.derived_dir / "sync" / f"{name}.h5", n_frames=len(q), frame_shape=(H, W),
-                           band_rows=H, bit_depth=12, times_s=times, attrs={"take": name}) as write:
+                           band_rows=H, bit_depth=12, times_s=times, attrs={"take": name, "generation": "g1"}) as write:
             write(slice(0, H), dn)
         views.append(ViewPose(name, "take", k, "tags", K, R, tvec, W, H, None, None, None))
+    # The index the frame files belong to: sync's, with their generation.
+    SyncResult(capture=cap.manifest.name, fps=FPS, n_frames=len(q), t0_s=float(times[0]), frame_shape=[H, W],
+               reference_impulse_n_s=None, normalized=False, takes=[], settings={}, generation="g1").write(cap)
     poses = PoseResult(views, np.zeros((0, 3)), np.zeros((0, 1)), np.zeros(0), "tags", None, None, None, None,
                        len(views), len(views), [])
     return cap, poses, g, q, shape

@@ -151,7 +151,7 @@ def test_render_errors(reconstructed, tmp_path):
     assert r.exit_code == 2 and "nope" in r.output
     r = CliRunner().invoke(main, ["render", str(cap.root), "--times", "1:2"])
     assert r.exit_code == 2 and "--times" in r.output
-    r = CliRunner().invoke(main, ["render", str(cap.root), "--camera", "orbit:3", "--times", "0,0.001"])
+    r = CliRunner().invoke(main, ["render", str(cap.root), "--camera", "orbit:3", "--times", "0,0.0005"])
     assert r.exit_code == 2 and "3 cameras and 2 times" in r.output
     bare = tmp_path / "bare"
     shutil.copytree(cap.root, bare, ignore=shutil.ignore_patterns("derived"))
