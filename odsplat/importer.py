@@ -155,8 +155,8 @@ class Rig:
 
 
 def _check_plain(value: Any, where: str) -> None:
-    """What no field of a rig may hold: a NaN or infinite number (TOML spells them nan and inf), or a string with a
-    NUL (a name, a path or a note: each ends up in a file name or an HDF5 attribute)."""
+    """What no field of a rig may hold: a NaN or infinite number (TOML spells them nan and inf), an integer beyond
+    64 bits, or a string with a NUL (a name, a path or a note: each ends up in a file name or an HDF5 attribute)."""
     if isinstance(value, dict):
         for key, item in value.items():
             _check_plain(item, f"{where}.{key}")
@@ -165,6 +165,8 @@ def _check_plain(value: Any, where: str) -> None:
             _check_plain(item, f"{where}[{i}]")
     elif isinstance(value, float) and not math.isfinite(value):
         raise InputError(where, f"expected a finite number; got {value}")
+    elif isinstance(value, int) and not -2**63 <= value < 2**63:   # HDF5 attributes and JSON readers hold 64 bits
+        raise InputError(where, f"expected an integer of at most 64 bits; got {value}")
     elif isinstance(value, str) and "\0" in value:
         raise InputError(where, f"holds a NUL character: {value!r}")
 

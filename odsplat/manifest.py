@@ -172,8 +172,9 @@ class ChannelInfo:
         return self.source[len(CAN_SOURCE_PREFIX):] if self.source.startswith(CAN_SOURCE_PREFIX) else None
 
     def validate(self, where: str) -> None:
-        if not self.name or "/" in self.name:
-            raise InputError(where, f"channel name {self.name!r} must be non-empty and contain no '/'")
+        if not self.name or "/" in self.name or "\0" in self.name or self.name in (".", ".."):
+            raise InputError(where, f"channel name {self.name!r} must be non-empty, contain no '/' or NUL and not be "
+                                    "'.' or '..' (it names the channel's data in the take file)")
         node = self.can_node
         if self.source != DAQ_SOURCE and (not node or "/" in node):
             raise InputError(f"{where}.source", f"expected 'daq' or 'can:NODE' (NODE without '/'); got {self.source!r}")

@@ -549,6 +549,11 @@ def _read_uff(path: Path) -> _Raw:
                                f"dataset types {sorted(set(kinds))}, dataset-58 function types "
                                f"{sorted({r.get('func_type') for r in records})}")
 
+    for record in usable:
+        # pyuff keeps the values it finds: a cut file or a misaligned line gives fewer (or more) without a word.
+        if record.get("num_pts") != len(record["data"]):
+            raise InputError(path, f"time record {str(record.get('id1', '')).strip()!r} holds {len(record['data'])} "
+                                   f"values, but its header (num_pts) declares {record.get('num_pts')}")
     names = _uff_names(usable)
     clocks = {(r["abscissa_inc"], r["abscissa_min"], len(r["data"])) for r in usable}
     if len(clocks) > 1:

@@ -535,6 +535,11 @@ def _open_npy(path: Path) -> _NpySource:
     except Exception as exc:  # numpy's header parser raises what the text makes it (TokenError, SyntaxError, ...)
         raise InputError(path, f"cannot be read as a plain .npy array ({type(exc).__name__}: "
                                f"{str(exc).splitlines()[0] if str(exc) else 'empty'})") from None
+    # A header that says fewer frames or pixels than the file holds would map part of it and drop the rest.
+    held = path.stat().st_size - array.offset
+    if held != array.nbytes:
+        raise InputError(path, f"its header says {array.shape} of {array.dtype} ({array.nbytes} bytes), but the file "
+                               f"holds {held} bytes after the header")
     if array.dtype not in (np.uint8, np.uint16) or not array.dtype.isnative:
         raise InputError(path, f"has dtype {array.dtype}; accepted: uint8 or uint16 (native byte order)")
     if not (array.ndim == 3 or (array.ndim == 4 and array.shape[3] == 3)):
