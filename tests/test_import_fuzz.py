@@ -8,6 +8,7 @@ value is still a sane one, imports the same frames and samples. Nothing else may
 """
 from __future__ import annotations
 
+import dataclasses
 import faulthandler
 import os
 import random
@@ -69,6 +70,8 @@ class Base:
     binary_fields: bool = False  # fields are little-endian integers (start: offset, end: offset + size)
     counted: bool = True  # the target declares its length (a header's frame or sample count): a cut is refused
     baseline: list[np.ndarray] | None = None  # the uncorrupted import's frames and samples (None: refused)
+    # the files written once, linked into each input
+    pristine: dict[str, tuple[Path, bytes]] = dataclasses.field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -395,7 +398,7 @@ def _same(a: list[np.ndarray], b: list[np.ndarray]) -> bool:
     return len(a) == len(b) and all(x.shape == y.shape and np.array_equal(x, y) for x, y in zip(a, b))
 
 
-def _run(tmp: Path, case: Case, pristine: dict[str, Path]) -> str:
+def _run(tmp: Path, case: Case, pristine: dict[str, tuple[Path, bytes]]) -> str:
     """Import one input, its files in tmp/caseN/data and OUT tmp/caseN/out; returns refused, imported (leaving OUT),
     or a failure: traceback, hang, partial, stray (a file appeared or went anywhere under tmp but OUT)."""
     case_dir = tmp / "case"
@@ -451,7 +454,7 @@ def test_import_fuzz(shared_data, tmp_path):
         store.mkdir(parents=True)
         for name, blob in base.files.items():
             (store / name).write_bytes(blob)
-        base.pristine = {name: (store / name, blob) for name, blob in base.files.items()}  # type: ignore[attr-defined]
+        base.pristine = {name: (store / name, blob) for name, blob in base.files.items()}
         outcome = _run(work, Case(base.name, "baseline", "", base.files, base.rig, ""), base.pristine)
         assert outcome == ("refused" if base.name in ("npy_pyidi", "npy_pyfrf") else "imported"), (base.name, outcome)
         base.baseline = _contents(work / "case" / "out") if outcome == "imported" else None
@@ -461,7 +464,7 @@ def test_import_fuzz(shared_data, tmp_path):
     failures = []
     for case in cases:
         base = by_name[case.base]
-        outcome = _run(work, case, base.pristine)  # type: ignore[attr-defined]
+        outcome = _run(work, case, base.pristine)
         if outcome == "imported":
             same = base.baseline is not None and _same(_contents(work / "case" / "out"), base.baseline)
             outcome = "imported_same" if same else "imported_differs"
