@@ -659,3 +659,21 @@ def test_a_killed_import_leaves_a_temporary_that_the_next_import_removes(shared_
     assert len(left) == 1 and not out.exists()   # killed while building: the temporary is there, OUT is not
     cap = import_capture(rig, out, data_dir=shared_data)
     assert len(cap.manifest.takes) == 16 and not list(tmp_path.glob(".*importing*"))
+
+
+def test_only_temporaries_of_dead_imports_on_this_host_are_removed(tmp_path):
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = socket.gethostname()
+    names = {"dead": f".a.importing-{host}-{dead.pid}", "dead_old_style": f".b.importing-{dead.pid}",
+             "live": f".c.importing-{host}-{os.getppid()}", "other_host": f".d.importing-elsewhere-{dead.pid}"}
+    for name in names.values():
+        (tmp_path / name / "takes").mkdir(parents=True)
+    import_capture(_npy_rig(tmp_path), tmp_path / "cap")
+    left = {p.name for p in tmp_path.glob(".*")}
+    assert left == {names["live"], names["other_host"]}
