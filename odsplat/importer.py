@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import glob
 import logging
+import math
 import os
 import shutil
+import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,6 +30,8 @@ from .manifest import (
     Manifest,
     TagLayout,
     Viewpoint,
+    check_name,
+    check_regular_file,
     from_plain,
     load_toml,
 )
@@ -36,6 +40,7 @@ from .store import Capture, QCInfo, TriggerInfo, fsync_path
 log = logging.getLogger(__name__)
 
 RATE_TOLERANCE = 1e-6  # signal files whose rates differ by less (relative) share one clock
+_TEMPORARY = ".importing-"  # a capture is built in OUT's folder as .NAME.importing-HOST-PID, then renamed to OUT
 BIT_DEPTHS = (8, 10, 12, 14, 16)  # what [camera] bit_depth accepts, and what detection chooses from
 
 
@@ -81,6 +86,22 @@ class RigTake:
     sample_rate_hz: float | None = None  # the DAQ's rate: used as the rate; needed by a CSV without a time column
     notes: str = ""
 
+    def validate(self, where: str) -> None:
+        """The take's own fields; those that need its files (trigger_frame, pretrigger_samples' upper bound, the
+        rates) are checked when they are read."""
+        if self.name is not None:
+            check_name(self.name, f"{where}.name")
+        for field_name in ("video", "signals"):
+            value = getattr(self, field_name)
+            if value is not None and not value.strip():
+                raise InputError(f"{where}.{field_name}", "is empty; name a file, or leave the field out")
+        if self.video is None and self.signals is None:
+            raise InputError(where, "a take needs a video, a signals file, or both")
+        for field_name in ("view", "pretrigger_samples"):
+            value = getattr(self, field_name)
+            if value is not None and value < 0:
+                raise InputError(f"{where}.{field_name}", f"expected 0 or more; got {value}")
+
 
 @dataclass
 class RigCamera:
@@ -88,6 +109,12 @@ class RigCamera:
     intrinsics: Intrinsics | None = None
     exposure_s: float | None = None
     bit_depth: int | None = None  # bits of data per sample (12 in 16-bit words); default: the header's, else the data's
+
+    def validate(self, where: str) -> None:
+        if self.exposure_s is not None and not self.exposure_s > 0:
+            raise InputError(f"{where}.exposure_s", f"expected a positive time in s; got {self.exposure_s}")
+        if self.intrinsics is not None:
+            self.intrinsics.validate(f"{where}.intrinsics")
 
 
 @dataclass
@@ -104,16 +131,44 @@ class Rig:
 
     @classmethod
     def load(cls, path: str | Path) -> Rig:
+        """The rig file, every field checked on its own (the files it names are checked when opened)."""
         path = Path(path)
-        rig = from_plain(cls, load_toml(path, missing="no such rig file"), str(path))
+        plain = load_toml(path, missing="no such rig file")
+        _check_plain(plain, str(path))
+        rig = from_plain(cls, plain, str(path))
         if not rig.takes:
             raise InputError(f"{path}: takes", "the rig lists no takes; add at least one [[takes]] table")
+        names: set[str] = set()
         for i, take in enumerate(rig.takes):
-            if take.video is None and take.signals is None:
-                raise InputError(f"{path}: takes[{i}]", "a take needs a video, a signals file, or both")
+            take.validate(f"{path}: takes[{i}]")
+            if take.name in names:
+                raise InputError(f"{path}: takes[{i}].name", f"{take.name!r} names an earlier take too")
+            names.add(take.name)
         for i, ch in enumerate(rig.channels):
             ch.info().validate(f"{path}: channels[{i}]")
+        rig.camera.validate(f"{path}: camera")
+        if rig.tags is not None:
+            rig.tags.validate(f"{path}: tags")
+        for i, view in enumerate(rig.views):
+            view.validate(f"{path}: views[{i}]")
         return rig
+
+
+def _check_plain(value: Any, where: str) -> None:
+    """What no field of a rig may hold: a NaN or infinite number (TOML spells them nan and inf), an integer beyond
+    64 bits, or a string with a NUL (a name, a path or a note: each ends up in a file name or an HDF5 attribute)."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            _check_plain(item, f"{where}.{key}")
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            _check_plain(item, f"{where}[{i}]")
+    elif isinstance(value, float) and not math.isfinite(value):
+        raise InputError(where, f"expected a finite number; got {value}")
+    elif isinstance(value, int) and not -2**63 <= value < 2**63:   # HDF5 attributes and JSON readers hold 64 bits
+        raise InputError(where, f"expected an integer of at most 64 bits; got {value}")
+    elif isinstance(value, str) and "\0" in value:
+        raise InputError(where, f"holds a NUL character: {value!r}")
 
 
 def import_capture(rig_path: str | Path, out: str | Path, *, data_dir: str | Path | None = None,
@@ -123,15 +178,24 @@ def import_capture(rig_path: str | Path, out: str | Path, *, data_dir: str | Pat
     rig_path = Path(rig_path)
     rig = Rig.load(rig_path)
     base = Path(data_dir) if data_dir is not None else rig_path.parent
+    if not base.is_dir():
+        raise InputError(base, "is not a folder; --data names the folder the rig's file names are relative to")
     out = Path(out)
-    if out.exists():
+    if out.exists() or out.is_symlink():
         raise InputError(out, "exists already; choose a new capture directory")
-    tmp = out.with_name(f".{out.name}.importing-{os.getpid()}")
+    if not out.parent.is_dir():
+        problem = "is not a folder" if out.parent.exists() else "does not exist"
+        raise InputError(out, f"its folder {out.parent} {problem}; the capture is created in an existing folder")
+    _remove_stale_temporaries(out.parent)
+    tmp = out.with_name(f".{out.name}{_TEMPORARY}{socket.gethostname()}-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        capture = _build(rig, rig_path, base, tmp, chunk_frames)
+        capture = _build(rig, rig_path, base.resolve(), tmp, chunk_frames)
         os.replace(tmp, out)
         fsync_path(out.parent)
+    except OSError as exc:   # the disk, not the input: full, read-only, a name too long for the file system
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise InputError(exc.filename or out, exc.strerror or str(exc)) from exc
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -139,20 +203,44 @@ def import_capture(rig_path: str | Path, out: str | Path, *, data_dir: str | Pat
     return Capture.open(out)   # opened anew: the one built has its root and derived paths in the temporary folder
 
 
+def _remove_stale_temporaries(folder: Path) -> None:
+    """Remove what killed imports left in `folder`: temporaries of this host whose process is gone."""
+    if os.name != "posix":   # no cheap, safe test of a process's life: leave them
+        return
+    host = socket.gethostname()
+    for path in folder.glob(f".*{_TEMPORARY}*"):
+        owner, _, pid = path.name.rpartition(_TEMPORARY)[2].rpartition("-")
+        if not pid.isdigit() or owner not in ("", host) or not path.is_dir() or path.is_symlink():
+            continue
+        try:
+            os.kill(int(pid), 0)
+            continue   # still running (an import beside this one)
+        except ProcessLookupError:
+            pass
+        except (PermissionError, OverflowError):
+            continue   # another user's live process, or no PID at all
+        log.info("removing %s, left by an import that was killed (process %s is gone)", path, pid)
+        shutil.rmtree(path, ignore_errors=True)
+
+
 def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) -> Capture:
     # Open and check every input before writing anything, so errors surface early.
     videos: list[VideoSource | None] = []
     signals: list[SignalSet | None] = []
     for i, take in enumerate(rig.takes):
+        where = f"{rig_path}: takes[{i}]"
         try:
-            videos.append(open_video(_resolve(base, take.video), fps=take.fps, recorded_fps=take.recorded_fps)
-                          if take.video else None)
+            videos.append(open_video(_resolve(base, take.video, f"{where}.video"), fps=take.fps,
+                                     recorded_fps=take.recorded_fps) if take.video is not None else None)
         except InputError as exc:
             if exc.source in ("fps", "recorded_fps"):   # a rig value: name where it stands
-                raise InputError(f"{rig_path}: takes[{i}].{exc.source}", exc.problem) from None
+                raise InputError(f"{where}.{exc.source}", exc.problem) from None
             raise
-        signals.append(_read_take_signals(rig, base, take) if take.signals else None)
-        _check_trigger_frame(f"{rig_path}: takes[{i}].trigger_frame", take, videos[-1])
+        if videos[-1] is not None and videos[-1].fps is None:
+            raise InputError(f"{where}.fps", f"{videos[-1].path.name} holds no frame rate; give the take's fps")
+        signals.append(_read_take_signals(rig, base, take, where) if take.signals is not None else None)
+        _check_trigger_frame(f"{where}.trigger_frame", take, videos[-1])
+        _check_pretrigger(f"{where}.pretrigger_samples", take, signals[-1])
     _resolve_bit_depth(rig, rig_path, videos, chunk_frames)
     camera = _camera_info(rig, rig_path, videos)
     rates = sorted({s.sample_rate_hz for s in signals if s is not None})
@@ -171,8 +259,8 @@ def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) 
         structure=rig.structure,
         notes=rig.notes,
     )
+    static = _static_files(rig, rig_path, base)
     capture = Capture.create(root, manifest)
-    static = [Path(p) for pattern in rig.static for p in sorted(glob.glob(str(_resolve(base, pattern))))]
     capture.copy_static(static)
     declared = f"{rig_path}: camera.bit_depth" if rig.camera.bit_depth is not None else None
     for take, video, sigs in zip(rig.takes, videos, signals):
@@ -180,13 +268,45 @@ def _build(rig: Rig, rig_path: Path, base: Path, root: Path, chunk_frames: int) 
     return capture
 
 
-def _resolve(base: Path, name: str) -> Path:
-    path = Path(name)
-    return path if path.is_absolute() else base / path
+def _check_pretrigger(where: str, take: RigTake, sigs: SignalSet | None) -> None:
+    if take.pretrigger_samples is None:
+        return
+    if sigs is None:
+        raise InputError(where, "pretrigger samples need the take's signals file")
+    if take.pretrigger_samples >= sigs.n_samples:
+        raise InputError(where, f"{take.pretrigger_samples}, but {sigs.path.name} holds {sigs.n_samples} samples")
 
 
-def _read_take_signals(rig: Rig, base: Path, take: RigTake) -> SignalSet:
-    path = _resolve(base, take.signals)
+def _resolve(base: Path, name: str, where: str) -> Path:
+    """A file the rig names, relative to `base` (resolved already): resolved, links followed, it must lie in it."""
+    if not name.strip():
+        raise InputError(where, "is empty; name a file, or leave the field out")
+    path = (base / name).resolve()
+    if not path.is_relative_to(base):
+        raise InputError(where, f"{name!r} leads outside {base} (to {path}); the rig's files must lie in the data "
+                                "folder (--data, default: the rig file's folder)")
+    return path
+
+
+def _static_files(rig: Rig, rig_path: Path, base: Path) -> list[Path]:
+    """The files the rig's `static` patterns match: regular files in the data folder, one name each."""
+    files: dict[str, Path] = {}
+    for i, pattern in enumerate(rig.static):
+        where = f"{rig_path}: static[{i}]"
+        _resolve(base, pattern, where)   # the pattern itself, before anything is matched
+        matches = sorted(glob.glob(str(base / pattern)))
+        if not matches:
+            raise InputError(where, f"{pattern!r} matches no file in {base}")
+        for match in matches:
+            path = check_regular_file(_resolve(base, match, where), "file (static photos are files)")
+            if path.name in files and files[path.name] != path:
+                raise InputError(where, f"{path} and {files[path.name]} would both be static/{path.name}")
+            files[path.name] = path
+    return list(files.values())
+
+
+def _read_take_signals(rig: Rig, base: Path, take: RigTake, where: str) -> SignalSet:
+    path = _resolve(base, take.signals, f"{where}.signals")
     columns = [c.column or c.name for c in rig.channels]
     if not columns:
         raise InputError(path, "the rig declares no [[channels]], so there is nothing to read from the signal file")
@@ -250,8 +370,8 @@ def _camera_info(rig: Rig, rig_path: Path, videos: list[VideoSource | None]) -> 
 
 def _write_take(capture: Capture, take: RigTake, video: VideoSource | None, sigs: SignalSet | None,
                 chunk_frames: int, declared_bit_depth: str | None) -> None:
-    """Write one take; `declared_bit_depth` names the rig's bit_depth field when the rig gives one, so that a frame
-    holding more bits is refused."""
+    """Write one take; a frame holding more bits than the video's bit depth is refused, naming the rig's bit_depth
+    field (`declared_bit_depth`) when the rig gives one, else the file whose header says it."""
     manifest = capture.manifest
     attrs: dict[str, Any] = {"source": "import", "notes": take.notes}
     if video is not None:
@@ -287,8 +407,7 @@ def _write_take(capture: Capture, take: RigTake, video: VideoSource | None, sigs
             k = 0
             for block in video.iter_chunks(chunk_frames):
                 n = len(block)
-                if declared_bit_depth is not None:
-                    _check_bit_depth(declared_bit_depth, video, block, k)
+                _check_bit_depth(declared_bit_depth, video, block, k)
                 writer.append_frames(block, times[k:k + n], counter[k:k + n])
                 k += n
                 progress.update(n)
@@ -305,12 +424,17 @@ def _write_take(capture: Capture, take: RigTake, video: VideoSource | None, sigs
         writer.finalize()
 
 
-def _check_bit_depth(where: str, video: VideoSource, block: np.ndarray, first: int) -> None:
+def _check_bit_depth(declared: str | None, video: VideoSource, block: np.ndarray, first: int) -> None:
     peak = int(block.max()) if block.size else 0
     if peak >> video.bit_depth:
         frame = first + int(np.argmax(block.reshape(len(block), -1).max(axis=1)))
-        raise InputError(where, f"{video.bit_depth}, but frame {frame} of {video.path.name} holds {peak}, more than "
-                                f"{2**video.bit_depth - 1}; give the data's bit depth or leave it out to detect it")
+        if declared is not None:
+            raise InputError(declared, f"{video.bit_depth}, but frame {frame} of {video.path.name} holds {peak}, "
+                                       f"more than {2**video.bit_depth - 1}; give the data's bit depth or leave it "
+                                       "out to detect it")
+        raise InputError(video.path, f"its header says {video.bit_depth}-bit data, but frame {frame} holds {peak}, "
+                                     f"more than {2**video.bit_depth - 1}; give [camera] bit_depth in the rig if the "
+                                     "header is wrong")
 
 
 def _check_trigger_frame(where: str, take: RigTake, video: VideoSource | None) -> None:

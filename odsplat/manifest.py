@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
+import os
+import re
+import stat
 import tomllib
 import types
 import typing
@@ -35,6 +39,49 @@ QC_STATUSES = ("unchecked", "accepted", "rejected")
 # The qc stage's result, derived/qc.json: read by the spine to select imported (unchecked) takes.
 QC_KIND = "odsplat.qc"
 QC_SCHEMA = 1
+
+
+NAME_MAX_CHARS = 100  # a take's name is a file name (takes/NAME.h5) on every file system we meet
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]*")
+
+
+def check_name(value: str, where: str) -> str:
+    """A name that becomes a file name inside a capture (a take's `takes/NAME.h5`): letters, digits, `_`, `-` and
+    `.`, not starting with `.` or `-`, at most NAME_MAX_CHARS characters; so it names no other folder, no hidden
+    file, and nothing outside the capture. Returns it."""
+    if not isinstance(value, str) or not value:
+        raise InputError(where, f"expected a non-empty name; got {value!r}")
+    if len(value) > NAME_MAX_CHARS:
+        raise InputError(where, f"{len(value)} characters; a name has at most {NAME_MAX_CHARS}")
+    if not _NAME.fullmatch(value):
+        raise InputError(where, f"{value!r}: a name holds only letters, digits, '_', '-' and '.' (no separator, "
+                                "space or control character) and starts with a letter, digit or '_'")
+    return value
+
+
+def check_regular_file(path: str | os.PathLike, what: str = "file") -> Path:
+    """Refuse, before opening it, anything that is not a regular file (a folder, a FIFO that would block the read,
+    a device); symbolic links are followed. Returns the path."""
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise InputError(path, "no such file") from None
+    except OSError as exc:
+        raise InputError(path, f"cannot be read ({exc.strerror})") from None
+    if not stat.S_ISREG(mode):
+        kind = "a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "not a regular file"
+        raise InputError(path, f"is {kind}; expected a {what}")
+    return path
+
+
+def _finite(values: Any, where: str, *, positive: bool = False) -> None:
+    """Each of `values` (a number or a list of them) finite, and above 0 where `positive`."""
+    for v in values if isinstance(values, (list, tuple)) else [values]:
+        if v is None:
+            continue
+        if not math.isfinite(v) or (positive and not v > 0):
+            raise InputError(where, f"expected {'a positive' if positive else 'a finite'} number; got {values!r}")
 
 
 def utc_now() -> str:
@@ -70,6 +117,10 @@ class Intrinsics:
         """From a 3x3 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
         K = np.asarray(K, dtype=np.float64)
         return cls(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), [float(d) for d in dist])
+
+    def validate(self, where: str) -> None:
+        for name in ("fx_px", "fy_px", "cx_px", "cy_px", "dist"):
+            _finite(getattr(self, name), f"{where}.{name}", positive=name in ("fx_px", "fy_px"))
 
     def matrix(self) -> np.ndarray:
         """The 3x3 camera matrix."""
@@ -121,8 +172,9 @@ class ChannelInfo:
         return self.source[len(CAN_SOURCE_PREFIX):] if self.source.startswith(CAN_SOURCE_PREFIX) else None
 
     def validate(self, where: str) -> None:
-        if not self.name or "/" in self.name:
-            raise InputError(where, f"channel name {self.name!r} must be non-empty and contain no '/'")
+        if not self.name or "/" in self.name or "\0" in self.name or self.name in (".", ".."):
+            raise InputError(where, f"channel name {self.name!r} must be non-empty, contain no '/' or NUL and not be "
+                                    "'.' or '..' (it names the channel's data in the take file)")
         node = self.can_node
         if self.source != DAQ_SOURCE and (not node or "/" in node):
             raise InputError(f"{where}.source", f"expected 'daq' or 'can:NODE' (NODE without '/'); got {self.source!r}")
@@ -144,6 +196,10 @@ class ChannelInfo:
             value = getattr(self, name)
             if value is not None and len(value) != 3:
                 raise InputError(f"{where}.{name}", f"expected 3 numbers (x, y, z); got {value!r}")
+            _finite(value, f"{where}.{name}")
+        if self.direction is not None and not any(self.direction):
+            raise InputError(f"{where}.direction", "expected a non-zero direction; got [0, 0, 0]")
+        _finite(self.sensitivity_v_per_unit, f"{where}.sensitivity_v_per_unit", positive=True)
 
 
 @dataclass
@@ -162,6 +218,17 @@ class TagLayout:
     size_m: float | None = None
     tags: list[TagPlacement] = field(default_factory=list)
 
+    def validate(self, where: str) -> None:
+        _finite(self.size_m, f"{where}.size_m", positive=True)
+        for i, tag in enumerate(self.tags):
+            at = f"{where}.tags[{i}]"
+            if tag.id < 0:
+                raise InputError(f"{at}.id", f"expected a tag id of 0 or more; got {tag.id}")
+            if len(tag.corners_m) != 4 or any(len(c) != 3 for c in tag.corners_m):
+                raise InputError(f"{at}.corners_m", f"expected 4 corners of 3 numbers (x, y, z); got {tag.corners_m!r}")
+            _finite([v for c in tag.corners_m for v in c], f"{at}.corners_m")
+            _finite(tag.size_m, f"{at}.size_m", positive=True)
+
 
 @dataclass
 class Viewpoint:
@@ -170,6 +237,15 @@ class Viewpoint:
     elevation_deg: float
     distance_m: float
     target_m: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+
+    def validate(self, where: str) -> None:
+        if self.index < 0:
+            raise InputError(f"{where}.index", f"expected a viewpoint index of 0 or more; got {self.index}")
+        for name in ("azimuth_deg", "elevation_deg", "distance_m"):
+            _finite(getattr(self, name), f"{where}.{name}", positive=name == "distance_m")
+        if len(self.target_m) != 3:
+            raise InputError(f"{where}.target_m", f"expected 3 numbers (x, y, z); got {self.target_m!r}")
+        _finite(self.target_m, f"{where}.target_m")
 
 
 @dataclass
@@ -205,6 +281,12 @@ class Manifest:
         names = [c.name for c in self.channels]
         for i, ch in enumerate(self.channels):
             ch.validate(f"{where}: channels[{i}]")
+        if self.camera.intrinsics is not None:
+            self.camera.intrinsics.validate(f"{where}: camera.intrinsics")
+        if self.tags is not None:
+            self.tags.validate(f"{where}: tags")
+        for i, view in enumerate(self.views):
+            view.validate(f"{where}: views[{i}]")
         dup = {n for n in names if names.count(n) > 1}
         if dup:
             raise InputError(f"{where}: channels", f"duplicate channel names {sorted(dup)}")
@@ -253,17 +335,22 @@ def load_toml(path: str | Path, *, missing: str) -> dict[str, Any]:
 
 def _load_text(path: str | Path, parse, error: type[Exception], fmt: str, missing: str) -> Any:
     path = Path(path)
+    if not path.exists():
+        raise InputError(path, missing)
+    check_regular_file(path, f"{fmt} file")
     try:
-        return parse(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(path, missing) from None
-    except UnicodeDecodeError as exc:
-        raise InputError(path, f"not {fmt}: not UTF-8 text (byte {exc.object[exc.start]:#04x} at offset {exc.start})"
-                         ) from None
-    except error as exc:
-        raise InputError(path, f"not valid {fmt}: {exc}") from None
+        data = path.read_bytes()
     except OSError as exc:
         raise InputError(path, f"cannot be read: {exc.strerror or exc}") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(path, f"not {fmt}: not UTF-8 text (byte {exc.start} is {data[exc.start:exc.start + 1]!r}); "
+                               f"save it as UTF-8 {fmt}") from None
+    try:
+        return parse(text)
+    except error as exc:
+        raise InputError(path, f"not valid {fmt}: {exc}") from None
 
 
 def from_plain(cls: type, data: Any, where: str) -> Any:

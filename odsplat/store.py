@@ -45,6 +45,7 @@ from .manifest import (
     ChannelInfo,
     Manifest,
     TakeRecord,
+    check_name,
     check_schema,
     load_json,
     utc_now,
@@ -939,7 +940,7 @@ class Capture:
         daq_t0_s: float = 0.0,
     ) -> TakeWriter:
         """Start recording a take; the manifest lists it once `finalize()` succeeds."""
-        name = name or self.next_take_name(view)
+        name = check_name(name or self.next_take_name(view), f"{self.root}: take name")
         if name in self.take_names():
             raise OdsplatError(f"{self.root}: take {name!r} exists already; raw takes are written once")
         channels = self.manifest.channels if channels is None else channels

@@ -346,3 +346,334 @@ def test_the_rig_names_the_time_column_or_declares_the_rate(tmp_path):
     with pytest.raises(InputError, match=r"bare\.csv: first column must be time .* or declare sample_rate_hz"):
         import_capture(rig, tmp_path / "bad")
     assert not (tmp_path / "bad").exists()
+
+
+# ------------------------------------------------------------------ hardening (issue 29): hostile and broken inputs
+
+LADISK = "ladisk-imaging-tutorial"
+CHANNELS = ('[[channels]]\nname = "force"\nkind = "force"\ncolumn = "Force (Trigger)"\n'
+            '[[channels]]\nname = "acc"\nkind = "acceleration"\ncolumn = "Acceleration (Trigger)"\n')
+
+
+def _listing(folder: Path) -> set[Path]:
+    return {p.relative_to(folder) for p in folder.rglob("*")}
+
+
+def _refused(rig: Path, out: Path, match: str, *, data_dir: Path | None = None) -> InputError:
+    """The import is refused with one line matching `match`, and nothing is written anywhere under rig's folder."""
+    before = _listing(rig.parent)
+    with pytest.raises(InputError, match=match) as err:
+        import_capture(rig, out, data_dir=data_dir)
+    assert "\n" not in str(err.value)
+    assert _nothing_left(out) and _listing(rig.parent) == before
+    return err.value
+
+
+def _npy_rig(tmp_path: Path, take: str = "", top: str = "") -> Path:
+    np.save(tmp_path / "x.npy", np.arange(3 * 4 * 6, dtype=np.uint8).reshape(3, 4, 6))
+    rig = tmp_path / "rig.toml"
+    rig.write_text(f'name = "h"\n{top}[[takes]]\nvideo = "x.npy"\nfps = 100\n{take}')
+    return rig
+
+
+@pytest.mark.parametrize("name", ["../../x", "/tmp/x", "a/b", "..", ".", ".hidden", "a\\\\b", "a b", "x" * 101])
+def test_a_take_name_that_would_leave_the_capture_is_refused(tmp_path, name):
+    data = tmp_path / "data"
+    data.mkdir()
+    rig = _npy_rig(data, f'name = "{name}"\n')
+    before = _listing(tmp_path)
+    with pytest.raises(InputError, match=r"rig\.toml: takes\[0\]\.name: ") as err:
+        import_capture(rig, data / "cap")
+    assert "\n" not in str(err.value) and _listing(tmp_path) == before
+
+
+def test_the_store_checks_take_names_too(tmp_path):
+    from odsplat.manifest import Manifest
+
+    cap = Capture.create(tmp_path / "cap", Manifest(name="x"))
+    for name in ("../x", "a/b", "a\0b", "x" * 300):
+        with pytest.raises(InputError, match="take name"):
+            cap.new_take(name)
+    assert _listing(tmp_path) == {Path("cap"), *(Path("cap") / p for p in _listing(tmp_path / "cap"))}
+    assert sorted(p.name for p in (tmp_path / "cap" / "takes").iterdir()) == []
+
+
+@pytest.mark.parametrize("field, value", [
+    ("video", "../outside.npy"), ("video", "{outside}"), ("signals", "../../../../../../etc/passwd"),
+    ("static", "../../../../../../etc/passwd"), ("static", "../*.npy"), ("static", "{outside}"),
+    ("video", "link.npy"),
+])
+def test_a_rig_path_that_leads_outside_the_data_folder_is_refused(tmp_path, field, value):
+    data = tmp_path / "data"
+    data.mkdir()
+    np.save(tmp_path / "outside.npy", np.zeros((3, 4, 6), np.uint8))
+    (data / "link.npy").symlink_to(tmp_path / "outside.npy")
+    rig = _npy_rig(data)
+    value = value.format(outside=tmp_path / "outside.npy")
+    if field == "static":
+        rig.write_text(f'static = ["{value}"]\n' + rig.read_text())
+    elif field == "signals":
+        rig.write_text(rig.read_text() + f'signals = "{value}"\n')
+    else:
+        rig.write_text(rig.read_text().replace('"x.npy"', f'"{value}"'))
+    field = "static[0]" if field == "static" else f"takes[0].{field}"
+    before = _listing(tmp_path)
+    with pytest.raises(InputError, match=r"leads outside") as err:
+        import_capture(rig, data / "cap")
+    assert err.value.source == f"{rig}: {field}" and _listing(tmp_path) == before
+
+
+def test_static_photos_are_copied_from_the_data_folder_only(tmp_path):
+    data = tmp_path / "data"
+    (data / "photos").mkdir(parents=True)
+    (data / "photos" / "front.png").write_bytes(b"png")
+    rig = _npy_rig(data, top='static = ["photos/*.png"]\n')
+    cap = import_capture(rig, tmp_path / "cap", data_dir=data)
+    assert sorted(p.name for p in (cap.root / "static").iterdir()) == ["front.png"]
+    rig.write_text(rig.read_text().replace("photos/*.png", "photos/*.jpg"))
+    _refused(rig, tmp_path / "cap2", r"static\[0\]: 'photos/\*\.jpg' matches no file", data_dir=data)
+    rig.write_text(rig.read_text().replace("photos/*.jpg", "photos"))
+    _refused(rig, tmp_path / "cap2", r"photos: is a folder", data_dir=data)
+
+
+def _edit_cih(shared_data: Path, dest: Path, field: str, value: str, sample: str = f"{LADISK}/focus.cih") -> Path:
+    cih = dest / "cam.cih"
+    text = (shared_data / sample).read_bytes().decode("latin-1")
+    start = text.index(f"\n{field} :") + 1
+    end = text.index("\n", start)
+    cih.write_bytes((text[:start] + f"{field} : {value}" + text[end:]).encode("latin-1"))
+    shutil.copyfile((shared_data / sample).with_suffix(".mraw"), dest / "cam.mraw")
+    return cih
+
+
+@pytest.mark.parametrize("field, value, match", [
+    ("Start Frame", "-99999999999999999999", r"'Start Frame' = '-99999999999999999999' lies beyond"),
+    ("Record Rate(fps)", "nan", r"Record Rate\(fps\): nan is not a frame rate from 0\.001 to 1e\+08 fps"),
+    ("Record Rate(fps)", "inf", "inf is not a frame rate"),
+    ("Record Rate(fps)", "1e-300", "1e-300 is not a frame rate"),
+    ("Record Rate(fps)", "1e308", "1e\\+308 is not a frame rate"),
+    ("EffectiveBit Depth", "0", r"'EffectiveBit Depth' = 0; expected 8 to 16 bits"),
+    ("EffectiveBit Depth", "-4", "= -4; expected 8 to 16"),
+    ("EffectiveBit Depth", "4", "= 4; expected 8 to 16"),
+])
+def test_a_garbled_photron_header_field_is_refused(shared_data, tmp_path, field, value, match):
+    _edit_cih(shared_data, tmp_path, field, value)
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "h"\n[[takes]]\nvideo = "cam.cih"\n')
+    assert _refused(rig, tmp_path / "cap", match).source.startswith(str(tmp_path / "cam.cih"))
+
+
+def test_a_12_bit_mraw_holding_more_than_12_bits_is_refused(shared_data, tmp_path):
+    """beam: 12-bit data in 16-bit words (EffectiveBit 12); a sample of 5000 cannot be 12-bit data."""
+    src = shared_data / "pymraw-samples" / "beam.cihx"
+    shutil.copyfile(src, tmp_path / "beam.cihx")
+    frames = np.fromfile(src.with_suffix(".mraw"), dtype="<u2").reshape(4, 80, 1024)
+    frames[2, 10, 20] = 5000
+    frames.tofile(tmp_path / "beam.mraw")
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "h"\n[[takes]]\nvideo = "beam.cihx"\n')
+    _refused(rig, tmp_path / "cap", r"beam\.cihx: its header says 12-bit data, but frame 2 holds 5000, more than 4095")
+
+
+def _save_npy_header(path: Path, header: bytes) -> None:
+    np.save(path, np.zeros((3, 4, 6), np.uint8))
+    data = bytearray(path.read_bytes())
+    data[10:10 + len(header)] = header
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize("case, match", [
+    ("zero_height", r"x\.npy: holds 8 frames of 64x0 pixels; nothing to import"),
+    ("no_frames", r"x\.npy: holds 0 frames"),
+    ("garbled_header", r"x\.npy: cannot be read as a plain \.npy array"),
+    ("empty", r"x\.npy: cannot be read as a plain \.npy array"),
+    ("npz", r"x\.npy: cannot be read as a plain \.npy array .*magic"),
+    ("zero_byte_png", r"seq/img_1\.png: cannot be decoded as an image \(0 bytes\)"),
+])
+def test_a_broken_array_or_image_is_refused(tmp_path, case, match):
+    rig = _npy_rig(tmp_path)
+    npy = tmp_path / "x.npy"
+    if case == "zero_height":
+        np.save(npy, np.zeros((8, 0, 64), np.uint8))
+    elif case == "no_frames":
+        np.save(npy, np.zeros((0, 4, 6), np.uint8))
+    elif case == "garbled_header":
+        _save_npy_header(npy, b"{'descr': '|u1', 'fortran_order': False, 'shape': ((((((")
+    elif case == "empty":
+        npy.write_bytes(b"")
+    elif case == "npz":
+        np.savez(tmp_path / "y.npz", a=np.zeros((3, 4, 6), np.uint8))
+        (tmp_path / "y.npz").rename(npy)
+    else:
+        _write_sequence(tmp_path / "seq", 3)
+        (tmp_path / "seq" / "img_1.png").write_bytes(b"")
+        rig.write_text(rig.read_text().replace('"x.npy"', '"seq"'))
+    _refused(rig, tmp_path / "cap", match)
+
+
+@pytest.mark.parametrize("content, match", [
+    (b'name = "caf\xe9"\n', r"rig\.toml: not TOML: not UTF-8 text \(byte 11 is b'\\xe9'\)"),
+    (bytes(range(256)), r"rig\.toml: not TOML: not UTF-8 text"),
+    ('name = "h"\n[[takes]]\nname = "a\\u0000b"\nvideo = "x.npy"\nfps = 100\n', r"takes\[0\]\.name: holds a NUL"),
+    (f'name = "h"\n[[takes]]\nname = "{"n" * 300}"\nvideo = "x.npy"\nfps = 100\n',
+     r"rig\.toml: takes\[0\]\.name: 300 characters; a name has at most 100"),
+])
+def test_a_rig_file_that_is_not_text_or_names_badly_is_refused(tmp_path, content, match):
+    rig = _npy_rig(tmp_path)
+    rig.write_bytes(content if isinstance(content, bytes) else content.encode())
+    _refused(rig, tmp_path / "cap", match)
+
+
+def test_a_folder_as_the_rig_or_an_output_under_a_file_is_refused(tmp_path):
+    rig = _npy_rig(tmp_path)
+    (tmp_path / "folder.toml").mkdir()
+    _refused(tmp_path / "folder.toml", tmp_path / "cap", r"folder\.toml: is a folder; expected a TOML file")
+    (tmp_path / "file").write_text("x")
+    _refused(rig, tmp_path / "file" / "cap", r"file/cap: its folder .*file is not a folder")
+    _refused(rig, tmp_path / "no" / "cap", r"no/cap: its folder .*no does not exist")
+
+
+def _cli(*args: str, timeout: float = 60) -> tuple[int, str]:
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-m", "odsplat", "import", *args], capture_output=True, text=True,
+                          timeout=timeout)
+    return proc.returncode, proc.stderr
+
+
+def test_the_cli_refuses_a_fifo_header_with_one_line_and_status_2(shared_data, tmp_path):
+    """A FIFO named as the .cih would block the read for ever: it is refused before it is opened."""
+    import os
+
+    os.mkfifo(tmp_path / "cam.cih")
+    shutil.copyfile(shared_data / LADISK / "focus.mraw", tmp_path / "cam.mraw")
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "h"\n[[takes]]\nvideo = "cam.cih"\n')
+    status, stderr = _cli(str(rig), "-o", str(tmp_path / "cap"))
+    assert status == 2 and stderr.strip().count("\n") == 0 and "Traceback" not in stderr
+    assert "cam.cih: is a FIFO; expected a recording" in stderr and _nothing_left(tmp_path / "cap")
+
+
+def _lvm_rig(shared_data: Path, tmp_path: Path, edit) -> Path:
+    lines = (shared_data / LADISK / "acceleration.lvm").read_text().split("\n")
+    (tmp_path / "a.lvm").write_text("\n".join(edit(lines)))
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "h"\n' + CHANNELS + '[[takes]]\nsignals = "a.lvm"\n')
+    return rig
+
+
+def _set(lines: list[str], tag: str, value: str) -> list[str]:
+    return [f"{tag}\t{value}\t{value}\t" if line.startswith(tag + "\t") else line for line in lines]
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda lines: lines[:20050], r"a\.lvm: segment 1: truncated: 20027 rows, but its header declares 50030 Samples"),
+    (lambda lines: lines[:23], "truncated: 0 rows"),
+    (lambda lines: _set(lines, "X0", "NaN"), r"segment 1: X0 \['NaN', 'NaN', ''\] is not a finite number"),
+    (lambda lines: _set(lines, "Delta_X", "1,0E-300"), r"a\.lvm: Delta_X, X0: 1e\+300 is not a sample rate from 1 to "
+                                                        r"1e\+09 Hz"),
+    (lambda lines: _set(lines, "Delta_X", "inf"), r"Delta_X \['inf', 'inf', ''\] is not a finite number"),
+    (lambda lines: lines[:30] + [lines[30] + "\t1,0\t2,0"] + lines[31:],
+     r"a\.lvm: line 31 has 5 fields, more than the 4 columns of the heading: a ragged row"),
+])
+def test_a_damaged_lvm_is_refused(shared_data, tmp_path, edit, match):
+    _refused(_lvm_rig(shared_data, tmp_path, edit), tmp_path / "cap", match)
+
+
+def test_ragged_or_overflowing_csv_and_non_finite_uff_are_refused(shared_data, tmp_path):
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "h"\n[[channels]]\nname = "f"\nkind = "force"\n[[takes]]\nsignals = "a.csv"\n')
+    (tmp_path / "a.csv").write_text("time [s],f [N]\n0,1\n0.1,2,3\n0.2,3\n")
+    _refused(rig, tmp_path / "cap", r"a\.csv: line 3 has 3 fields, more than the 2 columns")
+    (tmp_path / "a.csv").write_text("time [s],f [N],\n0,1,\n0.1,2,\n0.2,3,\n")   # trailing delimiters are no data
+    import_capture(rig, tmp_path / "ok")
+    (tmp_path / "a.csv").write_text("time [s],f [kN]\n0,1\n0.1,1e38\n0.2,3\n")
+    _refused(rig, tmp_path / "cap", r"a\.csv: column 'f': sample 1 is 1e\+38 kN, beyond float32 once converted to N")
+    uff = (shared_data / "pyuff-samples" / "time-history-not-all-columns-filled.uff").read_bytes()
+    (tmp_path / "a.uff").write_bytes(uff.replace(b"-3.56616E+00", b"         NaN", 1))
+    rig.write_text('name = "h"\n[[channels]]\nname = "a"\nkind = "acceleration"\ncolumn = "1x : m/s²"\n'
+                   '[[takes]]\nsignals = "a.uff"\n')
+    _refused(rig, tmp_path / "cap", r"a\.uff: column '1x : m/s²': sample 1 is nan m/s², not a finite number")
+
+
+@pytest.mark.parametrize("rig_text, match", [
+    ('[[takes]]\nvideo = "x.npy"\nfps = nan\n', r"takes\[0\]\.fps: expected a finite number; got nan"),
+    ('[[takes]]\nvideo = "x.npy"\nfps = inf\n', r"takes\[0\]\.fps: expected a finite number; got inf"),
+    ('[[takes]]\nvideo = "x.npy"\nfps = 1e-300\n', r"takes\[0\]\.fps: 1e-300 is not a frame rate"),
+    ('[[takes]]\nvideo = "x.npy"\nfps = 1e308\n', r"takes\[0\]\.fps: 1e\+308 is not a frame rate"),
+    ('[[takes]]\nvideo = "x.npy"\n', r"takes\[0\]\.fps: x\.npy holds no frame rate; give the take's fps"),
+    ('[[takes]]\nvideo = ""\nsignals = "a.csv"\n', r"takes\[0\]\.video: is empty"),
+    ('[[takes]]\nvideo = "x.npy"\nfps = 100\nview = -3\n', r"takes\[0\]\.view: expected 0 or more; got -3"),
+    ('[[takes]]\nsignals = "a.csv"\npretrigger_samples = -500\n', r"pretrigger_samples: expected 0 or more"),
+    ('[[takes]]\nsignals = "a.csv"\npretrigger_samples = 1000000\n',
+     r"takes\[0\]\.pretrigger_samples: 1000000, but a\.csv holds 200 samples"),
+    ('[[takes]]\nvideo = "x.npy"\nfps = 100\npretrigger_samples = 3\n', "pretrigger samples need the take's signals"),
+    ('[camera.intrinsics]\nfx_px = nan\nfy_px = 1\ncx_px = 0\ncy_px = 0\n[[takes]]\nvideo = "x.npy"\nfps = 100\n',
+     r"camera\.intrinsics\.fx_px: expected a finite number; got nan"),
+    ('[camera.intrinsics]\nfx_px = -1\nfy_px = 1\ncx_px = 0\ncy_px = 0\n[[takes]]\nvideo = "x.npy"\nfps = 100\n',
+     r"camera\.intrinsics\.fx_px: expected a positive number; got -1"),
+    ('[tags]\nsize_m = -0.03\n[[takes]]\nvideo = "x.npy"\nfps = 100\n', r"tags\.size_m: expected a positive number"),
+    ('[tags]\nsize_m = 0.03\n[[tags.tags]]\nid = 0\ncorners_m = [[1, 2]]\n[[takes]]\nvideo = "x.npy"\nfps = 100\n',
+     r"tags\.tags\[0\]\.corners_m: expected 4 corners of 3 numbers"),
+    ('[[takes]]\nsignals = "a.csv"\n', None),   # with the channel below: a NaN position, a zero direction
+])
+def test_rig_values_are_checked(tmp_path, rig_text, match):
+    _write_csv(tmp_path / "a.csv", 200, 20_000.0)
+    rig = _npy_rig(tmp_path)
+    channels = '[[channels]]\nname = "force"\nkind = "force"\ncolumn = "hammer"\n'
+    if match is None:
+        for acc, match in (('position_m = [0, nan, 0]', r"channels\[0\]\.position_m\[1\]: expected a finite number"),
+                           ('direction = [0, 0, 0]', r"channels\[0\]\.direction: expected a non-zero direction")):
+            rig.write_text(f'name = "h"\n{channels}{acc}\n{rig_text}')
+            _refused(rig, tmp_path / "cap", match)
+        return
+    rig.write_text(f'name = "h"\n{channels}{rig_text}')
+    _refused(rig, tmp_path / "cap", match)
+
+
+def test_a_killed_import_leaves_a_temporary_that_the_next_import_removes(shared_data, tmp_path):
+    """SIGKILL an import at a random point (seeded) while it writes; the rerun succeeds and leaves no temporary."""
+    import os
+    import random
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text('name = "k"\n' + CHANNELS + "".join(
+        f'[[takes]]\nname = "t{i}"\nsignals = "{LADISK}/acceleration.lvm"\n'
+        f'[[takes]]\nname = "v{i}"\nvideo = "pyidi-samples/data_showcase.cih"\n' for i in range(8)))
+    out = tmp_path / "cap"
+    proc = subprocess.Popen([sys.executable, "-m", "odsplat", "import", str(rig), "-o", str(out), "--data",
+                             str(shared_data)], stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while not list(tmp_path.glob(".cap.importing-*")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.005)
+    time.sleep(random.Random(29).uniform(0.0, 0.2))
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL, proc.stderr.read()
+    left = list(tmp_path.glob(".cap.importing-*"))
+    assert len(left) == 1 and not out.exists()   # killed while building: the temporary is there, OUT is not
+    cap = import_capture(rig, out, data_dir=shared_data)
+    assert len(cap.manifest.takes) == 16 and not list(tmp_path.glob(".*importing*"))
+
+
+def test_only_temporaries_of_dead_imports_on_this_host_are_removed(tmp_path):
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = socket.gethostname()
+    names = {"dead": f".a.importing-{host}-{dead.pid}", "dead_old_style": f".b.importing-{dead.pid}",
+             "live": f".c.importing-{host}-{os.getppid()}", "other_host": f".d.importing-elsewhere-{dead.pid}"}
+    for name in names.values():
+        (tmp_path / name / "takes").mkdir(parents=True)
+    import_capture(_npy_rig(tmp_path), tmp_path / "cap")
+    left = {p.name for p in tmp_path.glob(".*")}
+    assert left == {names["live"], names["other_host"]}

@@ -8,6 +8,7 @@ import logging
 import math
 import os
 import re
+import warnings
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +18,10 @@ import numpy as np
 import pyuff
 
 from odsplat.errors import InputError
+from odsplat.manifest import check_regular_file
 from odsplat.units import parse_unit
+
+from .limits import check_sample_rate
 
 log = logging.getLogger(__name__)
 
@@ -70,6 +74,7 @@ class _Raw(NamedTuple):
     sample_rate_hz: float
     t0_s: float
     channels: list[_RawChannel]
+    clock: str  # the file's fields the rate and t0 come from, for errors: "Delta_X, X0"
 
 
 def read_signals(
@@ -92,10 +97,9 @@ def read_signals(
     reader = _READERS.get(path.suffix.lower())
     if reader is None:
         raise InputError(path, f"unsupported suffix {path.suffix!r}; expected one of {', '.join(_READERS)}")
-    if not path.is_file():
-        raise InputError(path, "no such file")
-    if sample_rate_hz is not None and not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
-        raise InputError(f"{path}: sample_rate_hz", f"expected a positive rate in Hz; got {sample_rate_hz}")
+    check_regular_file(path, "signal file")
+    if sample_rate_hz is not None:
+        check_sample_rate(sample_rate_hz, f"{path}: sample_rate_hz")
     if reader is _read_csv:
         raw = _read_csv(path, time_column=time_column, sample_rate_hz=sample_rate_hz)
     elif time_column is not None:
@@ -103,6 +107,12 @@ def read_signals(
                                                  "time_column is for CSV files")
     else:
         raw = reader(path)
+    check_sample_rate(raw.sample_rate_hz, f"{path}: {raw.clock}")
+    if not math.isfinite(raw.t0_s):
+        raise InputError(f"{path}: {raw.clock}", f"the first sample's time is {raw.t0_s}, not a finite number")
+    n_samples = min((len(c.values) for c in raw.channels), default=0)
+    if n_samples < 2:
+        raise InputError(path, f"holds {n_samples} sample(s); a signal needs at least 2")
     if sample_rate_hz is not None:
         if abs(raw.sample_rate_hz - sample_rate_hz) > RATE_AGREEMENT * sample_rate_hz:
             raise InputError(f"{path}: sample_rate_hz", f"the file's time axis gives {raw.sample_rate_hz:.10g} Hz, "
@@ -138,12 +148,23 @@ def _assemble(path: Path, raw: _Raw, units: dict[str, str], columns: Sequence[st
         if not spelled:
             raise InputError(path, f"channel {name!r} has no unit; give one with units={{{name!r}: ...}}")
         si_unit, scale = _parse_unit(path, name, spelled)
-        values = (by_name[name].values * scale).astype(np.float32)
+        with np.errstate(over="ignore", invalid="ignore"):
+            values = (by_name[name].values * scale).astype(np.float32)
+        _check_finite(path, name, by_name[name].values, values, spelled, si_unit)
         values.flags.writeable = False
         channels.append(SignalChannel(name=name, unit=si_unit, values=values, source_unit=spelled))
     # 1/dt of a printed dt carries float noise (1/2e-5 = 49999.99999999999); 10 digits drop it.
     rate = float(f"{raw.sample_rate_hz:.10g}")
     return SignalSet(path=path, sample_rate_hz=rate, t0_s=raw.t0_s, channels=tuple(channels))
+
+
+def _check_finite(path: Path, name: str, raw: np.ndarray, values: np.ndarray, spelled: str, si_unit: str) -> None:
+    """Every format's samples, once converted: a NaN or inf in the file, or a value float32 cannot hold in SI."""
+    bad = ~np.isfinite(values)
+    if bad.any():
+        k = int(np.argmax(bad))
+        why = "not a finite number" if not np.isfinite(raw[k]) else f"beyond float32 once converted to {si_unit}"
+        raise InputError(path, f"column {name!r}: sample {k} is {raw[k]:g} {spelled}, {why}")
 
 
 def _parse_unit(path: Path, column: str, spelled: str) -> tuple[str, float]:
@@ -175,14 +196,22 @@ def _first_bad_cell(rows: Iterable[tuple[int, str]], sep: str, cols: Sequence[in
 
 
 def _load_table(path: Path, source: io.TextIOBase, sep: str, cols: Sequence[int], names: Sequence[str],
-                rows: Callable[[], Iterable[tuple[int, str]]], comments: str | None) -> np.ndarray:
-    """Parse numeric columns in bulk with numpy; on any fault, find and name the offending line and column."""
+                rows: Callable[[], Iterable[tuple[int, str]]], comments: str | None, n_fields: int) -> np.ndarray:
+    """Parse numeric columns in bulk with numpy; on any fault, find and name the offending line and column. A row
+    of more than `n_fields` fields (trailing separators aside) is ragged: numpy would drop its extra cells."""
     try:
-        table = np.loadtxt(source, delimiter=sep, usecols=cols, ndmin=2, comments=comments, dtype=np.float64)
+        with warnings.catch_warnings():  # "input contained no data": the caller says so in its own words
+            warnings.simplefilter("ignore", UserWarning)
+            table = np.loadtxt(source, delimiter=sep, usecols=cols, ndmin=2, comments=comments, dtype=np.float64)
     except ValueError as exc:
         raise InputError(path, _first_bad_cell(rows(), sep, cols, names) or str(exc)) from None
     if not np.isfinite(table).all():
         raise InputError(path, _first_bad_cell(rows(), sep, cols, names) or "non-finite value")
+    for line_no, line in rows():
+        fields = line.rstrip().rstrip(sep).count(sep) + 1
+        if fields > n_fields:
+            raise InputError(path, f"line {line_no} has {fields} fields, more than the {n_fields} columns of the "
+                                   "heading: a ragged row")
     return table
 
 
@@ -294,12 +323,12 @@ def _read_csv(path: Path, *, time_column: str | None = None, sample_rate_hz: flo
                                    "separated by ',', ';' or tab")
         names = [name for name, _ in parsed]
         rows = functools.partial(_csv_rows, path, header_no)
-        table = _load_table(path, f, sep, range(len(names)), names, rows, "#")
+        table = _load_table(path, f, sep, range(len(names)), names, rows, "#", len(headings))
     if table.shape[0] < 2:
         raise InputError(path, f"only {table.shape[0]} data row(s); a signal needs at least 2")
     if ti is None:   # no time column: sample k at k / the declared rate
         channels = [_RawChannel(name, unit, table[:, i]) for i, (name, unit) in enumerate(parsed)]
-        return _Raw(float(sample_rate_hz), 0.0, channels)
+        return _Raw(float(sample_rate_hz), 0.0, channels, "sample_rate_hz")
 
     time_unit = _time_unit(*parsed[ti])
     time_unit = parsed[ti][1] if time_unit is False else time_unit   # named by time_column: its unit, or s
@@ -326,7 +355,7 @@ def _read_csv(path: Path, *, time_column: str | None = None, sample_rate_hz: flo
         raise InputError(path, f"time step at line {_csv_line(path, header_no, row)} is {step[row - 1]:g} {unit}, "
                                f"not the mean {mean_step:g} {unit}: the file is not uniformly sampled")
     channels = [_RawChannel(name, unit, table[:, i]) for i, (name, unit) in enumerate(parsed) if i != ti]
-    return _Raw(1.0 / (mean_step * time_scale), float(t[0] * time_scale), channels)
+    return _Raw(1.0 / (mean_step * time_scale), float(t[0] * time_scale), channels, f"time column {headings[ti]!r}")
 
 
 # --- LabVIEW .lvm -----------------------------------------------------------------------------------------
@@ -411,7 +440,7 @@ def _read_lvm(path: Path) -> _Raw:
         x_end = seg.x0 + seg.table.shape[0] * seg.delta_x
     table = np.concatenate([seg.table for seg in segments]) if len(segments) > 1 else first.table
     channels = [_RawChannel(name, unit, table[:, i]) for i, (name, unit) in enumerate(zip(first.names, first.units))]
-    return _Raw(1.0 / first.delta_x, first.x0, channels)
+    return _Raw(1.0 / first.delta_x, first.x0, channels, "Delta_X, X0")
 
 
 def _lvm_segment(path: Path, text: str, start: int, body: int, stop: int, sep: str, decimal: str,
@@ -435,9 +464,12 @@ def _lvm_segment(path: Path, text: str, start: int, body: int, stop: int, sep: s
 
     def numbers(tag: str) -> list[float]:
         try:
-            return [float(_lvm_value(tags[tag], i).replace(decimal, ".")) for i in cols]
+            values = [float(_lvm_value(tags[tag], i).replace(decimal, ".")) for i in cols]
         except ValueError:
-            raise InputError(path, f"{where}: {tag} {tags[tag][1:]} is not a number per channel") from None
+            values = [math.nan]
+        if not all(map(math.isfinite, values)):
+            raise InputError(path, f"{where}: {tag} {tags[tag][1:]} is not a finite number per channel")
+        return values
 
     delta_x, x0 = numbers("Delta_X"), numbers("X0")
     if max(delta_x) - min(delta_x) > 1e-9 * max(delta_x) or max(x0) - min(x0) > 1e-3 * delta_x[0]:
@@ -459,11 +491,17 @@ def _lvm_segment(path: Path, text: str, start: int, body: int, stop: int, sep: s
     def rows() -> Iterator[tuple[int, str]]:
         return ((first_line + i, line) for i, line in enumerate(data.split("\n")) if line.strip())
 
-    table = _load_table(path, io.StringIO(data), sep, cols, names, rows, None)
-    samples = tags.get("Samples", ["", ""])[1]
-    if samples and samples != str(table.shape[0]):
+    table = _load_table(path, io.StringIO(data), sep, cols, names, rows, None, len(headings))
+    samples = [_lvm_value(tags["Samples"], i) for i in cols] if "Samples" in tags else []
+    if any(not n.isdigit() for n in samples):
+        raise InputError(path, f"{where}: Samples {tags['Samples'][1:]} is not a count per channel")
+    declared = max(map(int, samples), default=0)
+    if table.shape[0] < declared:
+        raise InputError(path, f"{where}: truncated: {table.shape[0]} rows, but its header declares {declared} "
+                               "Samples")
+    if declared and table.shape[0] > declared:
         # LabVIEW's "one header only" mode keeps appending rows under the first write's Samples count.
-        log.debug("%s %s: header says %s samples, found %d rows", path, where, samples, table.shape[0])
+        log.debug("%s %s: header says %d samples, found %d rows", path, where, declared, table.shape[0])
     return _LvmSegment(names, units, delta_x[0], x0[0], table)
 
 
@@ -511,6 +549,11 @@ def _read_uff(path: Path) -> _Raw:
                                f"dataset types {sorted(set(kinds))}, dataset-58 function types "
                                f"{sorted({r.get('func_type') for r in records})}")
 
+    for record in usable:
+        # pyuff keeps the values it finds: a cut file or a misaligned line gives fewer (or more) without a word.
+        if record.get("num_pts") != len(record["data"]):
+            raise InputError(path, f"time record {str(record.get('id1', '')).strip()!r} holds {len(record['data'])} "
+                                   f"values, but its header (num_pts) declares {record.get('num_pts')}")
     names = _uff_names(usable)
     clocks = {(r["abscissa_inc"], r["abscissa_min"], len(r["data"])) for r in usable}
     if len(clocks) > 1:
@@ -520,7 +563,8 @@ def _read_uff(path: Path) -> _Raw:
     units = [str(r.get("ordinate_axis_units_lab", "")).strip() for r in usable]
     channels = [_RawChannel(name, None if unit in _UFF_BLANK else unit, np.asarray(r["data"], dtype=np.float64))
                 for name, unit, r in zip(names, units, usable)]
-    return _Raw(1.0 / usable[0]["abscissa_inc"], float(usable[0]["abscissa_min"]), channels)
+    return _Raw(1.0 / usable[0]["abscissa_inc"], float(usable[0]["abscissa_min"]), channels,
+                "abscissa_inc, abscissa_min")
 
 
 _READERS: dict[str, Callable[[Path], _Raw]] = {

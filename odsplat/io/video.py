@@ -20,6 +20,8 @@ import numpy as np
 from cine_reader import Cine, unpack_10bit_data
 
 from ..errors import InputError
+from ..manifest import check_regular_file
+from .limits import check_frame_rate
 from .mraw import unpack_12bit
 
 log = logging.getLogger(__name__)
@@ -33,6 +35,7 @@ _VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv"}
 # OpenCV estimates a Matroska frame count from its duration, so it is counted by decoding instead.
 _COUNT_BY_DECODING = {".mkv"}
 _FPS_REL_TOL = 1e-3  # a user typing 29.97 for 30000/1001 fps means the same rate
+_HEADER_INT = 2**31  # a Photron header's integers are 32-bit: anything beyond is a garbled field
 
 
 @dataclass
@@ -85,14 +88,16 @@ def open_video(path: str | PathLike, fps: float | None = None, *, recorded_fps: 
     at 600 fps and stored for playback at 29.97 fps, as phones and many high-speed tools save them."""
     path = Path(path)
     for name, value in (("fps", fps), ("recorded_fps", recorded_fps)):
-        if value is not None and not (math.isfinite(value) and value > 0):
-            raise InputError(name, f"must be a positive number of frames per second, got {value!r}")
+        if value is not None:
+            check_frame_rate(value, name)
     if fps is not None and recorded_fps is not None:
         raise InputError("recorded_fps", "give fps (the file has no rate) or recorded_fps (the file's rate is "
                                          "its playback rate), not both")
     if not path.exists():
         raise InputError(path, "does not exist")
     suffix = path.suffix.lower()
+    if not path.is_dir():
+        check_regular_file(path, "recording")
     if path.is_dir():
         source = _open_image_sequence(path)
     elif suffix in (".cih", ".cihx", ".mraw"):
@@ -105,6 +110,9 @@ def open_video(path: str | PathLike, fps: float | None = None, *, recorded_fps: 
         source = _open_video_file(path)
     else:
         raise InputError(path, f"is not a supported recording; expected {SUPPORTED_KINDS}")
+    if min(source.n_frames, source.height_px, source.width_px) < 1:
+        raise InputError(path, f"holds {source.n_frames} frames of {source.width_px}x{source.height_px} pixels; "
+                               "nothing to import")
     if fps is not None:
         if source.fps is None:
             source.fps = float(fps)
@@ -178,9 +186,14 @@ def _open_photron(path: Path) -> _PhotronSource:
                 raise InputError(cih_path, f"has no '{key}' field")
             return default
         try:
-            return kind(value)
+            if not isinstance(value, str):  # a .cihx element with children where a value belongs
+                raise ValueError
+            converted = kind(value)
         except ValueError:
             raise InputError(cih_path, f"field '{key}' = {value!r} is not a {kind.__name__}") from None
+        if kind is int and not -_HEADER_INT <= converted < _HEADER_INT:
+            raise InputError(cih_path, f"field '{key}' = {value!r} lies beyond the header's 32-bit integers")
+        return converted
 
     file_format = get("file_format", default="MRaw")
     if file_format.lower() != "mraw":
@@ -195,14 +208,19 @@ def _open_photron(path: Path) -> _PhotronSource:
         raise InputError(cih_path, f"Color Bit {stored_bits} is not supported; expected 8, 12 (packed) or 16")
     if stored_bits == 12 and (width * height * n_colors) % 2:
         raise InputError(cih_path, f"packed 12-bit frames of {width}x{height} do not fill whole bytes")
-    effective = min(get("effective_depth", int, stored_bits), stored_bits)
+    effective = get("effective_depth", int, stored_bits)
+    if not 8 <= effective <= 16:
+        raise InputError(cih_path, f"field '{_PHOTRON_FIELDS['effective_depth'][xml]}' = {effective}; expected 8 to "
+                                   "16 bits")
+    effective = min(effective, stored_bits)
     higher = get("effective_side", default="Lower").lower() == "higher"
     shift = 16 - effective if stored_bits == 16 and higher else 0
     if n_frames < 1 or width < 1 or height < 1:
         raise InputError(cih_path, f"declares {n_frames} frames of {width}x{height}; nothing to read")
-    record_rate, step = get("fps", float), get("save_step", int, 1)
-    if record_rate <= 0 or step < 1:
-        raise InputError(cih_path, f"declares a record rate of {record_rate:g} fps and a save step of {step}")
+    record_rate = check_frame_rate(get("fps", float), f"{cih_path}: {_PHOTRON_FIELDS['fps'][xml]}")
+    step = get("save_step", int, 1)
+    if step < 1:
+        raise InputError(cih_path, f"declares a save step of {step}; expected 1 or more")
 
     _check_mraw_size(mraw_path, cih_path, n_frames, width, height, n_colors, stored_bits)
     frame_shape = (height, width) if n_colors == 1 else (height, width, n_colors)
@@ -248,11 +266,11 @@ def _photron_pair(path: Path) -> tuple[Path, Path]:
         cih = siblings.get(".cihx") or siblings.get(".cih")
         if cih is None:
             raise InputError(path, f"has no {path.stem}.cih or {path.stem}.cihx header beside it")
-        return cih, path
+        return check_regular_file(cih, "Photron header"), check_regular_file(path, "Photron .mraw")
     mraw = siblings.get(".mraw")
     if mraw is None:
         raise InputError(path.with_suffix(".mraw"), f"is missing; {path.name} needs its frames beside it")
-    return path, mraw
+    return check_regular_file(path, "Photron header"), check_regular_file(mraw, "Photron .mraw")
 
 
 def _check_mraw_size(mraw: Path, cih: Path, n_frames: int, width: int, height: int, n_colors: int,
@@ -416,8 +434,7 @@ def _open_cine(path: Path) -> _CineSource:
     exact = float(setup.dFrameRate)
     if math.isfinite(exact) and exact > 0 and abs(exact - rate) <= 1.0:
         rate = exact
-    if rate <= 0:
-        raise InputError(path, f"FrameRate is {setup.FrameRate}; a .cine header says a positive rate")
+    rate = check_frame_rate(rate, f"{path}: FrameRate")
     real_bpp = int(setup.RealBPP)
     if packed:
         bit_depth = 12  # linearised
@@ -484,9 +501,13 @@ def _natural_key(path: Path) -> list[int | str]:
 def _read_image(path: Path) -> np.ndarray:
     """One image as (H, W) or RGB (H, W, 3); alpha is dropped."""
     # imdecode of the bytes, because cv2.imread cannot open non-ASCII paths on Windows.
-    image = cv2.imdecode(np.fromfile(path, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise InputError(path, "cannot be decoded as an image")
+    data = np.fromfile(check_regular_file(path, "image"), dtype=np.uint8)
+    try:
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    except cv2.error:
+        image = None
+    if image is None or image.size == 0:
+        raise InputError(path, f"cannot be decoded as an image ({data.size} bytes)")
     if image.ndim == 3:  # BGR(A) to RGB; grey + alpha to grey
         image = image[..., 0] if image.shape[2] <= 2 else np.ascontiguousarray(image[..., 2::-1])
     return image
@@ -507,10 +528,18 @@ class _NpySource(VideoSource):
 
 
 def _open_npy(path: Path) -> _NpySource:
+    # open_memmap, not np.load: np.load opens a zip (an .npz renamed) as an NpzFile, and the header is parsed
+    # here, so whatever a garbled one raises is caught; the mapping checks the file holds what the header says.
     try:
-        array = np.load(path, mmap_mode="r")
-    except ValueError as exc:  # pickled objects, or not a .npy at all
-        raise InputError(path, f"cannot be read as a plain .npy array ({exc})") from None
+        array = np.lib.format.open_memmap(path, mode="r")
+    except Exception as exc:  # numpy's header parser raises what the text makes it (TokenError, SyntaxError, ...)
+        raise InputError(path, f"cannot be read as a plain .npy array ({type(exc).__name__}: "
+                               f"{str(exc).splitlines()[0] if str(exc) else 'empty'})") from None
+    # A header that says fewer frames or pixels than the file holds would map part of it and drop the rest.
+    held = path.stat().st_size - array.offset
+    if held != array.nbytes:
+        raise InputError(path, f"its header says {array.shape} of {array.dtype} ({array.nbytes} bytes), but the file "
+                               f"holds {held} bytes after the header")
     if array.dtype not in (np.uint8, np.uint16) or not array.dtype.isnative:
         raise InputError(path, f"has dtype {array.dtype}; accepted: uint8 or uint16 (native byte order)")
     if not (array.ndim == 3 or (array.ndim == 4 and array.shape[3] == 3)):
@@ -580,7 +609,16 @@ def _open_video_file(path: Path) -> _VideoFileSource:
     # Three channels even when R = G = B: a grey-looking first frame does not prove a mono camera.
     return _VideoFileSource(
         path=path, n_frames=n_frames, height_px=first.shape[0], width_px=first.shape[1], n_colors=3,
-        dtype=np.dtype(np.uint8), bit_depth=8, fps=fps_property if fps_property > 0 else None,
+        dtype=np.dtype(np.uint8), bit_depth=8, fps=_container_rate(path, fps_property),
         trigger_frame=None, start_frame=None, camera_model=None,
         header={"fourcc": fourcc, "frame_count_property": count_property, "fps_property": fps_property},
     )
+
+
+def _container_rate(path: Path, fps_property: float) -> float | None:
+    """The container's frame rate, None where OpenCV reports none or one no camera films at (give fps then)."""
+    try:
+        return check_frame_rate(fps_property, str(path)) if fps_property else None
+    except InputError as exc:
+        log.warning("%s: ignoring the container's frame rate (%s); give the take's fps", path.name, exc.problem)
+        return None
