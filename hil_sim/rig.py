@@ -1,5 +1,8 @@
 """The simulated impact-test rig: one structure, one hammer, one camera and every sensor on one time base.
 
+Two rigs are built in: the arm (the default) and the plate (`make_rig("plate")`), each with its own sensors
+and hammer point (`rig_config`, `HAMMER`).
+
 Rig time is physical time in seconds, zero at the DAQ's START (its sample 0). Everything else is
 placed on it:
 
@@ -35,8 +38,8 @@ from odsplat.store import atomic_open
 from .camera import SimCamera, SimCameraConfig
 from .daq import register_source
 from .render import PinholeCamera
-from .scene import RigScene, build_scene
-from .structure import Hammer, Impact, check_unit_vector
+from .scene import RigScene, SceneSettings, build_scene
+from .structure import STRUCTURES, Hammer, Impact, PlateGeometry, check_unit_vector, make_structure
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +93,20 @@ DEFAULT_CAN_NODES = (
 )
 
 
+_PLATE = PlateGeometry()
+# Vertical accelerometers on the plate's top where every one of its six modes moves (none on a nodal line).
+PLATE_ACCELEROMETERS = (
+    Accelerometer("acc_a_z", _PLATE.point(0.80, 0.65), (0.0, 0.0, 1.0)),
+    Accelerometer("acc_b_z", _PLATE.point(0.40, 0.85), (0.0, 0.0, 1.0)),
+    Accelerometer("acc_c_z", _PLATE.point(0.62, 0.38), (0.0, 0.0, 1.0)),
+    Accelerometer("acc_d_z", _PLATE.point(0.13, 0.20), (0.0, 0.0, 1.0)),
+)
+PLATE_CAN_NODES = (CANNodeMount(1, _PLATE.point(0.30, 0.60)), CANNodeMount(2, _PLATE.point(0.70, 0.30)))
+# Each rig's hammer point and direction: the plate is hit straight down off its nodal lines.
+HAMMER = {"arm": (DEFAULT_HAMMER_POINT, DEFAULT_HAMMER_DIRECTION),
+          "plate": (_PLATE.point(0.22, 0.28), (0.0, 0.0, -1.0))}
+
+
 @dataclass(frozen=True)
 class RigConfig:
     """How the rig is instrumented. DAQ inputs are, in order: force, the accelerometers, the camera strobe."""
@@ -119,14 +136,31 @@ class RigConfig:
             raise InputError("RigConfig.trigger_level_n", f"must be positive, got {self.trigger_level_n}")
 
 
+def rig_config(structure: str = "arm", **kw) -> RigConfig:
+    """The instrumentation of a built-in rig: its accelerometers and CAN nodes; other RigConfig fields by keyword."""
+    if structure not in STRUCTURES:
+        raise InputError("structure", f"expected one of {', '.join(STRUCTURES)}; got {structure!r}")
+    if structure == "plate":
+        kw = {"accelerometers": PLATE_ACCELEROMETERS, "can_nodes": PLATE_CAN_NODES, **kw}
+    return RigConfig(**kw)
+
+
+def make_rig(structure: str = "arm", scene: SceneSettings | None = None, *, seed: int = 0) -> SimRig:
+    """A built-in rig by its structure's name ("arm" or "plate"), with its sensors and hammer, in a scene."""
+    config = rig_config(structure, seed=seed)
+    return SimRig(build_scene(make_structure(structure), scene), config)
+
+
 class SimRig:
     """The rig. Use it as the DAQ's source (`register`, then `simdaq://NAME`) and the CAN nodes' source."""
 
     def __init__(self, scene: RigScene | None = None, config: RigConfig | None = None, hammer: Hammer | None = None):
         self.scene = scene or build_scene()
         self.structure = self.scene.structure
-        self.config = config or RigConfig()
-        self.hammer = hammer or Hammer(DEFAULT_HAMMER_POINT, DEFAULT_HAMMER_DIRECTION, seed=self.config.seed)
+        name = getattr(self.structure, "name", "arm")
+        self.config = config or rig_config(name if name in STRUCTURES else "arm")
+        point, direction = HAMMER.get(name, HAMMER["arm"])
+        self.hammer = hammer or Hammer(point, direction, seed=self.config.seed)
         self.impacts: list[Impact] = []
         self.camera: SimCamera | None = None
         self._nodes = {n.node_id: n for n in self.config.can_nodes}
@@ -373,6 +407,7 @@ class SimRig:
             freqs_hz=st.freqs_hz,
             dampings=st.dampings,
             mode_names=np.array([m.name for m in st.modes]),
+            structure=getattr(st, "name", "arm"),
             modal_q_daq=mr.q.astype(np.float32),
             modal_qdd_daq=mr.qdd.astype(np.float32),
             sensor_names=np.array(names + [f"node{n.node_id}" for n in c.can_nodes]),
@@ -465,6 +500,7 @@ class TakeTruth:
     frame_time_s: np.ndarray | None = None  # exposure starts
     dropped_counters: np.ndarray | None = None
     modal_q_frames: np.ndarray | None = None          # (n_modes, n_frames) at mid-exposure
+    structure: str | None = None            # the rig's structure: "arm" or "plate" (None: written before it was)
     format_version: int = 1
 
     @property
@@ -527,7 +563,7 @@ class TakeTruth:
             for f in fields(cls):
                 if f.name in data:
                     value = data[f.name]
-                    kw[f.name] = value.item() if value.ndim == 0 and value.dtype.kind in "fiu" else value
+                    kw[f.name] = value.item() if value.ndim == 0 and value.dtype.kind in "fiuU" else value
                 elif f.default is not None or f.name == "format_version":
                     raise InputError(str(path), f"ground-truth field {f.name!r} is missing")
         return cls(**kw)
@@ -541,4 +577,5 @@ def truth_path(take_path: str | Path) -> Path:
 
 
 __all__ = ["Accelerometer", "CANNodeMount", "RigConfig", "SimRig", "TakeTruth", "truth_path", "TRUTH_SUFFIX",
-           "DEFAULT_ACCELEROMETERS", "DEFAULT_CAN_NODES"]
+           "DEFAULT_ACCELEROMETERS", "DEFAULT_CAN_NODES", "PLATE_ACCELEROMETERS", "PLATE_CAN_NODES", "HAMMER",
+           "make_rig", "rig_config"]

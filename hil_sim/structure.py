@@ -1,9 +1,11 @@
-"""A robot-arm-like structure with a known modal model, and its exact response to hammer impacts.
+"""Structures with known modal models, and their exact response to hammer impacts.
 
-The structure is a column on a base with an arm at the top (world frame: metres, z up, floor at
-z = 0). Its motion is the superposition of a few damped modes whose 3D shapes follow beam
-kinematics (plane sections stay plane). The response to half-sine hammer pulses is evaluated in
-closed form: there is no time-stepping error, so it is the ground truth for every other stage.
+Two rigs (world frame: metres, z up, floor at z = 0). The default, `ModalStructure` ("arm"), is a column on
+a base with an arm at the top; its motion is the superposition of a few damped modes whose 3D shapes follow
+beam kinematics (plane sections stay plane). The second, `PlateStructure` ("plate"), is a steel plate simply
+supported on four corner legs, with the closed-form Kirchhoff modes sin(m pi x / a) sin(n pi y / b). The
+response to half-sine hammer pulses is evaluated in closed form: there is no time-stepping error, so it is the
+ground truth for every other stage.
 """
 from __future__ import annotations
 
@@ -58,6 +60,18 @@ class Geometry:
     @property
     def arm_z_range_m(self) -> tuple[float, float]:
         return self.column_top_m - self.arm_height_m, self.column_top_m
+
+    @property
+    def floor_clear_radius_m(self) -> float:
+        """How far from the z axis the structure reaches over the floor: floor tags go 0.22 m beyond."""
+        return self.base_half_m
+
+    def tag_mounts(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Where the structure's own tags go, as (centre, image x axis, image y axis): both sides of the column."""
+        zc = self.base_height_m + 0.55 * self.column_length_m
+        off = self.column_half_m + 5e-4
+        ex, ez = np.eye(3)[0], np.eye(3)[2]
+        return [(np.array([0.0, -off, zc]), ex, -ez), (np.array([0.0, off, zc]), -ex, -ez)]
 
     def boxes(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         """Each part as (min corner, max corner)."""
@@ -139,12 +153,11 @@ class ModalResponse:
     qdd: np.ndarray
 
 
-@dataclass
-class ModalStructure:
-    """The structure's geometry and modal model; every response is exact (closed form)."""
+class _ModalModel:
+    """What every structure shares: its modes' frequencies and dampings, and the exact response built on
+    `mode_shapes(points_m)` (mass-normalised, (P, n_modes, 3)), which each structure defines."""
 
-    geometry: Geometry = field(default_factory=Geometry)
-    modes: tuple[Mode, ...] = DEFAULT_MODES
+    modes: tuple
 
     @property
     def n_modes(self) -> int:
@@ -159,33 +172,7 @@ class ModalStructure:
         return np.array([m.damping for m in self.modes])
 
     def mode_shapes(self, points_m: np.ndarray) -> np.ndarray:
-        """Mass-normalised 3D mode shapes at rest positions: (P, n_modes, 3), in 1/sqrt(kg)."""
-        p = np.atleast_2d(np.asarray(points_m, float))
-        g = self.geometry
-        x, y, z = p[:, 0], p[:, 1], p[:, 2]
-        H = g.column_length_m
-        s = np.clip((z - g.base_height_m) / H, 0.0, 1.0)
-        # Arm coordinate: 0 at the root and everywhere off the arm (the base reaches under it).
-        on_arm = z >= g.arm_z_range_m[0] - 1e-9
-        r = np.where(on_arm, np.clip((x - g.arm_root_x_m) / g.arm_length_m, 0.0, 1.0), 0.0)
-        z_arm = 0.5 * sum(g.arm_z_range_m)
-        out = np.zeros((len(p), self.n_modes, 3))
-        for k, m in enumerate(self.modes):
-            psi, dpsi = _cantilever(s, m.col_order)
-            dpsi = dpsi / H  # d/dz
-            twist = np.sin(0.5 * np.pi * s) * m.twist_rad
-            chi, dchi = _cantilever(r, m.arm_order)
-            dchi = dchi / g.arm_length_m  # d/dx
-            # Column: bending translation, torsion about z, and the rotation of plane sections.
-            ux = m.col_x * psi - twist * y
-            uy = m.col_y * psi + twist * x
-            uz = -(m.col_x * dpsi * x + m.col_y * dpsi * y)
-            # Arm (zero at and behind its root): bending in z and y, with plane sections.
-            uz = uz + m.arm_z * chi
-            uy = uy + m.arm_y * chi
-            ux = ux - m.arm_z * dchi * (z - z_arm) - m.arm_y * dchi * y
-            out[:, k] = np.stack([ux, uy, uz], axis=1) / np.sqrt(m.modal_mass_kg)
-        return out
+        raise NotImplementedError
 
     def participation(self, point_m: Sequence[float], direction: Sequence[float]) -> np.ndarray:
         """phi_r(point) . direction for every mode: how much a force there excites each mode."""
@@ -230,6 +217,177 @@ class ModalStructure:
         if kind not in power:
             raise InputError("kind", f"expected receptance, mobility or accelerance; got {kind!r}")
         return h * (1j * w) ** power[kind]
+
+
+@dataclass
+class ModalStructure(_ModalModel):
+    """The arm rig's geometry and modal model; every response is exact (closed form)."""
+
+    geometry: Geometry = field(default_factory=Geometry)
+    modes: tuple[Mode, ...] = DEFAULT_MODES
+    name: str = "arm"
+
+    def mode_shapes(self, points_m: np.ndarray) -> np.ndarray:
+        """Mass-normalised 3D mode shapes at rest positions: (P, n_modes, 3), in 1/sqrt(kg)."""
+        p = np.atleast_2d(np.asarray(points_m, float))
+        g = self.geometry
+        x, y, z = p[:, 0], p[:, 1], p[:, 2]
+        H = g.column_length_m
+        s = np.clip((z - g.base_height_m) / H, 0.0, 1.0)
+        # Arm coordinate: 0 at the root and everywhere off the arm (the base reaches under it).
+        on_arm = z >= g.arm_z_range_m[0] - 1e-9
+        r = np.where(on_arm, np.clip((x - g.arm_root_x_m) / g.arm_length_m, 0.0, 1.0), 0.0)
+        z_arm = 0.5 * sum(g.arm_z_range_m)
+        out = np.zeros((len(p), self.n_modes, 3))
+        for k, m in enumerate(self.modes):
+            psi, dpsi = _cantilever(s, m.col_order)
+            dpsi = dpsi / H  # d/dz
+            twist = np.sin(0.5 * np.pi * s) * m.twist_rad
+            chi, dchi = _cantilever(r, m.arm_order)
+            dchi = dchi / g.arm_length_m  # d/dx
+            # Column: bending translation, torsion about z, and the rotation of plane sections.
+            ux = m.col_x * psi - twist * y
+            uy = m.col_y * psi + twist * x
+            uz = -(m.col_x * dpsi * x + m.col_y * dpsi * y)
+            # Arm (zero at and behind its root): bending in z and y, with plane sections.
+            uz = uz + m.arm_z * chi
+            uy = uy + m.arm_y * chi
+            ux = ux - m.arm_z * dchi * (z - z_arm) - m.arm_y * dchi * y
+            out[:, k] = np.stack([ux, uy, uz], axis=1) / np.sqrt(m.modal_mass_kg)
+        return out
+
+
+
+@dataclass(frozen=True)
+class PlateGeometry:
+    """A rectangular plate (length along x, width along y, centred on the z axis) on four corner legs."""
+
+    length_m: float = 0.70
+    width_m: float = 0.50
+    thickness_m: float = 0.004
+    height_m: float = 0.45           # of its mid-plane above the floor
+    leg_half_m: float = 0.015
+
+    @property
+    def top_m(self) -> float:
+        return self.height_m + 0.5 * self.thickness_m
+
+    @property
+    def floor_clear_radius_m(self) -> float:
+        return 0.5 * float(np.hypot(self.length_m, self.width_m))
+
+    def boxes(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """The plate and its legs as (min corner, max corner); the legs stop 1 mm under the plate."""
+        a, b, h = 0.5 * self.length_m, 0.5 * self.width_m, 0.5 * self.thickness_m
+        out = {"plate": (np.array([-a, -b, self.height_m - h]), np.array([a, b, self.height_m + h]))}
+        leg = self.leg_half_m
+        for k, (sx, sy) in enumerate(((-1, -1), (1, -1), (1, 1), (-1, 1))):
+            cx, cy = sx * (a - leg), sy * (b - leg)
+            out[f"leg{k}"] = (np.array([cx - leg, cy - leg, 0.0]),
+                              np.array([cx + leg, cy + leg, self.height_m - h - 1e-3]))
+        return out
+
+    def point(self, xi: float, eta: float) -> tuple[float, float, float]:
+        """The point of the top surface at fractions (xi, eta) of the length and the width."""
+        return ((xi - 0.5) * self.length_m, (eta - 0.5) * self.width_m, self.top_m)
+
+    def tag_mounts(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Two tags on the plate's top, near opposite corners (where it moves least)."""
+        ex, ey = np.eye(3)[0], np.eye(3)[1]
+        lift = np.array([0.0, 0.0, 5e-4])
+        return [(np.asarray(self.point(xi, eta)) + lift, ex, -ey) for xi, eta in ((0.09, 0.86), (0.91, 0.14))]
+
+
+@dataclass(frozen=True)
+class PlateMode:
+    """Mode (m, n) of the simply supported plate: m half waves along its length, n across its width."""
+
+    freq_hz: float
+    damping: float
+    name: str
+    m: int
+    n: int
+    modal_mass_kg: float
+
+    @property
+    def omega(self) -> float:
+        return 2 * np.pi * self.freq_hz
+
+
+@dataclass(frozen=True)
+class PlateMaterial:
+    """Steel by default."""
+
+    youngs_modulus_pa: float = 210e9
+    density_kg_m3: float = 7850.0
+    poisson: float = 0.30
+
+
+PLATE_DAMPINGS = (0.006, 0.008, 0.010, 0.012, 0.012, 0.015)
+
+
+def plate_modes(geometry: PlateGeometry, material: PlateMaterial = PlateMaterial(), n_modes: int = 6,
+                dampings: Sequence[float] = PLATE_DAMPINGS) -> tuple[PlateMode, ...]:
+    """The n_modes lowest modes of a simply supported Kirchhoff plate:
+    f_mn = pi / 2 (m^2 / a^2 + n^2 / b^2) sqrt(D / (rho h)), D = E h^3 / (12 (1 - nu^2)); modal mass rho h a b / 4."""
+    if len(dampings) < n_modes:
+        raise InputError("plate_modes.dampings", f"expected {n_modes} damping ratios, got {len(dampings)}")
+    g, mat = geometry, material
+    h = g.thickness_m
+    d = mat.youngs_modulus_pa * h**3 / (12 * (1 - mat.poisson**2))
+    c = np.sqrt(d / (mat.density_kg_m3 * h))
+    pairs = sorted(((m, n) for m in range(1, 8) for n in range(1, 8)),
+                   key=lambda mn: mn[0]**2 / g.length_m**2 + mn[1]**2 / g.width_m**2)[:n_modes]
+    mass = mat.density_kg_m3 * h * g.length_m * g.width_m / 4
+    return tuple(PlateMode(float(0.5 * np.pi * (m**2 / g.length_m**2 + n**2 / g.width_m**2) * c), float(z),
+                           f"plate ({m},{n})", m, n, float(mass))
+                 for (m, n), z in zip(pairs, dampings))
+
+
+@dataclass
+class PlateStructure(_ModalModel):
+    """The plate rig: a 0.7 x 0.5 m, 4 mm steel plate simply supported on four legs, its six lowest modes
+    (59 to 338 Hz). Kirchhoff kinematics: w(x, y) out of plane, plane sections rotate (u = -z' dw/dx)."""
+
+    geometry: PlateGeometry = field(default_factory=PlateGeometry)
+    modes: tuple[PlateMode, ...] = ()
+    name: str = "plate"
+
+    def __post_init__(self) -> None:
+        if not self.modes:
+            self.modes = plate_modes(self.geometry)
+
+    def mode_shapes(self, points_m: np.ndarray) -> np.ndarray:
+        """Mass-normalised 3D mode shapes at rest positions: (P, n_modes, 3), in 1/sqrt(kg); zero off the plate."""
+        p = np.atleast_2d(np.asarray(points_m, float))
+        g = self.geometry
+        a, b = g.length_m, g.width_m
+        xi = (p[:, 0] + 0.5 * a) / a
+        eta = (p[:, 1] + 0.5 * b) / b
+        dz = p[:, 2] - g.height_m
+        on = ((xi >= -1e-9) & (xi <= 1 + 1e-9) & (eta >= -1e-9) & (eta <= 1 + 1e-9)
+              & (np.abs(dz) <= 0.5 * g.thickness_m + 1e-6))
+        xi, eta = np.clip(xi, 0.0, 1.0), np.clip(eta, 0.0, 1.0)
+        out = np.zeros((len(p), self.n_modes, 3))
+        for k, m in enumerate(self.modes):
+            sx, sy = np.sin(m.m * np.pi * xi), np.sin(m.n * np.pi * eta)
+            dwdx = m.m * np.pi / a * np.cos(m.m * np.pi * xi) * sy
+            dwdy = m.n * np.pi / b * sx * np.cos(m.n * np.pi * eta)
+            u = np.stack([-dz * dwdx, -dz * dwdy, sx * sy], axis=1)
+            out[:, k] = np.where(on[:, None], u, 0.0) / np.sqrt(m.modal_mass_kg)
+        return out
+
+
+STRUCTURES = ("arm", "plate")
+
+
+def make_structure(name: str) -> ModalStructure | PlateStructure:
+    """The structure of a rig by its name: "arm" (the default) or "plate"."""
+    if name == "arm":
+        return ModalStructure()
+    if name == "plate":
+        return PlateStructure()
+    raise InputError("structure", f"expected one of {', '.join(STRUCTURES)}; got {name!r}")
 
 
 def _half_sine_response(s: np.ndarray, duration_s: float, omega: float, zeta: float):
