@@ -11,7 +11,8 @@ if "odsplat.hil_sim" not in _serial.protocol_handler_packages:
 # The public surface, imported on first use (the package itself stays light for pyserial).
 _EXPORTS = {
     "SimBench": "bench", "SimBenchSettings": "bench", "parse_faults": "bench", "simulate_capture": "bench",
-    "RigConfig": "rig", "SimRig": "rig",
+    "RigConfig": "rig", "SimRig": "rig", "make_rig": "rig", "rig_config": "rig",
+    "SceneSettings": "scene", "SimCameraConfig": "camera",
 }
 __all__ = sorted(_EXPORTS)
 

@@ -28,6 +28,7 @@ from odsplat.acquisition import (
     CANHammerLink,
     CANSetup,
     HitQC,
+    QCLimits,
     SerialDAQ,
     SerialHammerLink,
     SessionReport,
@@ -43,7 +44,9 @@ from .can_nodes import SimAccelNode
 from .daq import register_url_handler
 from .hammer import HammerFaults, SimAutoHammer, SimHammerCAN, SimHammerSerial, SimHammerSettings
 from .render import PinholeCamera
-from .rig import SimRig, truth_path
+from .rig import SimRig, make_rig, truth_path
+from .scene import SceneSettings
+from .structure import STRUCTURES
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +84,22 @@ class SimBenchSettings:
     can_rate_hz: float | None = None  # the rig's CAN nodes, recorded at this rate (None: not wired to the session)
     can_range_m_s2: float = 490.3325  # +-50 g: the arm's node sees about 26 g from the default hit
     seed: int = 0
+    structure: str = "arm"            # the rig: "arm" or "plate" (hil_sim.structure), with its sensors and hammer
+    scene: SceneSettings = SceneSettings()  # tag sizes, the structure's texture
+
+    def __post_init__(self) -> None:
+        for name in ("width_px", "height_px"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 32 <= v <= 8192:
+                raise InputError(f"SimBenchSettings.{name}", f"expected whole pixels, 32 to 8192; got {v!r}")
+        if not 5.0 <= self.fov_deg <= 150.0:
+            raise InputError("SimBenchSettings.fov_deg", f"expected 5 to 150 degrees; got {self.fov_deg!r}")
+        if self.structure not in STRUCTURES:
+            raise InputError("SimBenchSettings.structure",
+                             f"expected one of {', '.join(STRUCTURES)}; got {self.structure!r}")
+        if not isinstance(self.scene, SceneSettings):
+            raise InputError("SimBenchSettings.scene", f"expected a SceneSettings; got {type(self.scene).__name__}")
+        self.camera.validate()
 
 
 class SimBench:
@@ -91,8 +110,14 @@ class SimBench:
         """`hammer`: None for the engineer's manual hammer, or "serial" / "can": an automatic hammer on the rig,
         reached by the real driver over a PTY or a python-can virtual bus (close() the bench when done)."""
         register_url_handler()
-        self.rig = rig or SimRig()
         self.settings = settings or SimBenchSettings()
+        s = self.settings
+        if rig is None:
+            rig = make_rig(s.structure, s.scene)
+        elif (rig.structure.name, rig.scene.settings) != (s.structure, s.scene):
+            raise InputError("SimBench", f"the rig given is the {rig.structure.name!r} in {rig.scene.settings}; the "
+                             f"settings ask for the {s.structure!r} in {s.scene} (give one or the other)")
+        self.rig = rig
         self.faults = dict(faults or {})
         bad = {k: v for k, v in self.faults.items() if v not in FAULTS}
         if bad:
@@ -247,15 +272,17 @@ def simulate_capture(out: str | Path, *, n_views: int = 27, n_frames: int = 100,
                      record_s: float = 0.3, pretrigger_s: float = 0.02, settings: SimBenchSettings | None = None,
                      rig: SimRig | None = None, faults: Mapping[int, str] | None = None,
                      max_attempts: int = 5, hammer: AutoHammerSettings | None = None,
-                     hammer_link: str = "serial") -> SessionReport:
+                     hammer_link: str = "serial", limits: QCLimits | None = None) -> SessionReport:
     """Record a whole capture on the simulated rig in this process: the guided session with the simulated
     engineer (`odsplat capture --sim --auto` without the command line). For tests, benches and the demo.
 
-    `hammer`: fire the simulated automatic hammer over `hammer_link` at these settings; None: the engineer hits."""
+    `hammer`: fire the simulated automatic hammer over `hammer_link` at these settings; None: the engineer hits.
+    `limits`: the session's QC limits (e.g. `QCLimits(min_tags=0)` where the floor tags are too small to find)."""
     from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
 
     with SimBench(rig, settings, faults=faults, hammer=hammer_link if hammer is not None else None) as bench:
         session = SessionSettings(name=Path(out).name, plan=PlanSettings(n_views=n_views), n_frames=n_frames,
                                   pretrigger_frames=pretrigger_frames, max_attempts=max_attempts,
-                                  trigger=HammerTrigger(pretrigger_s=pretrigger_s, record_s=record_s), hammer=hammer)
+                                  trigger=HammerTrigger(pretrigger_s=pretrigger_s, record_s=record_s), hammer=hammer,
+                                  limits=limits or QCLimits())
         return CaptureSession(out, session, bench).run()

@@ -58,6 +58,10 @@ class SimCameraConfig:
         if self.trigger_delay_s < 0 or self.trigger_jitter_s < 0:
             raise InputError("SimCameraConfig.trigger_delay_s", f"delay and jitter must be >= 0, got "
                              f"{self.trigger_delay_s} and {self.trigger_jitter_s}")
+        if not (np.isfinite(self.read_noise_e) and self.read_noise_e >= 0):
+            raise InputError("SimCameraConfig.read_noise_e", f"expected electrons >= 0, got {self.read_noise_e}")
+        if not (np.isfinite(self.full_well_e) and self.full_well_e >= 100):
+            raise InputError("SimCameraConfig.full_well_e", f"expected at least 100 electrons, got {self.full_well_e}")
         if self.blur_samples < 1:
             raise InputError("SimCameraConfig.blur_samples", f"must be at least 1, got {self.blur_samples}")
 

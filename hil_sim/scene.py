@@ -1,21 +1,24 @@
-"""The simulated rig's scene: the speckled structure, a floor with AprilTag boards, tags on the structure.
+"""The simulated rig's scene: the textured structure, a floor with AprilTag boards, tags on the structure.
 
 Everything is one textured triangle mesh with a texture atlas. Structure vertices carry their mode
 shapes, so the deformed mesh at any modal state is `rest + shapes @ q`, scaled by alpha for the
-natively magnified ground-truth renders.
+natively magnified ground-truth renders. `SceneSettings` varies what a rig of another lab would:
+the tags' size and the structure's texture (a speckle, value noise, or a repetitive checker).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from odsplat.errors import InputError
 from odsplat.manifest import TagLayout, TagPlacement
 
 from .render import TexturedMesh, lambert_shade
-from .structure import ModalStructure
+from .structure import ModalStructure, PlateStructure
 
 STRUCTURE, FLOOR, FLOOR_TAG, STRUCTURE_TAG = 1, 2, 3, 4
 # Colours for RGB scenes: a painted (orange) structure on a grey floor, black-and-white tags.
@@ -100,11 +103,67 @@ def tag_texture(tag_id: int, texels_per_cell: int) -> np.ndarray:
     return 0.05 + 0.9 * img
 
 
+def value_noise(shape: tuple[int, int], grain_texels: float, rng: np.random.Generator, *, octaves: int = 4,
+                low: float = 0.12, high: float = 0.88) -> np.ndarray:
+    """Procedural value noise: random values on lattices of 8, 4, 2 and 1 x `grain_texels` (halving amplitude),
+    smoothstep-interpolated, stretched to span [low, high] (1st to 99th percentile). Smoother and less
+    contrasty than the speckle: most of its energy sits at the coarse scales."""
+    h, w = shape
+    acc = np.zeros(shape)
+    total = 0.0
+    for o in range(octaves):
+        cell = max(grain_texels * 2 ** (octaves - 1 - o), 1.0)
+        amp = 2.0 ** -o
+        lattice = rng.random((int(np.ceil(h / cell)) + 2, int(np.ceil(w / cell)) + 2))
+        y, x = np.arange(h) / cell, np.arange(w) / cell
+        iy, ix = np.floor(y).astype(int), np.floor(x).astype(int)
+        fy, fx = y - iy, x - ix
+        sy, sx = (fy * fy * (3 - 2 * fy))[:, None], fx * fx * (3 - 2 * fx)
+        top = lattice[iy][:, ix] * (1 - sx) + lattice[iy][:, ix + 1] * sx
+        bottom = lattice[iy + 1][:, ix] * (1 - sx) + lattice[iy + 1][:, ix + 1] * sx
+        acc += amp * (top * (1 - sy) + bottom * sy)
+        total += amp
+    lo, hi = np.percentile(acc, [1, 99])
+    return np.clip(low + (high - low) * (acc - lo) / max(hi - lo, 1e-12), low, high).astype(np.float32)
+
+
+def checker(shape: tuple[int, int], cell_texels: float, *, low: float = 0.12, high: float = 0.88) -> np.ndarray:
+    """A repetitive pattern: a checkerboard of `cell_texels` squares. Every patch looks like its neighbours
+    one period away, as a regular paint pattern or a perforated sheet does."""
+    cell = max(int(round(cell_texels)), 1)
+    j, i = np.indices(shape)
+    return np.where((i // cell + j // cell) % 2 == 0, low, high).astype(np.float32)
+
+
+TEXTURES = ("speckle", "value_noise", "checker")
+
+
+@dataclass(frozen=True)
+class SceneSettings:
+    """What varies between rigs' scenes. The defaults are hil_sim's own scene, exactly."""
+
+    floor_tag_size_m: float = 0.12        # the floor tags' black square; ~32 px at 400x300 from 1.6 m, ~20 px at 256
+    structure_tag_size_m: float = 0.06
+    texture: str = "speckle"              # the structure's: "speckle", "value_noise" or "checker"
+    texture_grain_m: float = 0.004        # speckle grain, finest value-noise lattice, checker square
+
+    def __post_init__(self) -> None:
+        for name in ("floor_tag_size_m", "structure_tag_size_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and 0.016 <= v <= 0.3):
+                raise InputError(f"SceneSettings.{name}", f"expected 0.016 to 0.3 m (2 mm tag cells and up); got {v!r}")
+        if self.texture not in TEXTURES:
+            raise InputError("SceneSettings.texture", f"expected one of {', '.join(TEXTURES)}; got {self.texture!r}")
+        g = self.texture_grain_m
+        if not (isinstance(g, (int, float)) and math.isfinite(g) and 0.002 <= g <= 0.05):
+            raise InputError("SceneSettings.texture_grain_m", f"expected 2 to 50 mm; got {g!r}")
+
+
 @dataclass
 class RigScene:
     """The rig's mesh at rest, the mode shapes of its vertices, the atlas and the tag layout."""
 
-    structure: ModalStructure
+    structure: ModalStructure | PlateStructure
     rest_m: np.ndarray          # (V, 3)
     faces: np.ndarray           # (F, 3)
     uv_px: np.ndarray           # (V, 2)
@@ -113,6 +172,7 @@ class RigScene:
     atlas: np.ndarray
     tags: TagLayout
     light_dir: np.ndarray = field(default_factory=lambda: np.array([-0.4, -0.6, -1.0]))
+    settings: SceneSettings = field(default_factory=SceneSettings)
 
     def deformed(self, q: np.ndarray | None = None, alpha: float = 1.0) -> np.ndarray:
         """Vertex positions for modal coordinates q (n_modes,), with the motion multiplied by alpha."""
@@ -131,11 +191,15 @@ class RigScene:
         return np.unique(self.faces[moving])
 
 
-def build_scene(structure: ModalStructure | None = None, *, cell_m: float = 0.01, texel_m: float = 1e-3,
-                floor_half_m: float = 0.75, floor_tag_size_m: float = 0.12, structure_tag_size_m: float = 0.06,
-                rgb: bool = False, seed: int = 0) -> RigScene:
-    """The default rig: structure with a material-fixed speckle, floor with 8 tag boards, 2 tags on the column."""
+def build_scene(structure: ModalStructure | PlateStructure | None = None, settings: SceneSettings | None = None, *,
+                cell_m: float = 0.01, texel_m: float = 1e-3, floor_half_m: float = 0.75, rgb: bool = False,
+                seed: int = 0) -> RigScene:
+    """The rig's scene: the structure with a material-fixed texture, a floor with 8 tag boards around it (made
+    larger when they would not fit), 2 tags on the structure. Defaults: the arm, as hil_sim always had it."""
     structure = structure or ModalStructure()
+    settings = settings or SceneSettings()
+    floor_tag_size_m, structure_tag_size_m = settings.floor_tag_size_m, settings.structure_tag_size_m
+    grain = settings.texture_grain_m / texel_m
     rng = np.random.default_rng(seed)
     b = _Builder(rgb=rgb)
     ex, ey, ez = np.eye(3)
@@ -155,17 +219,24 @@ def build_scene(structure: ModalStructure | None = None, *, cell_m: float = 0.01
             sides = [s for i, s in enumerate(sides) if i != 3]                  # its root is in the column
             sides.append((np.array([lo[0], lo[1], lo[2]]), ex, ey, size[0], size[1]))  # underside, normal -z
         for origin, u, v, su, sv in sides:
-            tex = speckle((max(2, round(sv / texel_m)), max(2, round(su / texel_m))), 4.0, rng)
+            shape = (max(2, round(sv / texel_m)), max(2, round(su / texel_m)))
+            if settings.texture == "speckle":
+                tex = speckle(shape, grain, rng)
+            elif settings.texture == "value_noise":
+                tex = value_noise(shape, grain, rng)
+            else:
+                tex = checker(shape, grain)
             b.quad(origin, u, v, su, sv, cell_m, tex, STRUCTURE)
 
+    ring = structure.geometry.floor_clear_radius_m + 0.22
+    floor_half_m = max(floor_half_m, ring + floor_tag_size_m * _TAG_CELLS / 8 + 0.05)
     floor_texel = 2 * texel_m
     n = round(2 * floor_half_m / floor_texel)
     b.quad((-floor_half_m, floor_half_m, 0.0), ex, -ey, 2 * floor_half_m, 2 * floor_half_m, 2 * floor_half_m / 4,
            speckle((n, n), 6.0, rng, low=0.35, high=0.7), FLOOR)
 
     placements = []
-    cells = round(floor_tag_size_m / 8 / texel_m)
-    ring = structure.geometry.base_half_m + 0.22
+    cells = max(1, round(floor_tag_size_m / 8 / texel_m))
     for k in range(8):
         ang = np.pi / 4 * k
         centre = np.array([ring * np.cos(ang), ring * np.sin(ang), 5e-4])
@@ -173,12 +244,9 @@ def build_scene(structure: ModalStructure | None = None, *, cell_m: float = 0.01
         u = np.array([-np.sin(ang), np.cos(ang), 0.0])
         v = np.cross(u, ez)  # radially outward: the tag's top edge faces the structure
         placements.append(_add_tag(b, k, centre, u, v, floor_tag_size_m, cells, FLOOR_TAG))
-    g = structure.geometry
-    cells = round(structure_tag_size_m / 8 / texel_m)
-    zc = g.base_height_m + 0.55 * g.column_length_m
-    off = g.column_half_m + 5e-4
-    placements.append(_add_tag(b, 100, np.array([0.0, -off, zc]), ex, -ez, structure_tag_size_m, cells, STRUCTURE_TAG))
-    placements.append(_add_tag(b, 101, np.array([0.0, off, zc]), -ex, -ez, structure_tag_size_m, cells, STRUCTURE_TAG))
+    cells = max(1, round(structure_tag_size_m / 8 / texel_m))
+    for k, (centre, u, v) in enumerate(structure.geometry.tag_mounts()):
+        placements.append(_add_tag(b, 100 + k, centre, u, v, structure_tag_size_m, cells, STRUCTURE_TAG))
 
     atlas, uv = b.pack()
     rest = np.concatenate(b.vertices)
@@ -188,7 +256,7 @@ def build_scene(structure: ModalStructure | None = None, *, cell_m: float = 0.01
     moving = np.unique(faces[np.isin(object_id, (STRUCTURE, STRUCTURE_TAG))])
     shapes[moving] = structure.mode_shapes(rest[moving])
     layout = TagLayout(family="tag36h11", size_m=floor_tag_size_m, tags=placements)
-    return RigScene(structure, rest, faces, uv, object_id, shapes, atlas, layout)
+    return RigScene(structure, rest, faces, uv, object_id, shapes, atlas, layout, settings=settings)
 
 
 def _add_tag(b: _Builder, tag_id: int, centre: np.ndarray, u: np.ndarray, v: np.ndarray, size_m: float,

@@ -248,13 +248,20 @@ def qc(capture_dir: Path, force_band_n: tuple[float, float] | None) -> None:
                    "(double_hit, overload, dropped_packet, disconnect, dropped_frames; with the automatic hammer also "
                    "rebound, hammer_not_ready, hammer_stuck, hammer_no_response).")
 @click.option("--seed", type=int, default=0, show_default=True, help="With --sim: random seed of the rig and engineer.")
+@click.option("--structure", default="arm", show_default=True, help="With --sim: the rig, 'arm' or 'plate'.")
+@click.option("--texture", default="speckle", show_default=True,
+              help="With --sim: the structure's texture, 'speckle', 'value_noise' or 'checker'.")
+@click.option("--floor-tag-m", type=float, default=0.12, show_default=True,
+              help="With --sim: the floor tags' size (m): 0.12 is ~20 px at 256x256.")
+@click.option("--bit-depth", type=int, default=12, show_default=True,
+              help="With --sim: 12 (in 16-bit words, as Photron writes them) or 8.")
 @click.option("--window/--no-window", default=None, help="Live plots in a window (default: when a display exists).")
 def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: int, radius_m: float,
             elevation_deg: tuple[float, float], target_m: tuple[float, float, float], n_frames: int,
             pretrigger_frames: int, fps: float | None, record_s: float, pretrigger_s: float, trigger_n: float,
             force_band: tuple[float, float], static_photos: bool, max_attempts: int, size: str, hammer: str | None,
             hammer_force_n: float | None, hammer_tolerance: float | None, hammer_link: str, sim_faults: str, seed: int,
-            window: bool | None) -> None:
+            structure: str, texture: str, floor_tag_m: float, bit_depth: int, window: bool | None) -> None:
     """Guided multi-view capture into OUT: place the camera at each planned view, hit, QC, accept or redo.
 
     Stop at any time (even by a crash) and run the same command again to resume."""
@@ -289,13 +296,16 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
         limits=QCLimits(force_band_n=force_band), max_attempts=max_attempts, static_photos=static_photos,
         hammer=hammer_settings)
     if sim:
-        from .hil_sim import RigConfig, SimBench, SimBenchSettings, SimRig, parse_faults
+        from .hil_sim import SceneSettings, SimBench, SimBenchSettings, SimCameraConfig, make_rig, parse_faults
 
         try:
             w, h = (int(v) for v in size.lower().split("x"))
         except ValueError:
             raise InputError("--size", f"expected WxH in pixels, e.g. 400x300; got {size!r}") from None
-        bench = SimBench(SimRig(config=RigConfig(seed=seed)), SimBenchSettings(width_px=w, height_px=h, seed=seed),
+        scene = SceneSettings(floor_tag_size_m=floor_tag_m, texture=texture)
+        sim_settings = SimBenchSettings(width_px=w, height_px=h, seed=seed, structure=structure, scene=scene,
+                                        camera=SimCameraConfig(fps=2000.0, bit_depth=bit_depth))
+        bench = SimBench(make_rig(structure, scene, seed=seed), sim_settings,
                          faults=parse_faults(sim_faults), hammer=hammer_link if hammer_settings else None)
         if not auto:
             bench.place_camera = _asking_place(bench.place_camera)
