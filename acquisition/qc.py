@@ -45,6 +45,8 @@ class QCLimits:
         lo, hi = self.force_band_n
         if not 0 <= lo < hi:
             raise InputError("QCLimits.force_band_n", f"expected 0 <= low < high, got {self.force_band_n}")
+        if isinstance(self.min_tags, bool) or not isinstance(self.min_tags, int) or self.min_tags < 0:
+            raise InputError("QCLimits.min_tags", f"expected a whole number >= 0, got {self.min_tags!r}")
         if not 0 < self.double_hit_fraction < 1:
             raise InputError("QCLimits.double_hit_fraction", f"expected (0, 1), got {self.double_hit_fraction}")
 

@@ -526,7 +526,7 @@ class CaptureSession:
             return None, seen
         k = info.intrinsics
         pose = camera_pose_from_tags(detections, layout, k.matrix(), np.asarray(k.dist) if k.dist else None,
-                                     min_tags=self.settings.limits.min_tags)
+                                     min_tags=max(1, self.settings.limits.min_tags))
         if pose is None:
             return None, seen
         check = check_pose(view, pose.R, pose.t)

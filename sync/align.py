@@ -4,7 +4,8 @@ and each take's frames resampled onto it.
 Per take: the hammer pulse gives the impact onset to a fraction of a DAQ sample; the exposure strobe
 (when recorded) or the trigger frame refined by the images gives counter 0's exposure start. The
 take's `offset_s` is then the time from the impact onset to the middle of counter 0's exposure. Takes
-with no hit, two hits, no visible tags or unusable timing are excluded with the reason, not guessed.
+with no hit, two hits or unusable timing are excluded with the reason, not guessed. The AprilTags seen in the
+rest image are recorded (`tags_seen`); none seen is a flag, not an exclusion: timing does not need them.
 Results go to `derived/sync.json` (format in docs/sync.md), the aligned frames to `derived/sync/`.
 """
 from __future__ import annotations
@@ -269,8 +270,7 @@ class _TakeAnalysis:
                 if timing is None:
                     raise InputError(r.path,
                                      "image timing needs accelerometer channels (kind 'acceleration') in the take")
-                if (not np.isfinite(timing.sigma_frames) or timing.sigma_frames > 0.3 or timing.motion_z < 10
-                        or "image_fit_at_window_edge" in timing.flags):
+                if not _dates_frames(timing):
                     raise InputError(r.path,
                                      f"the images do not date the frames (sigma {timing.sigma_frames:.3g} frame, "
                                      f"motion {timing.motion_z:.1f} sd above noise; {'; '.join(timing.notes)})")
@@ -279,7 +279,12 @@ class _TakeAnalysis:
                 out.residual_frames = timing.sigma_frames
             elif timing is not None:
                 out.image_check_frames = (timing.frame0_start_s - out.frame0_daq_time_s) / period
-                if abs(out.image_check_frames) > 0.25:
+                if not _dates_frames(timing):
+                    # Images that barely see the motion (small, low-contrast, coarse texture) cannot check the strobe.
+                    out.flags.append("image_check_inconclusive")
+                    out.notes.append(f"the images do not date the frames well enough to check the strobe (sigma "
+                                     f"{timing.sigma_frames:.3g} frame, motion {timing.motion_z:.1f} sd above noise)")
+                elif abs(out.image_check_frames) > 0.25:
                     out.flags.append("image_disagrees")
                     out.notes.append(f"the images date the frames {out.image_check_frames:+.2f} frame from the strobe")
             if timing is not None:
@@ -324,7 +329,10 @@ class _TakeAnalysis:
         known = {t.id for t in self.layout.tags}
         self.out.tags_seen = sorted(d.id for d in dets if d.id in known)
         if not self.out.tags_seen:
-            raise InputError(self.r.path, "no AprilTag of the capture's layout is visible: the take cannot be located")
+            # Timing needs no tags: the take is synced, and the pose stage, which does need them, says so.
+            self.out.flags.append("no_tags_visible")
+            self.out.notes.append("no AprilTag of the capture's layout is visible in the rest image; timing does not "
+                                  "need them, locating the view does (the pose stage decides)")
 
     def _image_timing(self, counters, rest, rest_image, rest_std, period, start_guess):
         r = self.r
@@ -335,6 +343,13 @@ class _TakeAnalysis:
                              max_memory_bytes=self.s.max_memory_mb * 1e6)
         return fit_frame_times(motion, counters, period, basis, start_guess,
                                search_frames=self.s.search_frames, rest=rest, hit_time_s=self.out.hit_daq_time_s)
+
+
+def _dates_frames(timing) -> bool:
+    """Whether the images date the frames: a sigma under 0.3 frame, motion 10 sd above noise, not at the window's
+    edge."""
+    return (bool(np.isfinite(timing.sigma_frames)) and timing.sigma_frames <= 0.3 and timing.motion_z >= 10
+            and "image_fit_at_window_edge" not in timing.flags)
 
 
 # ---------------------------------------------------------------------------------------------- across takes

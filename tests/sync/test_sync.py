@@ -137,22 +137,27 @@ def _rewrite_take(src: Capture, dst: Capture, name: str, new_name: str, *, force
             w.finalize()
 
 
-def test_no_hit_and_no_tags_are_excluded_not_guessed(sim_capture, tmp_path):
+def test_no_hit_is_excluded_not_guessed_and_no_tags_is_a_flag(sim_capture, tmp_path):
     cap = _copy(sim_capture, tmp_path / "cap")
     _rewrite_take(sim_capture, cap, "v00_000", "nohit", force_scale=0.0)
     res = sync_capture(cap, SyncSettings(takes="all", write_frames=False, check_with_image=False), progress=False)
     nohit = next(t for t in res.takes if t.name == "nohit")
     assert nohit.status == "excluded" and nohit.error == "force: no hit found: the force peaks at 0 N, below 5 N"
-    # A layout that does not match the tags in view: nothing can be located, every take is excluded.
+    # A layout that does not match the tags in view: timing needs no tags, so every take with a hit is still
+    # synced, as well as before, and flagged for the pose stage (which cannot locate it).
+    before = {t.name: t.offset_s for t in res.ok}
     m = cap.manifest
     for tag in m.tags.tags:
         tag.id += 1000
     cap.save_manifest()
-    run = subprocess.run([sys.executable, "-m", "odsplat.cli", "sync", str(cap.root), "--no-frames"],
+    run = subprocess.run([sys.executable, "-m", "odsplat.cli", "sync", str(cap.root), "--no-frames", "--all-takes"],
                          capture_output=True, text=True, cwd=REPO, timeout=120)
-    assert run.returncode == 1
-    assert "0/5 takes synced" in run.stdout  # the four accepted, and the copy without a hit
-    assert "EXCLUDED: no AprilTag of the capture's layout is visible" in run.stdout
+    assert run.returncode == 0, run.stderr[-2000:]
+    after = load_sync(cap)
+    assert {t.name for t in after.ok} == set(before) and len(before) == 5  # all but the double hit and the no-hit copy
+    for t in after.ok:
+        assert "no_tags_visible" in t.flags and t.tags_seen == [] and t.offset_s == pytest.approx(before[t.name])
+    assert "EXCLUDED: no AprilTag" not in run.stdout
 
 
 def test_cli_sync_writes_json_and_plot(sim_capture, tmp_path):
