@@ -230,6 +230,8 @@ def qc(capture_dir: Path, force_band_n: tuple[float, float] | None) -> None:
 @click.option("--trigger-n", type=float, default=10.0, show_default=True, help="Hammer force that triggers (N).")
 @click.option("--force-band", type=(float, float), default=(20.0, 2000.0), show_default=True,
               help="Planned peak force (N); hits outside are redone.")
+@click.option("--min-tags", type=int, default=2, show_default=True,
+              help="Floor tags QC wants in view (0: none; sync and poses deal with views that show too few).")
 @click.option("--static-photos", is_flag=True, help="Also take one still photo per view into OUT/static/.")
 @click.option("--max-attempts", type=int, default=5, show_default=True, help="Takes per view before moving on.")
 @click.option("--size", default="400x300", show_default=True, help="With --sim: image size WxH in px.")
@@ -259,7 +261,8 @@ def qc(capture_dir: Path, force_band_n: tuple[float, float] | None) -> None:
 def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: int, radius_m: float,
             elevation_deg: tuple[float, float], target_m: tuple[float, float, float], n_frames: int,
             pretrigger_frames: int, fps: float | None, record_s: float, pretrigger_s: float, trigger_n: float,
-            force_band: tuple[float, float], static_photos: bool, max_attempts: int, size: str, hammer: str | None,
+            force_band: tuple[float, float], min_tags: int, static_photos: bool, max_attempts: int, size: str,
+            hammer: str | None,
             hammer_force_n: float | None, hammer_tolerance: float | None, hammer_link: str, sim_faults: str, seed: int,
             structure: str, texture: str, floor_tag_m: float, bit_depth: int, window: bool | None) -> None:
     """Guided multi-view capture into OUT: place the camera at each planned view, hit, QC, accept or redo.
@@ -293,8 +296,8 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
         name=out.name, plan=PlanSettings(views, radius_m, elevation_deg, target_m), n_frames=n_frames,
         pretrigger_frames=pretrigger_frames, fps=fps,
         trigger=HammerTrigger(level_n=trigger_n, pretrigger_s=pretrigger_s, record_s=record_s),
-        limits=QCLimits(force_band_n=force_band), max_attempts=max_attempts, static_photos=static_photos,
-        hammer=hammer_settings)
+        limits=QCLimits(force_band_n=force_band, min_tags=min_tags), max_attempts=max_attempts,
+        static_photos=static_photos, hammer=hammer_settings)
     if sim:
         from .hil_sim import SceneSettings, SimBench, SimBenchSettings, SimCameraConfig, make_rig, parse_faults
 
