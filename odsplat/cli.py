@@ -395,13 +395,15 @@ def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: 
               help="Folder of mask PNGs, TAKE.png and static/PHOTO.png; black = no features there.")
 @click.option("--min-registered", type=int, default=3, show_default=True,
               help="Fewer images registered by SfM: fall back to poses from the tags alone.")
+@click.option("--from", "from_file", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Known cameras: a TOML/JSON file of per-view name, K, R, t (world to camera, metres).")
 def poses(capture_dir: Path, no_static: bool, estimate_intrinsics: bool, masks_dir: Path | None,
-          min_registered: int) -> None:
+          min_registered: int, from_file: Path | None) -> None:
     """Camera poses of every view of CAPTURE_DIR in metres, floor z = 0: derived/poses.json, derived/points.npz."""
     cap, result = _stage(capture_dir, "poses", _given(
         no_static=("use_static", lambda v: not v),
         estimate_intrinsics=("fixed_intrinsics", lambda v: False if v else None),
-        masks_dir=("masks_dir", str), min_registered="min_registered"))
+        masks_dir=("masks_dir", str), min_registered="min_registered", from_file=("from_file", str)))
     for line in result.report_lines():
         click.echo(line)
     click.echo(f"wrote {cap.paths.poses_json} and {cap.paths.points_npz}")

@@ -5,8 +5,10 @@ corners in their own convention; `normalize_corners` is the one place that conve
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -15,6 +17,8 @@ from odsplat.errors import InputError
 from odsplat.geometry import rotation_angle_deg  # noqa: F401  (re-exported)
 from odsplat.manifest import TagLayout
 
+log = logging.getLogger(__name__)
+
 FAMILIES = {"tag36h11": cv2.aruco.DICT_APRILTAG_36h11}
 REFINEMENTS = {
     "none": cv2.aruco.CORNER_REFINE_NONE,
@@ -22,6 +26,15 @@ REFINEMENTS = {
     "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
     "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
 }
+AUTO = "auto"
+# The order "auto" prefers, most accurate first, by the corner errors measured on hil_sim renders with tags of
+# 11 to 35 px (docs/tags.md): apriltag on the 2x image has a median error of 0.05-0.08 px, contour on it 0.07-0.16,
+# apriltag at 1x 0.14-0.21, contour at 1x 0.12-0.20, none 0.4 and subpix 0.4-0.6.
+AUTO_ORDER = (("apriltag", 2), ("contour", 2), ("apriltag", 1), ("contour", 1), ("none", 2), ("none", 1),
+              ("subpix", 1))
+MAX_UPSAMPLED_PX = 4_000_000  # "auto" upsamples images of up to this many pixels after upsampling (2x of 1 MP)
+_CHECK_MAX_ERRORS = 3         # cells (of 64 in the tag and 36 of its quiet zone) read wrong at the final corners
+_CHECK_MIN_CONTRAST = 0.12    # white minus black cells, as a fraction of the 8-bit range
 
 
 @dataclass(frozen=True, eq=False)
@@ -30,6 +43,7 @@ class TagDetection:
 
     id: int
     corners_px: np.ndarray  # (4, 2) float64
+    method: str = ""        # which refiner found these corners, and on which image: "apriltag@2x", "contour@1x"
 
     def __post_init__(self) -> None:
         corners = np.array(self.corners_px, dtype=np.float64)
@@ -38,6 +52,7 @@ class TagDetection:
         corners.setflags(write=False)
         object.__setattr__(self, "id", int(self.id))
         object.__setattr__(self, "corners_px", corners)
+        object.__setattr__(self, "method", str(self.method))
 
 
 @dataclass(frozen=True, eq=False)
@@ -55,9 +70,10 @@ class CameraPose:
         return -self.R.T @ self.t
 
 
-def _check_refinement(refinement: str) -> None:
-    if refinement not in REFINEMENTS:
-        raise InputError("refinement", f"expected one of {sorted(REFINEMENTS)}, got {refinement!r}")
+def _check_refinement(refinement: str, *, auto: bool = False) -> None:
+    allowed = sorted(REFINEMENTS) + ([AUTO] if auto else [])
+    if refinement not in allowed:
+        raise InputError("refinement", f"expected one of {allowed}, got {refinement!r}")
 
 
 def normalize_corners(corners, refinement: str) -> np.ndarray:
@@ -135,19 +151,40 @@ def _to_gray_u8(image) -> np.ndarray:
     return np.ascontiguousarray(u8)
 
 
-def detect_tags(image: np.ndarray, *, family: str = "tag36h11", refinement: str = "apriltag") -> list[TagDetection]:
+def detect_tags(image: np.ndarray, *, family: str = "tag36h11", refinement: str = AUTO,
+                upsample: int = 1) -> list[TagDetection]:
     """Detect tags in a mono (H, W) or RGB (H, W, 3) image; corners normalised, detections sorted by id.
 
-    "apriltag" is the default because it is the most accurate refiner here, sharp or blurred (docs/tags.md); it
-    finds fewer very small tags (under about 22 px a side) than the contour-based ones.
+    "auto" (the default) runs OpenCV's refiners on the image and on the image upsampled 2x, and keeps for every tag
+    the corners of the most accurate of them (`AUTO_ORDER`) that pass a check: the tag's cells, read through the
+    homography of those corners, must give the tag's code, a black border and a white quiet zone. That finds tags
+    down to about 14 px a side; "apriltag" alone misses most under about 22 px (docs/tags.md). Each detection's
+    `method` says which refiner and image it came from.
+
+    A named refinement runs that refiner alone on the image upsampled by `upsample` (1 or 2), unchecked, as OpenCV
+    reports it (corners normalised).
 
     Integer images are scaled by the bit depth their values use (12-bit data in uint16 included); float images
     in [0, 1] are taken as they are, other float ranges are scaled to their maximum.
     """
     if family not in FAMILIES:
         raise InputError("family", f"expected one of {sorted(FAMILIES)}, got {family!r}")
-    _check_refinement(refinement)
+    _check_refinement(refinement, auto=True)
+    if upsample not in (1, 2) or isinstance(upsample, bool):
+        raise InputError("upsample", f"expected 1 or 2, got {upsample!r}")
+    if refinement == AUTO and upsample != 1:
+        raise InputError("upsample", "\"auto\" chooses the upsampling itself; give a named refinement with it")
     gray = _to_gray_u8(image)
+    if refinement != AUTO:
+        return sorted(_detect(gray, family, refinement, upsample), key=lambda d: d.id)
+    return _detect_auto(gray, family)
+
+
+def _detect(gray: np.ndarray, family: str, refinement: str, scale: int) -> list[TagDetection]:
+    """One refiner on the image upsampled by scale; corners normalised, then mapped back to the image's pixels."""
+    if scale != 1:
+        # cv2.resize maps pixel centres: x_up = scale (x + 0.5) - 0.5, so corners map back by the inverse.
+        gray = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=cv2.INTER_CUBIC)
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = REFINEMENTS[refinement]
     # One detector per call: OpenCV's detector writes to its parameters while detecting.
@@ -155,9 +192,93 @@ def detect_tags(image: np.ndarray, *, family: str = "tag36h11", refinement: str 
     corners, ids, _ = detector.detectMarkers(gray)
     if ids is None or len(ids) == 0:
         return []
-    found = [TagDetection(int(i), normalize_corners(np.asarray(c, np.float64).reshape(4, 2), refinement))
-             for c, i in zip(corners, ids.ravel())]
-    return sorted(found, key=lambda d: d.id)
+    out = []
+    for c, i in zip(corners, ids.ravel()):
+        c = normalize_corners(np.asarray(c, np.float64).reshape(4, 2), refinement)
+        if scale != 1:
+            c = (c + 0.5) / scale - 0.5
+        out.append(TagDetection(int(i), c, f"{refinement}@{scale}x"))
+    return out
+
+
+def _detect_auto(gray: np.ndarray, family: str) -> list[TagDetection]:
+    """Every tag any refiner finds, with the corners of the most accurate one that passes `_check_corners`.
+
+    The runs are lazy: the 2x runs (when the image is small enough) and contour at 1x, the widest net, go first;
+    the rest only run while some tag found so far has no corners that pass.
+    """
+    upsample = gray.size * 4 <= MAX_UPSAMPLED_PX
+    order = [(m, s) for m, s in AUTO_ORDER if s == 1 or upsample]
+    runs: dict[tuple[str, int], dict[int, TagDetection]] = {}
+
+    def run(key: tuple[str, int]) -> dict[int, TagDetection]:
+        if key not in runs:
+            runs[key] = {d.id: d for d in _detect(gray, family, *key)}
+        return runs[key]
+
+    for key in [k for k in order if k[1] == 2][:2] + [("contour", 1)]:
+        run(key)
+    chosen: dict[int, TagDetection] = {}
+    rejected: set[int] = set()
+    for key in order:
+        wanted = set().union(*(r.keys() for r in runs.values())) - set(chosen)
+        if not wanted:
+            break
+        for tag_id, det in run(key).items():
+            if tag_id in chosen:
+                continue
+            if _check_corners(gray, det.corners_px, tag_id, family):
+                chosen[tag_id] = det
+            else:
+                rejected.add(tag_id)
+    failed = rejected - set(chosen)
+    if failed:
+        log.debug("tags: %s found, but no refiner's corners pass the check; left out", sorted(failed))
+    return sorted(chosen.values(), key=lambda d: d.id)
+
+
+@lru_cache(maxsize=None)
+def _expected_cells(family: str, tag_id: int) -> np.ndarray:
+    """(10, 10) expected values, 0 black, 1 white: the tag's 8x8 cells inside a one-cell white quiet zone."""
+    code = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(FAMILIES[family]), tag_id, 8)
+    return np.pad(code > 127, 1, constant_values=True).astype(np.float64)
+
+
+_SUB = (np.arange(3) - 1) * 0.25  # 3x3 samples per cell, a quarter cell apart: a mean over its middle half
+
+
+def _check_corners(gray: np.ndarray, corners_px: np.ndarray, tag_id: int, family: str) -> bool:
+    """Whether these corners read as this tag: a convex quad whose cells, sampled through the homography from the
+    tag's 8x8 cell square to the corners, give the tag's code, its black border and a white quiet zone around it.
+
+    A corner off by half a cell greys the border and quiet-zone cells along its edges, so this also checks that
+    the four corners are consistent with the tag's grid."""
+    c = np.asarray(corners_px, np.float64)
+    e = np.roll(c, -1, axis=0) - c
+    cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+    if not (all(x > 0 for x in cross) or all(x < 0 for x in cross)):
+        return False
+    H = cv2.getPerspectiveTransform(np.float32([[0, 0], [8, 0], [8, 8], [0, 8]]), c.astype(np.float32))
+    centres = np.arange(10) - 0.5  # cell centres of the quiet zone and the tag, in cells from the black square's TL
+    gx = centres[None, :, None, None] + _SUB[None, None, None, :]
+    gy = centres[:, None, None, None] + _SUB[None, None, :, None]
+    gx, gy = np.broadcast_to(gx, (10, 10, 3, 3)), np.broadcast_to(gy, (10, 10, 3, 3))
+    pts = cv2.perspectiveTransform(np.stack([gx, gy], -1).reshape(-1, 1, 2).astype(np.float32), H).reshape(-1, 2)
+    h, w = gray.shape
+    inside = ((pts[:, 0] >= -0.5) & (pts[:, 0] <= w - 0.5) & (pts[:, 1] >= -0.5) & (pts[:, 1] <= h - 0.5))
+    inside = inside.reshape(10, 10, 9).all(-1)
+    if not inside[1:-1, 1:-1].all():
+        return False  # part of the tag itself is off the image
+    values = cv2.remap(gray.astype(np.float32), pts[:, 0].reshape(1, -1).copy(), pts[:, 1].reshape(1, -1).copy(),
+                       cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(10, 10, 9).mean(-1)
+    expected = _expected_cells(family, tag_id)
+    # Quiet-zone cells off the image are not read: a tag at the image's edge still counts.
+    values, expected = values[inside], expected[inside]
+    white, black = values[expected > 0.5].mean(), values[expected < 0.5].mean()
+    if white - black < 255.0 * _CHECK_MIN_CONTRAST:
+        return False
+    read = values > 0.5 * (white + black)
+    return int(np.sum(read != (expected > 0.5))) <= _CHECK_MAX_ERRORS
 
 
 def _camera(K, dist) -> tuple[np.ndarray, np.ndarray]:

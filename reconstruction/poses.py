@@ -24,7 +24,7 @@ from odsplat._deps import import_pycolmap
 from odsplat.contract import check, describe, plain
 from odsplat.errors import InputError, OdsplatError
 from odsplat.geometry import camera_center_m, rotation_angle_deg
-from odsplat.manifest import TagLayout, load_json
+from odsplat.manifest import TagLayout, load_json, load_toml
 from odsplat.store import Capture, atomic_open, atomic_write_text
 from odsplat.tags import TagDetection, camera_pose_from_tags, detect_tags
 
@@ -36,6 +36,10 @@ MIN_SIM3_VIEWS = 3           # a similarity needs three non-collinear camera cen
 _MAX_SIM3_HYPOTHESES = 2000  # LMedS tries every triple below this many, a random sample above
 _LMEDS_INLIER_SIGMAS = 2.5   # inlier threshold in robust standard deviations of the best hypothesis
 _STATIC_VIEW = re.compile(r"view_(\d+)$")
+_PEAK_THRESHOLD = 0.02 / 3     # COLMAP's SIFT default
+_MIN_PEAK_THRESHOLD = 0.002
+_MIN_SIM3_CORNERS = 12       # three tags' corners: the Sim3 from SfM's tag corners, else from camera centres
+_MIN_TAG_PAIR_CORNERS = 16     # a pair of images with no SIFT matches joins on four shared tags (COLMAP wants 15)
 
 
 # ---------------------------------------------------------------------------------------------- the dataclasses
@@ -47,20 +51,31 @@ class PoseSettings:
     fixed_intrinsics: bool | None = None   # None: fixed when the manifest has intrinsics
     masks_dir: Path | None = None          # DIR/<take>.png, DIR/static/<photo stem>.png; black = no features
     min_registered: int = 3                # fewer images registered by SfM: tag-only fallback
-    max_features: int = 4096               # SIFT features per image (the 400x300 px sim frames give about 2500)
+    max_features: int = 8192               # SIFT features per image (the 400x300 px sim frames give about 2500)
+    peak_threshold: float | None = None    # SIFT's; None: COLMAP's 0.0067, lower for small images (_peak_threshold)
+    tag_matches: bool = True               # floor tag corners (id, corner) join SfM as matches between the images
     frame: int = 0                         # which frame of each take (0: pretrigger, the structure at rest)
     seed: int = 0
     min_tags: int = 2                      # floor tags a view needs for a tag pose (one tag can flip, IPPE)
+    fallback_min_tags: int = 1             # ... where SfM does not pose it (the fallback, unregistered views)
     threads: int | None = None             # COLMAP's threads; None: the cores this process may use
     takes: str = "all"                     # rejected takes too: their first frame shows the structure at rest
+    from_file: Path | None = None          # known cameras (TOML or JSON, per view K, R, t): taken, not estimated
 
     def __post_init__(self) -> None:
         if self.masks_dir is not None:
             self.masks_dir = Path(self.masks_dir)
-        for name, low in (("min_registered", 2), ("max_features", 64), ("frame", 0), ("min_tags", 1)):
+        if self.from_file is not None:
+            self.from_file = Path(self.from_file)
+        for name, low in (("min_registered", 2), ("max_features", 64), ("frame", 0), ("min_tags", 1),
+                          ("fallback_min_tags", 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise InputError(f"PoseSettings.{name}", f"expected an integer >= {low}, got {value!r}")
+        if self.peak_threshold is not None and (isinstance(self.peak_threshold, bool) or not isinstance(
+                self.peak_threshold, (int, float)) or not 0 < self.peak_threshold < 1):
+            raise InputError("PoseSettings.peak_threshold", f"expected a number in (0, 1) or None, got "
+                             f"{self.peak_threshold!r}")
         if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
             raise InputError("PoseSettings.threads", f"expected an integer >= 1 or None, got {self.threads!r}")
 
@@ -72,7 +87,7 @@ class ViewPose:
     name: str             # the take name, or "static/view_03" for a static photo
     kind: str             # "take" | "static"
     view: int             # view index (-1 for a static photo whose name carries none)
-    source: str           # "sfm" | "tags"
+    source: str           # "sfm" | "tags" | "file"
     K: np.ndarray         # (3, 3) px, pixel (0, 0) centred at (0, 0)
     R: np.ndarray         # (3, 3) world to camera, X_cam = R X_world + t (OpenCV axes)
     t: np.ndarray         # (3,) metres
@@ -94,7 +109,7 @@ class PoseResult:
     points_m: np.ndarray          # (P, 3) world, metres
     points_color: np.ndarray      # (P, C) in [0, 1], C = 1 (mono) or 3 (RGB)
     points_error_px: np.ndarray   # (P,) mean reprojection error of each point
-    method: str                   # "sfm" | "tags"
+    method: str                   # "sfm" | "tags" | "file"
     sim3_scale: float | None      # metres per SfM unit
     sim3_R: np.ndarray | None     # world from SfM: X_world = scale R X_sfm + t
     sim3_t: np.ndarray | None
@@ -108,6 +123,9 @@ class PoseResult:
     sim3_outliers: list[str] = field(default_factory=list)  # views left out of it as outliers
     timings_s: dict[str, float] = field(default_factory=dict)
     settings: dict[str, Any] = field(default_factory=dict)   # the PoseSettings it was made with
+    unposed: dict[str, str] = field(default_factory=dict)    # image name -> why it has no pose
+    sim3_corners: int = 0         # tag corners the Sim3 was fitted to (0: fitted to camera centres)
+    source: str = ""              # where the poses come from: "estimated", or the file they were read from
 
     def view(self, name: str) -> ViewPose:
         for v in self.views:
@@ -126,6 +144,14 @@ class PoseResult:
         return rot, mm
 
     def report_lines(self) -> list[str]:
+        if self.method == "file":
+            rot, mm = self.tag_agreement()
+            lines = [f"poses: method file ({self.reason}); {len(self.views)}/{self.n_images} images posed"]
+            if len(rot):
+                lines.append(f"tags vs the file's poses over {len(rot)} views: rotation {_rms(rot):.3f} deg rms "
+                             f"({rot.max():.3f} max), centre {_rms(mm):.1f} mm rms ({mm.max():.1f} max)")
+            lines += [f"not posed: {name}: {why}" for name, why in self.unposed.items()]
+            return lines + [f"note: {n}" for n in self.notes]
         by_source = {s: sum(v.source == s for v in self.views) for s in ("sfm", "tags")}
         lines = [f"poses: method {self.method} ({self.reason}); {len(self.views)}/{self.n_images} images posed "
                  f"({by_source['sfm']} by SfM, {by_source['tags']} by tags); SfM registered "
@@ -136,8 +162,10 @@ class PoseResult:
             lines.append(f"reprojection: SfM mean {self.reproj_mean_px:.2f} px{spread}")
         if self.sim3_scale is not None:
             out = f"; outliers {', '.join(self.sim3_outliers)}" if self.sim3_outliers else ""
+            over = (f"{self.sim3_corners} triangulated tag corners" if self.sim3_corners
+                    else f"{len(self.sim3_views)} views")
             lines.append(f"metric frame: Sim3 scale {self.sim3_scale:.5f} m per SfM unit, residual "
-                         f"{1e3 * self.sim3_residual_m:.1f} mm rms over {len(self.sim3_views)} views{out}")
+                         f"{1e3 * self.sim3_residual_m:.1f} mm rms over {over}{out}")
         rot, mm = self.tag_agreement()
         if len(rot) and self.method == "sfm":
             lines.append(f"tags vs final poses over {len(rot)} views: rotation {_rms(rot):.3f} deg rms "
@@ -147,6 +175,7 @@ class PoseResult:
                          f"{float(np.median(self.points_error_px)):.2f} px")
         else:
             lines.append("points: none")
+        lines += [f"not posed: {name}: {why}" for name, why in self.unposed.items()]
         lines += [f"note: {n}" for n in self.notes]
         return lines
 
@@ -167,6 +196,9 @@ class PoseResult:
                 "scale": self.sim3_scale, "R": _plain(self.sim3_R), "t": _plain(self.sim3_t),
                 "residual_m": self.sim3_residual_m, "views": self.sim3_views, "outliers": self.sim3_outliers},
             "notes": self.notes,
+            "unposed": [{"name": name, "reason": why} for name, why in self.unposed.items()],
+            "sim3_corners": self.sim3_corners,
+            "source": self.source,
             "timings_s": self.timings_s,
             "report": self.report_lines(),
             "views": [{
@@ -213,7 +245,8 @@ class PoseResult:
                        sim3_outliers=[] if sim3 is None else list(sim3["outliers"]),
                        registered=int(doc["registered"]), n_images=int(doc["n_images"]), notes=list(doc["notes"]),
                        reproj_mean_px=doc.get("reproj_mean_px"), timings_s=dict(doc.get("timings_s", {})),
-                       settings=prov.settings)
+                       settings=prov.settings, unposed={u["name"]: u["reason"] for u in doc.get("unposed", [])},
+                       sim3_corners=int(doc.get("sim3_corners", 0)), source=str(doc.get("source", "")))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(path, f"malformed poses file ({exc!r}); run `odsplat poses` again") from None
 
@@ -495,7 +528,8 @@ def _tag_poses(images: Sequence[_Image], detections: Mapping[str, list[TagDetect
         if cam is None:
             continue
         pose = camera_pose_from_tags(detections[im.name], layout, cam.K, cam.cv_dist, min_tags=min_tags)
-        if pose is not None:
+        # A camera below the floor is one tag's other IPPE solution: no pose rather than a flipped one.
+        if pose is not None and pose.center_m[2] > 0:
             out[im.name] = _TagPose(pose.R, pose.t, pose.rms_px, len(pose.tag_ids))
     return out
 
@@ -560,6 +594,8 @@ class _Sfm:
     camera_ids: dict[tuple[int, int], int]  # image size -> COLMAP camera id
     rec: Any = None                          # the largest model, or None
     error: str | None = None
+    tag_matches: int = 0                     # tag-corner matches added to the verified ones
+    tag_keypoints: dict[str, dict[tuple[int, int], int]] = field(default_factory=dict)  # image -> (tag, k) -> kp
 
 
 def _pipeline_options(pycolmap, settings: PoseSettings, constant: set[int], all_constant: bool):
@@ -579,10 +615,62 @@ def _pipeline_options(pycolmap, settings: PoseSettings, constant: set[int], all_
     return opts
 
 
+def _peak_threshold(settings: PoseSettings, size: tuple[int, int]) -> float:
+    """SIFT's peak threshold: the setting, or COLMAP's default (0.0067) for images of 640 px or more on their long
+    side and proportionally less below (not under 0.002): small images give few features at the default."""
+    if settings.peak_threshold is not None:
+        return float(settings.peak_threshold)
+    return max(_MIN_PEAK_THRESHOLD, _PEAK_THRESHOLD * min(1.0, max(size) / 640.0))
+
+
+def _add_tag_matches(pycolmap, database: Path, corners: Mapping[str, Mapping[int, np.ndarray]],
+                     keypoints: dict[str, dict[tuple[int, int], int]]) -> int:
+    """Each floor tag corner seen in two images is a match: its id and corner index name it. The corners join
+    each image's keypoints, and the matches each pair's verified ones (a new pair of images when they share at
+    least four tags, which the mapper's 15-match minimum needs). `keypoints` gets, per image, the keypoint index
+    of each (tag id, corner). Returns the matches added."""
+    added = 0
+    with contextlib.closing(pycolmap.Database.open(database)) as db:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        index: dict[int, dict[tuple[int, int], int]] = {}
+        for name, tags in corners.items():
+            if name not in ids or not tags:
+                continue
+            image_id = ids[name]
+            kp = db.read_keypoints(image_id)
+            rows, where = [], {}
+            for tag_id in sorted(tags):
+                for k, (x, y) in enumerate(np.asarray(tags[tag_id], np.float64)):
+                    where[(tag_id, k)] = len(kp) + len(rows)
+                    rows.append([x + 0.5, y + 0.5, 1.0, 0.0, 0.0, 1.0])  # COLMAP: pixel (0, 0) centred at (0.5, 0.5)
+            db.update_keypoints(image_id, np.vstack([kp.reshape(-1, 6), np.array(rows)]).astype(np.float32))
+            index[image_id] = where
+            keypoints[name] = where
+        for a, b in itertools.combinations(sorted(index), 2):
+            common = sorted(set(index[a]) & set(index[b]))
+            if not common:
+                continue
+            pairs = np.array([[index[a][c], index[b][c]] for c in common], np.uint32)
+            if db.exists_two_view_geometry(a, b):
+                tvg = db.read_two_view_geometry(a, b)
+                tvg.inlier_matches = np.vstack([tvg.inlier_matches.reshape(-1, 2), pairs]).astype(np.uint32)
+                db.update_two_view_geometry(a, b, tvg)
+            elif len(common) >= _MIN_TAG_PAIR_CORNERS:
+                tvg = pycolmap.TwoViewGeometry()
+                tvg.config = pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
+                tvg.inlier_matches = pairs
+                db.write_two_view_geometry(a, b, tvg)
+            else:
+                continue
+            added += len(pairs)
+    return added
+
+
 def _run_sfm(pycolmap, images: Sequence[_Image], work: Path, masks: Path | None,
              priors: Mapping[tuple[int, int], _Intrinsics], fixed: set[tuple[int, int]], settings: PoseSettings,
-             timings: dict[str, float]) -> _Sfm:
-    """Features, exhaustive matching and incremental mapping; errors are caught into _Sfm.error."""
+             timings: dict[str, float], tag_corners: Mapping[str, Mapping[int, np.ndarray]] | None = None) -> _Sfm:
+    """Features, exhaustive matching (plus the tag corners' matches) and incremental mapping; errors are caught
+    into _Sfm.error."""
     database = work / "database.db"
     sfm = _Sfm(database, {})
     threads = _threads(settings)
@@ -603,6 +691,7 @@ def _run_sfm(pycolmap, images: Sequence[_Image], work: Path, masks: Path | None,
             extraction = pycolmap.FeatureExtractionOptions()
             extraction.num_threads = threads
             extraction.sift.max_num_features = settings.max_features
+            extraction.sift.peak_threshold = _peak_threshold(settings, size)
             # One call per image size, each with one camera: the images of one size come from one camera.
             pycolmap.extract_features(database, work / "images", image_names=names,
                                       camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
@@ -620,6 +709,8 @@ def _run_sfm(pycolmap, images: Sequence[_Image], work: Path, masks: Path | None,
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = settings.seed
         pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verification)
+        if tag_corners:
+            sfm.tag_matches = _add_tag_matches(pycolmap, database, tag_corners, sfm.tag_keypoints)
         timings["matching_s"] = time.perf_counter() - t0
         log.info("poses: exhaustive matching in %.1f s", timings["matching_s"])
 
@@ -710,6 +801,8 @@ def estimate_poses(capture: Capture, settings: PoseSettings | None = None) -> Po
     `run_poses`, the stage's entry, which does)
     """
     settings = settings or PoseSettings()
+    if settings.from_file is not None:
+        return poses_from_file(capture, settings.from_file, settings)
     pycolmap = import_pycolmap()
     layout = _floor_layout(capture)
     started = time.perf_counter()
@@ -743,7 +836,12 @@ def estimate_poses(capture: Capture, settings: PoseSettings | None = None) -> Po
 
     with _quiet_colmap(pycolmap):
         if n_images >= 2:
-            sfm = _run_sfm(pycolmap, images, work, masks, known, fixed, settings, timings)
+            corners = None
+            if settings.tag_matches:
+                floor = {t.id for t in layout.tags if not t.on_structure}
+                corners = {im.colmap_name: {d.id: d.corners_px for d in detections[im.name] if d.id in floor}
+                           for im in images}
+            sfm = _run_sfm(pycolmap, images, work, masks, known, fixed, settings, timings, corners)
         else:
             sfm = _Sfm(work / "database.db", {}, error="one image only: SfM needs two or more")
         registered = sfm.rec.num_reg_images() if sfm.rec is not None else 0
@@ -767,6 +865,109 @@ def estimate_poses(capture: Capture, settings: PoseSettings | None = None) -> Po
     for line in result.report_lines():
         log.info("%s", line)
     return result
+
+
+_FILE_KEYS = {"name", "K", "R", "t", "dist"}
+
+
+def poses_from_file(capture: Capture, path: str | Path, settings: PoseSettings | None = None) -> PoseResult:
+    """Known cameras (a calibrated rig, a robot-held camera) as the poses: a TOML or JSON file of `[[views]]`, each
+    with `name` (a take, or "static/STEM" for a photo), `K` (3x3 px, pixel (0, 0) centred at (0, 0)), `R` (3x3) and
+    `t` (3, metres), world to camera (X_cam = R X_world + t, OpenCV axes), and optionally `dist` (OpenCV's 4, 5 or 8
+    coefficients). Every bad field is named on its own line of one InputError. Images the file does not name are
+    listed as not posed; where a view sees floor tags, its tag pose is compared with the file's (tag_rot_deg)."""
+    settings = settings or PoseSettings()
+    path = Path(path)
+    started = time.perf_counter()
+    if path.suffix.lower() == ".toml":
+        doc = load_toml(path, missing="no such poses file")
+    elif path.suffix.lower() == ".json":
+        doc = load_json(path, missing="no such poses file")
+    else:
+        raise InputError(path, "expected a .toml or .json file of per-view K, R, t")
+    images, notes = _collect_images(capture, settings)
+    by_name = {im.name: im for im in images}
+    entries = doc.get("views") if isinstance(doc, dict) else None
+    if not isinstance(entries, list) or not entries:
+        raise InputError(path, "expected a non-empty list `views` ([[views]] in TOML), each with name, K, R, t")
+    problems: list[str] = []
+    parsed: dict[str, tuple[_Intrinsics, np.ndarray, np.ndarray]] = {}
+    for i, entry in enumerate(entries):
+        where = f"views[{i}]"
+        if not isinstance(entry, dict):
+            problems.append(f"{where}: expected a table with name, K, R, t")
+            continue
+        name = entry.get("name")
+        if not isinstance(name, str) or name not in by_name:
+            problems.append(f"{where}.name: {name!r} is not an image of this capture (expected a take name or "
+                            f"static/STEM, e.g. {images[0].name!r})" if images else f"{where}.name: no images")
+        elif name in parsed:
+            problems.append(f"{where}.name: {name!r} is given twice")
+        where = f"{where} ({name})" if isinstance(name, str) else where
+        for key in sorted(set(entry) - _FILE_KEYS):
+            problems.append(f"{where}.{key}: unknown field; expected {sorted(_FILE_KEYS)}")
+        K = _file_array(entry, "K", (3, 3), where, problems)
+        R = _file_array(entry, "R", (3, 3), where, problems)
+        t = _file_array(entry, "t", (3,), where, problems)
+        dist = np.asarray(entry.get("dist", []), dtype=object).ravel()
+        try:
+            dist = dist.astype(np.float64)
+            if dist.size not in (0, 4, 5, 8) or not np.all(np.isfinite(dist)):
+                raise ValueError
+        except (TypeError, ValueError):
+            problems.append(f"{where}.dist: expected 0, 4, 5 or 8 finite OpenCV coefficients, got "
+                            f"{entry.get('dist')!r}")
+            dist = None
+        if K is not None and (K[0, 0] <= 0 or K[1, 1] <= 0 or K[1, 0] != 0 or np.any(K[2] != [0, 0, 1])):
+            problems.append(f"{where}.K: expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+            K = None
+        if R is not None and (not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0):
+            problems.append(f"{where}.R: not a rotation (R R^T = I within 1e-6 and det +1 expected)")
+            R = None
+        if all(x is not None for x in (K, R, t, dist)) and name in by_name and name not in parsed:
+            parsed[name] = (_Intrinsics(K, tuple(float(d) for d in dist)), R, t)
+    if problems:
+        raise InputError(path, f"{len(problems)} bad field(s):\n  " + "\n  ".join(problems))
+    layout = capture.manifest.tags
+    views, unposed = [], {}
+    for im in images:
+        if im.name not in parsed:
+            unposed[im.name] = f"not in {path.name}"
+            continue
+        cam, R, t = parsed[im.name]
+        tp = None
+        if layout is not None:
+            tp = _tag_poses([im], {im.name: detect_tags(im.gray, family=layout.family)}, layout, {im.group: cam},
+                            settings.min_tags).get(im.name)
+        view = _view(im, "file", cam, R, t, None, tp)
+        if tp is not None:  # a file's pose against the tags: a check of the file
+            view.tag_rot_deg = rotation_angle_deg(tp.R, R)
+            view.tag_trans_mm = 1e3 * float(np.linalg.norm(camera_center_m(tp.R, tp.t) - camera_center_m(R, t)))
+        views.append(view)
+    result = PoseResult(views=views, points_m=np.zeros((0, 3)), points_color=np.zeros((0, 1), np.float32),
+                        points_error_px=np.zeros(0, np.float32), method="file", sim3_scale=None, sim3_R=None,
+                        sim3_t=None, sim3_residual_m=None, registered=0, n_images=len(images),
+                        notes=notes + ["no points: the poses were read, not estimated"],
+                        reason=f"known cameras from {path}", unposed=unposed, source=str(path))
+    result.timings_s = {"total_s": round(time.perf_counter() - started, 3)}
+    result.settings = plain(settings)
+    return result
+
+
+def _file_array(entry: Mapping[str, Any], key: str, shape: tuple[int, ...], where: str,
+                problems: list[str]) -> np.ndarray | None:
+    if key not in entry:
+        problems.append(f"{where}.{key}: missing")
+        return None
+    try:
+        a = np.array(entry[key], dtype=np.float64)
+    except (TypeError, ValueError):
+        a = None
+    if a is None or a.shape != shape or not np.all(np.isfinite(a)):
+        want = "x".join(map(str, shape))
+        problems.append(f"{where}.{key}: expected {want} finite numbers, got {entry[key]!r}")
+        return None
+    return a
 
 
 def run_poses(capture: Capture, settings: PoseSettings | None = None) -> PoseResult:
@@ -796,31 +997,59 @@ def _sfm_result(pycolmap, sfm: _Sfm, images: Sequence[_Image], detections, layou
                 intrinsics[size] = calibrated[0]
                 notes.append(calibrated[1])
     tag = _tag_poses(images, detections, layout, intrinsics, settings.min_tags)
+    lone = _tag_poses([im for im in images if im.name not in registered and im.name not in tag], detections, layout,
+                      intrinsics, settings.fallback_min_tags)
     both = [name for name in registered if name in tag]
     if len(both) < MIN_SIM3_VIEWS:
         return None, (f"only {len(both)} of the {len(registered)} SfM-registered images have a tag pose "
                       f"(>= {settings.min_tags} floor tags); the Sim3 needs {MIN_SIM3_VIEWS}")
-    src = np.array([registered[n].projection_center() for n in both])
-    dst = np.array([camera_center_m(tag[n].R, tag[n].t) for n in both])
-    try:
-        sim = fit_sim3(src, dst, seed=settings.seed)
-    except InputError as exc:
-        return None, f"the Sim3 from SfM to the tags failed: {exc.problem}"
-    if int(sim.inliers.sum()) < MIN_SIM3_VIEWS:
-        return None, "fewer than three views agree on the Sim3 from SfM to the tags"
-    outliers = [n for n, ok in zip(both, sim.inliers) if not ok]
-    for n, r in zip(both, sim.residuals_m):
-        if n in outliers:
-            notes.append(f"{n}: tag pose left out of the Sim3 (camera centre {1e3 * r:.0f} mm off)")
+    corners = _tag_corner_points(rec, sfm.tag_keypoints, layout)
+    if len(corners) >= _MIN_SIM3_CORNERS:
+        # The tag corners SfM triangulated, against where the layout puts them: many more and better points than
+        # the camera centres of the views' own tag poses.
+        src = np.array([xyz for xyz, _ in corners.values()])
+        dst = np.array([world for _, world in corners.values()])
+        try:
+            sim = fit_sim3(src, dst, seed=settings.seed)
+        except InputError as exc:
+            return None, f"the Sim3 from SfM's tag corners to the layout failed: {exc.problem}"
+        outliers = [f"tag {t} corner {k}" for (t, k), ok in zip(corners, sim.inliers) if not ok]
+        if outliers:
+            notes.append(f"tag corners left out of the Sim3: {', '.join(outliers)}")
+        sim_views = [n for n in registered if n in tag]
+        metric = f"{int(sim.inliers.sum())} triangulated tag corners"
+    else:
+        src = np.array([registered[n].projection_center() for n in both])
+        dst = np.array([camera_center_m(tag[n].R, tag[n].t) for n in both])
+        try:
+            sim = fit_sim3(src, dst, seed=settings.seed)
+        except InputError as exc:
+            return None, f"the Sim3 from SfM to the tags failed: {exc.problem}"
+        if int(sim.inliers.sum()) < MIN_SIM3_VIEWS:
+            return None, "fewer than three views agree on the Sim3 from SfM to the tags"
+        outliers = [n for n, ok in zip(both, sim.inliers) if not ok]
+        for n, r in zip(both, sim.residuals_m):
+            if n in outliers:
+                notes.append(f"{n}: tag pose left out of the Sim3 (camera centre {1e3 * r:.0f} mm off)")
+        sim_views = [n for n, ok in zip(both, sim.inliers) if ok]
+        metric = f"{int(sim.inliers.sum())} tag poses"
     rec.transform(pycolmap.Sim3d(sim.scale, pycolmap.Rotation3d(sim.R), sim.t))
+    if len(corners) >= _MIN_SIM3_CORNERS:
+        kept = {key for key, ok in zip(corners, sim.inliers) if ok}
+        constant = {sfm.camera_ids[size] for size in fixed}
+        held = _adjust_on_tags(pycolmap, rec, sfm.tag_keypoints, layout, kept, constant, _threads(settings))
+        notes.append(f"bundle adjustment with {len(kept)} floor tag corners ({held} points) held at their layout "
+                     "positions")
     rec.write(_fresh(work / "model"))
 
     reproj = _image_reprojection(rec)
     views = []
+    unposed: dict[str, str] = {}
+    matched = _verified_matches(pycolmap, sfm.database)
     for im in images:
         img = registered.get(im.name)
         cam = intrinsics.get(im.group)
-        tp = tag.get(im.name)
+        tp = tag.get(im.name) or lone.get(im.name)
         if img is not None:
             pose = img.cam_from_world()
             R, t = pose.rotation.matrix(), np.asarray(pose.translation, np.float64)
@@ -829,15 +1058,16 @@ def _sfm_result(pycolmap, sfm: _Sfm, images: Sequence[_Image], detections, layou
             notes.append(f"{im.name}: not registered by SfM; posed from its tags")
             views.append(_view(im, "tags", cam, tp.R, tp.t, tp.rms_px, tp))
         else:
-            notes.append(f"{im.name}: not registered by SfM and sees fewer than {settings.min_tags} floor tags; "
-                         "no pose")
+            unposed[im.name] = (f"not registered by SfM ({_matches_text(matched.get(im.colmap_name))}) and "
+                                f"{_tags_text(im, detections, layout, cam, settings.fallback_min_tags)}")
     xyz, color, error = _points(rec, n_colors)
-    reason = f"SfM registered {len(registered)}/{len(images)} images; metric by {int(sim.inliers.sum())} tag poses"
+    reason = f"SfM registered {len(registered)}/{len(images)} images; metric by {metric}"
     return PoseResult(views=views, points_m=xyz, points_color=color, points_error_px=error, method="sfm",
                       sim3_scale=sim.scale, sim3_R=sim.R, sim3_t=sim.t, sim3_residual_m=sim.residual_m,
                       registered=len(registered), n_images=len(images), notes=notes, reason=reason,
                       reproj_mean_px=float(rec.compute_mean_reprojection_error()),
-                      sim3_views=[n for n, ok in zip(both, sim.inliers) if ok], sim3_outliers=outliers), ""
+                      sim3_views=sim_views, sim3_outliers=outliers, unposed=unposed,
+                      sim3_corners=int(sim.inliers.sum()) if len(corners) >= _MIN_SIM3_CORNERS else 0), ""
 
 
 def _tags_result(pycolmap, sfm: _Sfm, images: Sequence[_Image], detections, layout: TagLayout,
@@ -854,16 +1084,19 @@ def _tags_result(pycolmap, sfm: _Sfm, images: Sequence[_Image], detections, layo
         else:
             notes.append(f"the {size[0]}x{size[1]} images have no known intrinsics and too few views with tags to "
                          "calibrate them; not posed")
-    tag = _tag_poses(images, detections, layout, intrinsics, settings.min_tags)
+    tag = _tag_poses(images, detections, layout, intrinsics, settings.fallback_min_tags)
     views = [_view(im, "tags", intrinsics[im.group], tag[im.name].R, tag[im.name].t, tag[im.name].rms_px,
                    tag[im.name]) for im in images if im.name in tag]
-    unposed = [im.name for im in images if im.name not in tag]
+    single = [im.name for im in images if im.name in tag and tag[im.name].n_tags == 1]
+    if single:
+        notes.append(f"{len(single)} image(s) posed from one floor tag alone (IPPE, less certain): "
+                     + ", ".join(single))
+    matched = _verified_matches(pycolmap, sfm.database) if sfm.database.exists() else {}
+    unposed = {im.name: _tags_text(im, detections, layout, intrinsics.get(im.group), settings.fallback_min_tags)
+               + f"; SfM: {_matches_text(matched.get(im.colmap_name))}" for im in images if im.name not in tag}
     if not views:
-        raise OdsplatError(f"{work.parent.parent}: no pose for any view: {why}, and no view sees {settings.min_tags} "
-                           "floor tags of the layout")
-    if unposed:
-        notes.append(f"{len(unposed)} image(s) see fewer than {settings.min_tags} floor tags and have no pose: "
-                     + ", ".join(unposed))
+        raise OdsplatError(f"{work.parent.parent}: no pose for any view: {why}, and no view sees "
+                           f"{settings.fallback_min_tags} floor tag(s) of the layout")
     xyz, color, error = np.zeros((0, 3)), np.zeros((0, n_colors), np.float32), np.zeros(0, np.float32)
     if sfm.camera_ids and sfm.database.exists():
         try:
@@ -878,7 +1111,96 @@ def _tags_result(pycolmap, sfm: _Sfm, images: Sequence[_Image], detections, layo
         notes.append("no points: the features were never matched")
     return PoseResult(views=views, points_m=xyz, points_color=color, points_error_px=error, method="tags",
                       sim3_scale=None, sim3_R=None, sim3_t=None, sim3_residual_m=None, registered=0,
-                      n_images=len(images), notes=notes, reason=f"fallback: {why}")
+                      n_images=len(images), notes=notes, reason=f"fallback: {why}", unposed=unposed)
+
+
+def _verified_matches(pycolmap, database: Path) -> dict[str, tuple[int, int]]:
+    """Image name (COLMAP's) -> (images it has verified matches with, those matches in all)."""
+    out: dict[str, tuple[int, int]] = {}
+    try:
+        with contextlib.closing(pycolmap.Database.open(database)) as db:
+            names = {im.image_id: im.name for im in db.read_all_images()}
+            for pair_id, n in zip(*db.read_two_view_geometry_num_inliers()):
+                if n <= 0:
+                    continue
+                for image_id in pycolmap.pair_id_to_image_pair(pair_id):
+                    pairs, total = out.get(names[image_id], (0, 0))
+                    out[names[image_id]] = (pairs + 1, total + int(n))
+    except Exception as exc:  # as in _run_sfm: a database COLMAP could not finish says nothing more
+        log.debug("poses: no match counts from %s: %r", database, exc)
+    return out
+
+
+def _matches_text(matched: tuple[int, int] | None) -> str:
+    if not matched:
+        return "no verified matches with any other image"
+    return f"{matched[1]} verified matches with {matched[0]} other image(s)"
+
+
+def _tags_text(im: _Image, detections: Mapping[str, list[TagDetection]], layout: TagLayout,
+               cam: _Intrinsics | None, need: int) -> str:
+    """Why the tags give this image no pose."""
+    if cam is None:
+        return f"no intrinsics for its size {im.group[0]}x{im.group[1]}"
+    floor = {t.id for t in layout.tags if not t.on_structure}
+    seen = sorted({d.id for d in detections[im.name] if d.id in floor})
+    if not seen:
+        return "no floor tag of the layout detected"
+    if len(seen) < need:
+        return f"{len(seen)} floor tag(s) detected ({seen}), {need} needed"
+    return f"its floor tags {seen} give no pose in front of the camera above the floor"
+
+
+def _tag_corner_points(rec, keypoints: Mapping[str, Mapping[tuple[int, int], int]], layout: TagLayout,
+                       point_ids: dict[tuple[int, int], set[int]] | None = None,
+                       ) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+    """(tag id, corner) -> (its SfM point, its layout position) for the floor tag corners SfM triangulated;
+    `point_ids` gets every SfM point of each corner (its track may have been split)."""
+    placed = {t.id: np.asarray(t.corners_m, np.float64) for t in layout.tags if not t.on_structure}
+    out: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+    for image in rec.images.values():
+        if not image.has_pose:
+            continue
+        for (tag_id, k), idx in keypoints.get(image.name, {}).items():
+            if tag_id not in placed or idx >= len(image.points2D):
+                continue
+            p2d = image.points2D[idx]
+            if not p2d.has_point3D():
+                continue
+            if point_ids is not None:
+                point_ids.setdefault((tag_id, k), set()).add(int(p2d.point3D_id))
+            if (tag_id, k) not in out:
+                out[(tag_id, k)] = (np.asarray(rec.points3D[p2d.point3D_id].xyz, np.float64), placed[tag_id][k])
+    return out
+
+
+def _adjust_on_tags(pycolmap, rec, keypoints: Mapping[str, Mapping[tuple[int, int], int]], layout: TagLayout,
+                    inliers: set[tuple[int, int]], constant_cameras: set[int], threads: int) -> int:
+    """One bundle adjustment of the metric model with the tag corners held at their layout positions: the tags'
+    corners are exact correspondences across the images and their positions are known, so they fix the model's
+    scale and its frame and pull each camera to them. Returns the corner points held."""
+    point_ids: dict[tuple[int, int], set[int]] = {}
+    corners = _tag_corner_points(rec, keypoints, layout, point_ids)
+    config = pycolmap.BundleAdjustmentConfig()
+    for image in rec.images.values():
+        if image.has_pose:
+            config.add_image(image.image_id)
+    held = 0
+    for key, ids in point_ids.items():
+        if key not in inliers:
+            continue
+        for pid in ids:
+            rec.points3D[pid].xyz = corners[key][1]
+            config.add_constant_point(pid)
+            held += 1
+    for camera_id in constant_cameras:
+        config.set_constant_cam_intrinsics(camera_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.UNSPECIFIED)  # the held corners fix it
+    options = pycolmap.BundleAdjustmentOptions()
+    options.refine_principal_point = False
+    options.ceres.solver_options.num_threads = threads
+    pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
+    return held
 
 
 def _view(im: _Image, source: str, cam: _Intrinsics, R: np.ndarray, t: np.ndarray, reproj: float | None,

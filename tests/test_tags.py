@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from odsplat.errors import InputError
-from odsplat.hil_sim.render import PinholeCamera, render
+from odsplat.hil_sim.render import PinholeCamera, expose, render
 from odsplat.hil_sim.scene import FLOOR_TAG, build_scene
 from odsplat.manifest import TagLayout
 from odsplat.tags import (
+    AUTO_ORDER,
     REFINEMENTS,
     CameraPose,
     TagDetection,
@@ -29,11 +30,14 @@ VIEWS = [((1.1, -1.3, 1.0), (0.15, 0.0, 0.3)),   # (eye, target) in metres
 #   subpix   0.31-0.43 / 0.72-1.31 / 1.54   none    0.45-0.46 / 0.75-1.08 / 1.36
 # subpix and none are not limited by a convention: cornerSubPix is pulled inwards at the tag's L-shaped corners
 # with the small windows these 20-55 px tags allow, and "none" corners are whole pixels.
+#   auto (apriltag on the 2x image for every tag here) 0.05-0.07 / 0.11-0.17 / 0.37
 CORNER_TOL_PX = {"apriltag": (0.15, 0.3, 1.0), "contour": (0.15, 0.45, 1.0),
-                 "subpix": (0.5, 1.5, 2.0), "none": (0.55, 1.2, 1.6)}
+                 "subpix": (0.5, 1.5, 2.0), "none": (0.55, 1.2, 1.6), "auto": (0.12, 0.25, 0.6)}
+METHODS = [*REFINEMENTS, "auto"]
 # Camera pose from all floor tags in a view (rotation deg, centre mm). Measured worst over the views:
-#   apriltag 0.018 deg / 0.49 mm, contour 0.014 / 0.52, subpix 0.08 / 2.7, none 0.13 / 3.6.
-POSE_TOL = {"apriltag": (0.05, 1.5), "contour": (0.05, 1.5), "subpix": (0.2, 5.0), "none": (0.2, 5.0)}
+#   apriltag 0.018 deg / 0.49 mm, contour 0.014 / 0.52, subpix 0.08 / 2.7, none 0.13 / 3.6, auto 0.013 / 0.36.
+POSE_TOL = {"apriltag": (0.05, 1.5), "contour": (0.05, 1.5), "subpix": (0.2, 5.0), "none": (0.2, 5.0),
+            "auto": (0.05, 1.5)}
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +68,7 @@ def views(scene):
 @pytest.fixture(scope="module")
 def detections(views):
     """detect_tags for every view and refinement, computed once."""
-    return {m: [detect_tags(img, refinement=m) for _, img, _ in views] for m in REFINEMENTS}
+    return {m: [detect_tags(img, refinement=m) for _, img, _ in views] for m in METHODS}
 
 
 def _u8(image: np.ndarray) -> np.ndarray:
@@ -90,7 +94,7 @@ def _raw_opencv(img: np.ndarray, refinement: str):
 # ------------------------------------------------------------------------------------------ corners
 
 
-@pytest.mark.parametrize("refinement", list(REFINEMENTS))
+@pytest.mark.parametrize("refinement", METHODS)
 def test_every_visible_floor_tag_is_found_at_its_projected_corners(scene, views, detections, refinement):
     placed = _placements(scene)
     errors = []
@@ -159,15 +163,21 @@ def test_normalize_corners_conventions():
 
 def test_any_image_type_gives_the_same_tags(views):
     cam, img, _ = views[0]
-    ref = detect_tags(img)
+    ref, ref_auto = detect_tags(img, refinement="apriltag"), detect_tags(img)
     as_float = img.astype(np.float32) / 255.0
     as_12bit = ((img.astype(np.uint32) * 4095 + 127) // 255).astype(np.uint16)
     as_rgb = np.repeat(img[:, :, None], 3, axis=2)
     for other in (as_float, as_12bit, as_rgb, as_float[:, :, None], as_float * 1000.0):
-        found = detect_tags(other)
+        found = detect_tags(other, refinement="apriltag")
         assert [d.id for d in found] == [d.id for d in ref]
         for a, b in zip(found, ref):
             assert np.abs(a.corners_px - b.corners_px).max() < 0.05
+        # "auto" reads the 2x image, whose 8-bit rounding follows the scaling: as_float * 1000 is stretched to its
+        # maximum. Its corners then move by up to 0.22 px (measured), within their 0.37 px error from the truth.
+        auto = detect_tags(other)
+        assert [d.id for d in auto] == [d.id for d in ref_auto]
+        for a, b in zip(auto, ref_auto):
+            assert np.abs(a.corners_px - b.corners_px).max() < 0.35
 
 
 def test_bad_input_names_the_argument(views):
@@ -202,7 +212,7 @@ def test_an_image_without_tags_gives_no_detections_and_no_pose(scene):
     sky = render(scene.mesh(), cam, scene.atlas, supersample=1, background=0.3).image
     blank = np.random.default_rng(0).integers(100, 140, (240, 320)).astype(np.uint8)
     for img in (_u8(sky), blank):
-        for m in REFINEMENTS:
+        for m in METHODS:
             assert detect_tags(img, refinement=m) == []
     assert camera_pose_from_tags([], scene.tags, cam.K) is None
 
@@ -210,7 +220,7 @@ def test_an_image_without_tags_gives_no_detections_and_no_pose(scene):
 # ------------------------------------------------------------------------------------------ poses
 
 
-@pytest.mark.parametrize("refinement", list(REFINEMENTS))
+@pytest.mark.parametrize("refinement", METHODS)
 def test_camera_pose_from_tags_recovers_the_known_pose(scene, views, detections, refinement):
     max_rot_deg, max_centre_mm = POSE_TOL[refinement]
     for (cam, _, _), found in zip(views, detections[refinement]):
@@ -274,3 +284,90 @@ def test_rotation_angle_deg():
     assert abs(rotation_angle_deg(tiny, np.eye(3)) - np.degrees(1e-7)) < 1e-12
     flip = cv2.Rodrigues(np.array([np.pi, 0.0, 0.0]))[0]
     assert abs(rotation_angle_deg(flip, np.eye(3)) - 180.0) < 1e-6
+
+
+# ------------------------------------------------------------------------------------------ small tags
+
+# Eight viewpoints around the rig, 1.6-1.9 m from its middle, 9-32 deg above it, rendered at four small sizes
+# (12-bit, with sensor noise): the floor tags are then 9 to 50 px a side.
+SMALL_VIEWS = [((1.6 * np.cos(a), 1.6 * np.sin(a), 0.55 + 0.15 * k % 0.9), (0.05, 0.0, 0.3))
+               for k, a in enumerate(np.linspace(0.3, 2 * np.pi + 0.3, 8, endpoint=False))]
+SMALL_SIZES = [(256, 192), (320, 240), (400, 300), (512, 384)]
+# Tag size bins (px, the square root of the projected area) and what "auto" must do in each: detection rate,
+# median / max corner error (px). Measured (docs/tags.md): 14 px 40/43 found, median 0.081, max 0.26;
+# 20 px 44/45, 0.069, 0.21; 30 px 20/20, 0.053, 0.16. apriltag alone finds 12/43, 43/45 and 20/20.
+SMALL_BINS = {14: ((12.5, 16.0), 0.85, 0.15, 0.6), 20: ((18.0, 22.0), 0.95, 0.12, 0.5),
+              30: ((27.0, 33.0), 0.95, 0.10, 0.4)}
+
+
+@pytest.fixture(scope="module")
+def small_tags(scene):
+    """(size px, tag id, true corners, auto detection or None, apriltag detection or None) per visible floor tag."""
+    rng = np.random.default_rng(7)
+    out = []
+    for width, height in SMALL_SIZES:
+        for eye, target in SMALL_VIEWS:
+            cam = PinholeCamera.look_at(eye, target, fov_deg=50, width_px=width, height_px=height)
+            result = render(scene.mesh(), cam, scene.atlas, supersample=3)
+            frame = expose(result.image, bit_depth=12, rng=rng)
+            auto = {d.id: d for d in detect_tags(frame)}
+            plain = {d.id: d for d in detect_tags(frame, refinement="apriltag")}
+            for tag in scene.tags.tags:
+                if tag.on_structure:
+                    continue
+                px = _truth_px(cam, tag)
+                probes = np.round(np.vstack([px + 0.15 * (px.mean(0) - px), px.mean(0)])).astype(int)
+                inside = np.all(probes >= 3) and np.all(probes < [width - 3, height - 3])
+                if not inside or not np.all(result.object_id[probes[:, 1], probes[:, 0]] == FLOOR_TAG):
+                    continue
+                d = px[2] - px[0], px[3] - px[1]
+                size = float(np.sqrt(0.5 * abs(d[0][0] * d[1][1] - d[0][1] * d[1][0])))
+                out.append((size, tag.id, px, auto.get(tag.id), plain.get(tag.id)))
+    return out
+
+
+@pytest.mark.parametrize("size_px", list(SMALL_BINS))
+def test_small_tags_are_found_with_accurate_corners(small_tags, size_px):
+    (lo, hi), min_rate, max_median, max_err = SMALL_BINS[size_px]
+    rows = [r for r in small_tags if lo <= r[0] < hi]
+    assert len(rows) >= 10, f"only {len(rows)} tags of {lo}-{hi} px in the views"
+    found = [r for r in rows if r[3] is not None]
+    err = np.concatenate([np.linalg.norm(r[3].corners_px - r[2], axis=1) for r in found])
+    bias = np.concatenate([r[3].corners_px - r[2] for r in found]).mean(axis=0)
+    plain = sum(r[4] is not None for r in rows)
+    methods = sorted({r[3].method for r in found})
+    print(f"{size_px} px tags ({lo}-{hi}): auto found {len(found)}/{len(rows)} (apriltag alone {plain}), corner "
+          f"error median {np.median(err):.3f} px, 90 % {np.percentile(err, 90):.3f}, max {err.max():.3f}, "
+          f"mean ({bias[0]:+.3f}, {bias[1]:+.3f}); by {methods}")
+    assert len(found) >= min_rate * len(rows) and len(found) >= plain
+    assert np.median(err) < max_median and err.max() < max_err
+    # The upsampled corners are mapped back to the image's pixel centres: no half-pixel (or quarter-pixel) offset.
+    assert np.all(np.abs(bias) < 0.08), bias
+    assert set(methods) <= {f"{m}@{s}x" for m, s in AUTO_ORDER}
+
+
+def test_auto_leaves_out_corners_that_do_not_read_as_the_tag(scene, views):
+    """The check behind "auto": true corners pass, corners off by half a cell or turned by one corner do not."""
+    from odsplat.tags import _check_corners, _to_gray_u8
+
+    cam, img, visible = views[0]
+    gray = _to_gray_u8(img)
+    placed = _placements(scene)
+    for tag_id in visible:
+        truth = _truth_px(cam, placed[tag_id])
+        assert _check_corners(gray, truth, tag_id, "tag36h11")
+        assert not _check_corners(gray, np.roll(truth, 1, axis=0), tag_id, "tag36h11")
+        assert not _check_corners(gray, truth, (tag_id + 1) % 8, "tag36h11")
+        shifted = truth + 0.6 * (truth[1] - truth[0]) / 8   # the whole quad half a cell to the side
+        assert not _check_corners(gray, shifted, tag_id, "tag36h11")
+
+
+def test_named_refinement_with_upsampling_and_bad_arguments(views):
+    _, img, _ = views[0]
+    up = detect_tags(img, refinement="contour", upsample=2)
+    assert up and all(d.method == "contour@2x" for d in up)
+    assert all(d.method == "none@1x" for d in detect_tags(img, refinement="none"))
+    with pytest.raises(InputError, match="^upsample: expected 1 or 2, got 3"):
+        detect_tags(img, refinement="contour", upsample=3)
+    with pytest.raises(InputError, match="^upsample: \"auto\" chooses"):
+        detect_tags(img, upsample=2)
