@@ -23,9 +23,11 @@ from .crosscheck import crosscheck_views
 from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_frf_hit, estimate_frf
 from .imagepoles import image_poles
+from .noise import noise_floor
 from .ods import SurfaceMotion, fit_decay, force_transform, receptance, stable_poles
 from .outputs import write_outputs
 from .result import AnalysisResult, Sensor, VideoModes
+from .verdict import crosscheck_verdict, mac_verdict
 
 log = logging.getLogger(__name__)
 
@@ -223,6 +225,7 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     t_min = 1.5e-3                                                                   # after a ~1 ms pulse
     n_s = at_sensors.shape[1]
     fit = fit_decay(t, np.concatenate([at_sensors, surface], axis=1), poles, t_min_s=t_min)  # one design matrix
+    noise = noise_floor(t, at_sensors, surface, fit)
     F = _sync_force(capture, force, poles)
     model_surface = model.displacement_m.reshape(len(t), -1)
     f_hz, zeta = stable_poles(t[t >= t_min], model_surface[t >= t_min], s.video_ranks, nyq * 0.8)
@@ -232,7 +235,7 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     residues = fit.residues(F)
     return VideoModes(poles, np.flatnonzero(use), residues[:, :n_s], motion.points_m,
                       residues[:, n_s:].reshape(len(poles), -1, 3), fit.r2[:n_s], fit.condition, f_hz, zeta, t,
-                      at_sensors, tuple(checks), shapes_from)
+                      at_sensors, tuple(checks), shapes_from, noise)
 
 
 # ---------------------------------------------------------------------------------------------- the stage
@@ -280,7 +283,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     if video is not None and len(video.mode_index) < modes.n_modes:
         above = [f"{f:.0f}" for i, f in enumerate(modes.freq_hz) if i not in set(video.mode_index.tolist())]
         notes.append(f"modes at {', '.join(above)} Hz are above the video's band: no video shape")
-    corr = None
+    corr = verdict = xverdict = None
     ods_f = np.asarray(s.ods_freq_hz if s.ods_freq_hz is not None else modes.freq_hz, float)
     rec = frf.to_receptance()
     lines = np.clip(np.searchsorted(rec.freq_hz, ods_f), 0, len(rec.freq_hz) - 1)
@@ -296,11 +299,19 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
         corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc, freq_b_hz=f_cam,
                          paired=True)      # each video residue was fitted with that accelerometer pole
         ods_video = receptance(video.sensor_residues, video.poles_rad_s, ods_f)
+        below = video.noise.below if video.noise is not None else np.zeros(len(f_acc), bool)
+        for r in np.flatnonzero(below):
+            notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): below the video's noise floor "
+                         f"({1e6 * video.noise.mode_amplitude_m[r]:.3g} µm against "
+                         f"{1e6 * video.noise.mode_floor_m[r]:.3g} µm at the sensors); its video shape is noise "
+                         "(MAC and scale not judged)")
+        verdict = mac_verdict(f_acc[[j for _, j in corr.pairs]], corr.pair_mac, below[[j for _, j in corr.pairs]])
+        xverdict = crosscheck_verdict(video.crosscheck)
         ods_surface = receptance(video.surface_residues, video.poles_rad_s, ods_f)             # (L, N, 3)
     for note in notes:
         log.info("note: %s", note)
     result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video,
-                            ods_surface, image, notes=tuple(notes))
+                            ods_surface, image, notes=tuple(notes), mac_verdict=verdict, crosscheck_verdict=xverdict)
     return _write(capture, result, s)
 
 

@@ -133,6 +133,17 @@ class DecayFit:
         return self.amplitudes / np.asarray(force_at_poles, complex)[:, None]
 
 
+def decay_design(times_s, poles_rad_s, *, offset: bool = True) -> np.ndarray:
+    """(T, 2R [+1]) the decay fit's columns at times_s: e^(sigma_r t) cos(w_r t), then the sines, then 1."""
+    tu = np.asarray(times_s, float).reshape(-1, 1)
+    poles = np.atleast_1d(np.asarray(poles_rad_s, complex))
+    env = np.exp(tu * poles.real[None])
+    cols = [env * np.cos(tu * poles.imag[None]), env * np.sin(tu * poles.imag[None])]
+    if offset:
+        cols.append(np.ones((len(tu), 1)))
+    return np.concatenate(cols, axis=1)
+
+
 def fit_decay(times_s, x, poles_rad_s, *, t_min_s: float = 0.0, offset: bool = True) -> DecayFit:
     """Least-squares amplitudes of damped sinusoids at fixed poles, on samples at t >= t_min_s (after the force
     pulse, so the response is free decay). x: (T,) or (T, M); one solve for every channel."""
@@ -148,12 +159,7 @@ def fit_decay(times_s, x, poles_rad_s, *, t_min_s: float = 0.0, offset: bool = T
     n_cols = 2 * len(poles) + int(offset)
     if use.sum() < n_cols:
         raise InputError("fit_decay: times_s", f"{use.sum()} samples after t_min_s={t_min_s:g} s for {n_cols} unknowns")
-    tu = t[use][:, None]
-    env = np.exp(tu * poles.real[None])
-    cols = [env * np.cos(tu * poles.imag[None]), env * np.sin(tu * poles.imag[None])]
-    if offset:
-        cols.append(np.ones((len(tu), 1)))
-    A = np.concatenate(cols, axis=1)
+    A = decay_design(t[use], poles, offset=offset)
     norm = np.linalg.norm(A, axis=0)
     coef, *_ = np.linalg.lstsq(A / norm, x2[use], rcond=None)
     coef = coef / norm[:, None]

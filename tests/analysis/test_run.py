@@ -54,16 +54,21 @@ def _truth(cap: Capture, name: str | None = None) -> TakeTruth:
 
 
 def _write_trajectories(cap: Capture, n_steps: int = 64, wander_fraction: float = 0.0,
-                        drop_mode: int | None = None) -> TakeTruth:
+                        drop_mode: int | None = None, noise_m: float = 0.0, mode_scale: dict[int, float] | None = None,
+                        pre_steps: int = 1, floor: bool = False) -> TakeTruth:
     """derived/reconstruction/trajectories.npz as a perfect reconstruction would leave it: hil_sim's surface
     points moving as the structure did, averaged over the synced takes (each hit a little different), on the
     impact-locked timeline, magnified ALPHA times. wander_fraction: that share of the points drift off as a
     per-timestep fit leaves a few Gaussians (a random walk growing to 10x the largest true motion).
     drop_mode: leave that mode out, as the linear model's basis does with a mode below its noise floor, and
     write measured_motion.npz beside it as the linear model would: every mode, on a coarse node graph (one point
-    in 5), with noise. Without drop_mode any measured_motion.npz goes, as `odsplat reconstruct` does."""
+    in 5), with noise. Without drop_mode any measured_motion.npz goes, as `odsplat reconstruct` does.
+    noise_m: white noise of that rms on every point, timestep and component (a real reconstruction's nodes read
+    14 um on hil_sim's static base, docs/analysis.md); mode_scale: {mode: factor} on that mode's motion (a weakly
+    excited mode); pre_steps: timesteps before the impact; floor: add points on the base's top face, which does not
+    move (the static background)."""
     grid = load_sync(cap).times_s                  # the reconstruction trains on the sync grid's frames
-    k0 = int(np.searchsorted(grid, 0.0)) - 1        # from the last frame before the impact
+    k0 = int(np.searchsorted(grid, 0.0)) - pre_steps   # from the last frame(s) before the impact
     times = grid[k0:k0 + n_steps]
     assert len(times) == n_steps
     qs = []
@@ -74,8 +79,16 @@ def _write_trajectories(cap: Capture, n_steps: int = 64, wander_fraction: float 
         qs.append(np.stack([np.interp(x, np.arange(n), row) for row in tr.modal_q_daq]))   # (R, T)
     points = _surface_points()
     q = np.mean(qs, axis=0)
+    for r, factor in (mode_scale or {}).items():
+        q[r] *= factor
     phi = ModalStructure().mode_shapes(points)                  # (P, R, 3)
     disp = np.einsum("prc,rt->tpc", phi, q)
+    if floor:
+        top = _floor_points()
+        points = np.concatenate([points, top])
+        disp = np.concatenate([disp, np.zeros((len(times), len(top), 3))], axis=1)
+    if noise_m:
+        disp = disp + np.random.default_rng(3).normal(0, noise_m, disp.shape)
     dest = cap.derived_dir / "reconstruction"
     dest.mkdir(parents=True, exist_ok=True)
     (dest / "measured_motion.npz").unlink(missing_ok=True)
@@ -111,6 +124,16 @@ def _surface_points(n_per_face: int = 600) -> np.ndarray:
                 p[:, axis] = side[axis]
                 out.append(p)
     return np.concatenate(out)
+
+
+def _floor_points(n: int = 1200) -> np.ndarray:
+    """Points on the base's top face around the column: the static background (hil_sim's base does not move)."""
+    lo, hi = ModalStructure().geometry.boxes()["base"]
+    clo, chi = ModalStructure().geometry.boxes()["column"]
+    p = np.random.default_rng(4).uniform(lo, hi, (3 * n, 3))
+    p[:, 2] = hi[2]
+    off = np.any((p[:, :2] < clo[:2] - 0.01) | (p[:, :2] > chi[:2] + 0.01), axis=1)
+    return p[off][:n]
 
 
 def _truth_shapes(tr: TakeTruth, points, dirs) -> np.ndarray:
