@@ -24,7 +24,7 @@ from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_frf_hit, estimate_frf
 from .imagepoles import image_poles
 from .noise import noise_floor
-from .ods import SurfaceMotion, fit_decay, force_transform, receptance, stable_poles
+from .ods import SurfaceMotion, default_ranks, fit_decay, force_transform, receptance, stable_poles
 from .outputs import write_outputs
 from .result import AnalysisResult, Sensor, VideoModes
 from .verdict import crosscheck_verdict, mac_verdict
@@ -47,7 +47,7 @@ class AnalyzeSettings:
     fmin_hz: float | None = None                     # modal fit band; None: 3 frequency lines
     fmax_hz: float | None = None                     # None: where the force spectrum is 20 dB down, at most
                                                      # 0.4 x the DAQ rate (analysis/band.py)
-    max_order: int = 120                             # a low, lightly damped mode settles late (23.5 Hz: from ~42)
+    max_order: int | None = None                     # LSCF; None: 120, at most half the band's lines (ema.py)
     approx_freq_hz: tuple[float, ...] | None = None  # pick these poles instead of automatic selection
     ods_freq_hz: tuple[float, ...] | None = None     # ODS lines; None: the modal frequencies
     video: bool = True                               # use derived/reconstruction when it is there
@@ -55,11 +55,12 @@ class AnalyzeSettings:
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
     outlier_factor: float | None = 2.0               # drop those whose motion strays this far (SurfaceMotion.at_points)
-    video_ranks: tuple[int, ...] = (16, 20, 24)       # the matrix pencil's, for the video's own poles
+    video_ranks: tuple[int, ...] | None = None       # the matrix pencil's, for the video's own poles; None: 16/20/24,
+    #                                                  lowered where the timesteps cannot hold them (ods.default_ranks)
     crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
     crosscheck_points: int = 30
     image_poles: bool = True                         # poles from the synced takes' raw frames (imagepoles.py)
-    image_ranks: tuple[int, ...] = (16, 20, 24)
+    image_ranks: tuple[int, ...] | None = None       # None: as video_ranks, from the frames after the impact
     image_pixel_fraction: float = 0.05               # the most textured pixels of each view
 
     def __post_init__(self) -> None:
@@ -67,10 +68,11 @@ class AnalyzeSettings:
             raise InputError("AnalyzeSettings.takes", f"expected 'accepted' or 'all'; got {self.takes!r}")
         check_fields(self, {
             "pretrigger_s": NON_NEGATIVE, "record_s": maybe(POSITIVE), "fmin_hz": maybe(NON_NEGATIVE),
-            "fmax_hz": maybe(POSITIVE), "max_order": COUNT, "approx_freq_hz": maybe(POSITIVE),
+            "fmax_hz": maybe(POSITIVE), "max_order": maybe(COUNT), "approx_freq_hz": maybe(POSITIVE),
             "ods_freq_hz": maybe(POSITIVE),
-            "min_opacity": FRACTION, "k_neighbours": COUNT, "video_ranks": COUNT,
-            "crosscheck_views": Range(at_least=0, integer=True), "crosscheck_points": COUNT, "image_ranks": COUNT,
+            "min_opacity": FRACTION, "k_neighbours": COUNT, "video_ranks": maybe(COUNT),
+            "crosscheck_views": Range(at_least=0, integer=True), "crosscheck_points": COUNT,
+            "image_ranks": maybe(COUNT),
             "image_pixel_fraction": Range(above=0, at_most=1)})
         if self.fmin_hz is not None and self.fmax_hz is not None and not self.fmin_hz < self.fmax_hz:
             raise InputError("AnalyzeSettings.fmin_hz",
@@ -228,7 +230,9 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     noise = noise_floor(t, at_sensors, surface, fit)
     F = _sync_force(capture, force, poles)
     model_surface = model.displacement_m.reshape(len(t), -1)
-    f_hz, zeta = stable_poles(t[t >= t_min], model_surface[t >= t_min], s.video_ranks, nyq * 0.8)
+    ranks = s.video_ranks or default_ranks(int((t >= t_min).sum()))
+    f_hz, zeta = stable_poles(t[t >= t_min], model_surface[t >= t_min], ranks, nyq * 0.8) if ranks \
+        else (np.zeros(0), np.zeros(0))
     checks = crosscheck_views(capture, model, max_views=s.crosscheck_views, n_points=s.crosscheck_points,
                               k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []

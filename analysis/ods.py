@@ -247,6 +247,17 @@ def pencil_poles(times_s, x, rank: int, *, t_min_s: float = 0.0, n_channels: int
     return _stable_upper(z, dt)
 
 
+PENCIL_RANKS = (16, 20, 24)   # six modes and the mean need 13; at 12 the low modes come out biased
+
+
+def default_ranks(n_samples: int) -> tuple[int, ...]:
+    """The pencil's ranks for a record of n_samples: PENCIL_RANKS, all lowered alike where the Hankel matrix (half
+    the samples as rows) cannot hold the highest (rank + 1 rows); () when it cannot hold rank 2."""
+    top = min(PENCIL_RANKS[-1], n_samples // 2 - 1)
+    shift = PENCIL_RANKS[-1] - top
+    return tuple(r - shift for r in PENCIL_RANKS if r - shift >= 2)
+
+
 POLE_METHODS = {"pencil": pencil_poles, "lsce": lsce_poles}
 
 
