@@ -23,9 +23,11 @@ from .crosscheck import crosscheck_views
 from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_frf_hit, estimate_frf
 from .imagepoles import image_poles
-from .ods import SurfaceMotion, fit_decay, force_transform, receptance, stable_poles
+from .noise import noise_floor
+from .ods import SurfaceMotion, default_ranks, fit_decay, force_transform, receptance, stable_poles
 from .outputs import write_outputs
 from .result import AnalysisResult, Sensor, VideoModes
+from .verdict import crosscheck_verdict, mac_verdict
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +47,7 @@ class AnalyzeSettings:
     fmin_hz: float | None = None                     # modal fit band; None: 3 frequency lines
     fmax_hz: float | None = None                     # None: where the force spectrum is 20 dB down, at most
                                                      # 0.4 x the DAQ rate (analysis/band.py)
-    max_order: int = 120                             # a low, lightly damped mode settles late (23.5 Hz: from ~42)
+    max_order: int | None = None                     # LSCF; None: 120, at most half the band's lines (ema.py)
     approx_freq_hz: tuple[float, ...] | None = None  # pick these poles instead of automatic selection
     ods_freq_hz: tuple[float, ...] | None = None     # ODS lines; None: the modal frequencies
     video: bool = True                               # use derived/reconstruction when it is there
@@ -53,11 +55,12 @@ class AnalyzeSettings:
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
     outlier_factor: float | None = 2.0               # drop those whose motion strays this far (SurfaceMotion.at_points)
-    video_ranks: tuple[int, ...] = (16, 20, 24)       # the matrix pencil's, for the video's own poles
+    video_ranks: tuple[int, ...] | None = None       # the matrix pencil's, for the video's own poles; None: 16/20/24,
+    #                                                  lowered where the timesteps cannot hold them (ods.default_ranks)
     crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
     crosscheck_points: int = 30
     image_poles: bool = True                         # poles from the synced takes' raw frames (imagepoles.py)
-    image_ranks: tuple[int, ...] = (16, 20, 24)
+    image_ranks: tuple[int, ...] | None = None       # None: as video_ranks, from the frames after the impact
     image_pixel_fraction: float = 0.05               # the most textured pixels of each view
 
     def __post_init__(self) -> None:
@@ -65,10 +68,11 @@ class AnalyzeSettings:
             raise InputError("AnalyzeSettings.takes", f"expected 'accepted' or 'all'; got {self.takes!r}")
         check_fields(self, {
             "pretrigger_s": NON_NEGATIVE, "record_s": maybe(POSITIVE), "fmin_hz": maybe(NON_NEGATIVE),
-            "fmax_hz": maybe(POSITIVE), "max_order": COUNT, "approx_freq_hz": maybe(POSITIVE),
+            "fmax_hz": maybe(POSITIVE), "max_order": maybe(COUNT), "approx_freq_hz": maybe(POSITIVE),
             "ods_freq_hz": maybe(POSITIVE),
-            "min_opacity": FRACTION, "k_neighbours": COUNT, "video_ranks": COUNT,
-            "crosscheck_views": Range(at_least=0, integer=True), "crosscheck_points": COUNT, "image_ranks": COUNT,
+            "min_opacity": FRACTION, "k_neighbours": COUNT, "video_ranks": maybe(COUNT),
+            "crosscheck_views": Range(at_least=0, integer=True), "crosscheck_points": COUNT,
+            "image_ranks": maybe(COUNT),
             "image_pixel_fraction": Range(above=0, at_most=1)})
         if self.fmin_hz is not None and self.fmax_hz is not None and not self.fmin_hz < self.fmax_hz:
             raise InputError("AnalyzeSettings.fmin_hz",
@@ -223,16 +227,19 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     t_min = 1.5e-3                                                                   # after a ~1 ms pulse
     n_s = at_sensors.shape[1]
     fit = fit_decay(t, np.concatenate([at_sensors, surface], axis=1), poles, t_min_s=t_min)  # one design matrix
+    noise = noise_floor(t, at_sensors, surface, fit)
     F = _sync_force(capture, force, poles)
     model_surface = model.displacement_m.reshape(len(t), -1)
-    f_hz, zeta = stable_poles(t[t >= t_min], model_surface[t >= t_min], s.video_ranks, nyq * 0.8)
+    ranks = s.video_ranks or default_ranks(int((t >= t_min).sum()))
+    f_hz, zeta = stable_poles(t[t >= t_min], model_surface[t >= t_min], ranks, nyq * 0.8) if ranks \
+        else (np.zeros(0), np.zeros(0))
     checks = crosscheck_views(capture, model, max_views=s.crosscheck_views, n_points=s.crosscheck_points,
                               k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []
     residues = fit.residues(F)
     return VideoModes(poles, np.flatnonzero(use), residues[:, :n_s], motion.points_m,
                       residues[:, n_s:].reshape(len(poles), -1, 3), fit.r2[:n_s], fit.condition, f_hz, zeta, t,
-                      at_sensors, tuple(checks), shapes_from)
+                      at_sensors, tuple(checks), shapes_from, noise)
 
 
 # ---------------------------------------------------------------------------------------------- the stage
@@ -280,7 +287,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     if video is not None and len(video.mode_index) < modes.n_modes:
         above = [f"{f:.0f}" for i, f in enumerate(modes.freq_hz) if i not in set(video.mode_index.tolist())]
         notes.append(f"modes at {', '.join(above)} Hz are above the video's band: no video shape")
-    corr = None
+    corr = verdict = xverdict = None
     ods_f = np.asarray(s.ods_freq_hz if s.ods_freq_hz is not None else modes.freq_hz, float)
     rec = frf.to_receptance()
     lines = np.clip(np.searchsorted(rec.freq_hz, ods_f), 0, len(rec.freq_hz) - 1)
@@ -296,11 +303,19 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
         corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc, freq_b_hz=f_cam,
                          paired=True)      # each video residue was fitted with that accelerometer pole
         ods_video = receptance(video.sensor_residues, video.poles_rad_s, ods_f)
+        below = video.noise.below if video.noise is not None else np.zeros(len(f_acc), bool)
+        for r in np.flatnonzero(below):
+            notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): below the video's noise floor "
+                         f"({1e6 * video.noise.mode_amplitude_m[r]:.3g} µm against "
+                         f"{1e6 * video.noise.mode_floor_m[r]:.3g} µm at the sensors); its video shape is noise "
+                         "(MAC and scale not judged)")
+        verdict = mac_verdict(f_acc[[j for _, j in corr.pairs]], corr.pair_mac, below[[j for _, j in corr.pairs]])
+        xverdict = crosscheck_verdict(video.crosscheck)
         ods_surface = receptance(video.surface_residues, video.poles_rad_s, ods_f)             # (L, N, 3)
     for note in notes:
         log.info("note: %s", note)
     result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video,
-                            ods_surface, image, notes=tuple(notes))
+                            ods_surface, image, notes=tuple(notes), mac_verdict=verdict, crosscheck_verdict=xverdict)
     return _write(capture, result, s)
 
 

@@ -29,6 +29,14 @@ class ViewCheck:
     motion_rms_px: float   # rms of the projected 3D motion: how much there was to see
     residual_rms_px: float  # rms of tracked - gain x projected
     force_ratio: float = 1.0  # this take's impulse (as synced) / the synced takes' mean
+    noise_px: float = float("nan")  # the tracks' rms on the same points before the impact, where nothing moves
+    #                                 (NaN: fewer than 3 frames there)
+
+    @property
+    def expected_correlation(self) -> float:
+        """The correlation an exact 3D motion would reach against tracks this noisy: m / sqrt(m^2 + noise^2)."""
+        m, n = self.motion_rms_px, self.noise_px
+        return float(m / np.hypot(m, n)) if np.isfinite(n) and m > 0 else float("nan")
 
 
 def _poses(capture: Capture) -> dict[str, dict]:
@@ -102,7 +110,19 @@ def check_view(frames: np.ndarray, frame_times_s: np.ndarray, motion: SurfaceMot
     gain = float(a @ b / max(b @ b, 1e-300))
     corr = float(np.corrcoef(a, b)[0, 1]) if np.std(a) > 0 and np.std(b) > 0 else float("nan")
     return ViewCheck(take, int(good.sum()), gain, corr, float(np.sqrt(np.mean(b ** 2))),
-                     float(np.sqrt(np.mean((a - gain * b) ** 2))), float(force_ratio))
+                     float(np.sqrt(np.mean((a - gain * b) ** 2))), float(force_ratio),
+                     _track_noise(frames, frame_times_s, uv[idx][sel][good], method, window_px))
+
+
+def _track_noise(frames: np.ndarray, frame_times_s: np.ndarray, uv: np.ndarray, method: str, window_px: int) -> float:
+    """The tracks' rms displacement over the frames before the impact (t < 0), against the first of them: what
+    the trackers read where nothing moves. NaN with fewer than 3 such frames."""
+    pre = np.flatnonzero(np.asarray(frame_times_s) < 0)
+    if len(pre) < 3:
+        return float("nan")
+    d = track_points(frames[pre], uv, method=method, window_px=window_px).displacement_px[1:]
+    d = d[np.isfinite(d)]
+    return float(np.sqrt(np.mean(d ** 2))) if d.size else float("nan")
 
 
 def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int = 6, n_points: int = 30,

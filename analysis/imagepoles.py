@@ -27,7 +27,7 @@ import numpy as np
 from odsplat.errors import InputError
 from odsplat.store import Capture
 
-from .ods import stable_poles
+from .ods import default_ranks, stable_poles
 
 MIN_SNR = 10.0   # a principal component is used when its power is this many times the noise floor's
 
@@ -73,10 +73,11 @@ def pixel_channels(frames: np.ndarray, times_s: np.ndarray, *, t_min_s: float, f
     return y / np.maximum(noise, 1e-6 * max(float(noise.max()), 1e-30))
 
 
-def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] = (16, 20, 24),
+def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] | None = None,
                 t_min_s: float = 1.5e-3, pixel_fraction: float = 0.05,
                 n_components: int = 16, progress: bool = True) -> ImagePoles | None:
-    """Poles from every synced take's aligned frames (`derived/sync/*.h5`); None when there are none."""
+    """Poles from every synced take's aligned frames (`derived/sync/*.h5`); None when there are none. ranks None:
+    the pencil's default for the frames after t_min_s (`default_ranks`)."""
     from tqdm import tqdm
 
     from odsplat.sync import AlignedTake, load_sync
@@ -103,7 +104,8 @@ def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] = (1
         gram = y @ y.T if gram is None else gram + y @ y.T
         n_pix += y.shape[1]
     tt = times[times >= t_min_s]
-    if len(tt) < 2 * max(ranks) + 2:               # the pencil's Hankel matrix needs rank + 1 rows
+    ranks = ranks or default_ranks(len(tt))
+    if not ranks or len(tt) < 2 * max(ranks) + 2:  # the pencil's Hankel matrix needs rank + 1 rows
         log.warning("no image poles: %d frames after %.1f ms", len(tt), 1e3 * t_min_s)
         return None
     w, v = np.linalg.eigh(gram)

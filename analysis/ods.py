@@ -133,6 +133,17 @@ class DecayFit:
         return self.amplitudes / np.asarray(force_at_poles, complex)[:, None]
 
 
+def decay_design(times_s, poles_rad_s, *, offset: bool = True) -> np.ndarray:
+    """(T, 2R [+1]) the decay fit's columns at times_s: e^(sigma_r t) cos(w_r t), then the sines, then 1."""
+    tu = np.asarray(times_s, float).reshape(-1, 1)
+    poles = np.atleast_1d(np.asarray(poles_rad_s, complex))
+    env = np.exp(tu * poles.real[None])
+    cols = [env * np.cos(tu * poles.imag[None]), env * np.sin(tu * poles.imag[None])]
+    if offset:
+        cols.append(np.ones((len(tu), 1)))
+    return np.concatenate(cols, axis=1)
+
+
 def fit_decay(times_s, x, poles_rad_s, *, t_min_s: float = 0.0, offset: bool = True) -> DecayFit:
     """Least-squares amplitudes of damped sinusoids at fixed poles, on samples at t >= t_min_s (after the force
     pulse, so the response is free decay). x: (T,) or (T, M); one solve for every channel."""
@@ -148,12 +159,7 @@ def fit_decay(times_s, x, poles_rad_s, *, t_min_s: float = 0.0, offset: bool = T
     n_cols = 2 * len(poles) + int(offset)
     if use.sum() < n_cols:
         raise InputError("fit_decay: times_s", f"{use.sum()} samples after t_min_s={t_min_s:g} s for {n_cols} unknowns")
-    tu = t[use][:, None]
-    env = np.exp(tu * poles.real[None])
-    cols = [env * np.cos(tu * poles.imag[None]), env * np.sin(tu * poles.imag[None])]
-    if offset:
-        cols.append(np.ones((len(tu), 1)))
-    A = np.concatenate(cols, axis=1)
+    A = decay_design(t[use], poles, offset=offset)
     norm = np.linalg.norm(A, axis=0)
     coef, *_ = np.linalg.lstsq(A / norm, x2[use], rcond=None)
     coef = coef / norm[:, None]
@@ -239,6 +245,17 @@ def pencil_poles(times_s, x, rank: int, *, t_min_s: float = 0.0, n_channels: int
     U = np.linalg.svd(H, full_matrices=False)[0][:, :rank]
     z = np.linalg.eigvals(np.linalg.lstsq(U[:-1], U[1:], rcond=None)[0])
     return _stable_upper(z, dt)
+
+
+PENCIL_RANKS = (16, 20, 24)   # six modes and the mean need 13; at 12 the low modes come out biased
+
+
+def default_ranks(n_samples: int) -> tuple[int, ...]:
+    """The pencil's ranks for a record of n_samples: PENCIL_RANKS, all lowered alike where the Hankel matrix (half
+    the samples as rows) cannot hold the highest (rank + 1 rows); () when it cannot hold rank 2."""
+    top = min(PENCIL_RANKS[-1], n_samples // 2 - 1)
+    shift = PENCIL_RANKS[-1] - top
+    return tuple(r - shift for r in PENCIL_RANKS if r - shift >= 2)
 
 
 POLE_METHODS = {"pencil": pencil_poles, "lsce": lsce_poles}

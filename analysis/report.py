@@ -182,15 +182,45 @@ def _video(doc: dict) -> str:
                                 f"{int(im.get('n_pixels', 0))} pixels, {_num(window[0], '.1f', 1e3)} to "
                                 f"{_num(window[-1], '.1f', 1e3)} ms; matrix pencil)",
                                 "No pole was found stable in the raw frames alone."))
+    out.append(_noise(v))
     checks = v.get("crosscheck") or []
     if checks:
         out.append("<p>The 3D motion projected into single views against 2D tracks of their raw frames "
                    "(gain 1: the reconstruction moves as much as the images show):</p>")
-        out.append(_table(["take", "points", "gain", "correlation", "motion rms (px)", "impulse ratio"],
+        out.append(_verdict(v.get("crosscheck_verdict")))
+        out.append(_table(["take", "points", "gain", "correlation", "motion rms (px)", "track noise (px)",
+                           "impulse ratio"],
                           [[escape(str(c.get("take", ""))), str(c.get("n_points", "")), _num(c.get("gain"), ".2f"),
                             _num(c.get("correlation"), ".2f"), _num(c.get("motion_rms_px"), ".3f"),
-                            _num(c.get("force_ratio"), ".2f")] for c in checks]))
+                            _num(c.get("noise_px"), ".4f"), _num(c.get("force_ratio"), ".2f")] for c in checks]))
     return "".join(out)
+
+
+def _verdict(v) -> str:
+    """A verdict's line, coloured by its status."""
+    if not isinstance(v, dict) or "line" not in v:
+        return ""
+    status = str(v.get("status", ""))
+    css = {"met": "ok", "not met": "bad"}.get(status, "meta")
+    return f'<p class="{css}"><b>Verdict ({escape(status)}):</b> {escape(str(v["line"]))}</p>'
+
+
+def _noise(v: dict) -> str:
+    """The video's noise floor: where it was measured, and in metres."""
+    nf = v.get("noise_floor")
+    if not isinstance(nf, dict):
+        return ""
+    parts = [f"the motion the modes do not explain, {_num(nf.get('sigma_um'), '.3g')} &micro;m per point and "
+             "timestep (median over the points)"]
+    if nf.get("n_static_points"):
+        parts.append(f"{int(nf['n_static_points'])} static points (the modes explain none of their motion): "
+                     f"{_num(nf.get('static_sigma_um'), '.3g')} &micro;m")
+    if nf.get("pre_impact_sigma_um") is not None:
+        parts.append(f"{int(nf.get('n_pre_impact', 0))} timesteps before the impact: "
+                     f"{_num(nf.get('pre_impact_sigma_um'), '.3g')} &micro;m")
+    return ("<p>The video's noise floor, measured where nothing moves: " + "; ".join(parts)
+            + f". A mode needs {_num(nf.get('floor_sigmas'), 'g')} noise standard deviations of amplitude at the "
+            "sensors (an expected MAC of 0.9) to be judged; the correlation table gives each mode's.</p>")
 
 
 def _poles_table(modes: list[dict], fv, zv, title: str, none: str) -> str:
@@ -225,13 +255,20 @@ def _correlation(doc: dict) -> str:
             a, b = p.get("a"), p.get("b")
             ma = fitted[a] if isinstance(a, int) and a < len(fitted) else a
             mb = fitted[b] if isinstance(b, int) and b < len(fitted) else b
-            rows.append([_mode_name(modes, ma), _mode_name(modes, mb), _num(p.get("mac"), ".3f"),
+            below = p.get("below_noise_floor") is True
+            floor = (f'{_num(p.get("video_amplitude_um"), ".3g")} / {_num(p.get("noise_floor_um"), ".3g")}'
+                     + (' <span class="bad">below the noise floor: not judged</span>' if below else ""))
+            rows.append([_mode_name(modes, ma), _mode_name(modes, mb),
+                         (f'<span class="bad">{_num(p.get("mac"), ".3f")}</span>' if below
+                          else _num(p.get("mac"), ".3f")), floor,
                          _num(p.get("scale_factor_abs"), ".3g"), _num(p.get("scale_factor_phase_deg"), "+.1f"),
                          _num(p.get("freq_a_hz"), ".2f"), _num(p.get("freq_b_hz"), ".2f"),
                          _num(p.get("freq_diff_rel"), "+.2f", 100)])
         out.append("<h2>Correlation: accelerometers (a) vs video (b)</h2>")
-        out.append(_table(["mode a", "mode b", "MAC", "|scale a/b|", "scale phase (deg)", "f a (Hz)", "f b (Hz)",
-                           "&Delta;f (%)"], rows, 2) if rows else "<p>No pairs.</p>")
+        out.append(_verdict(c.get("verdict")))
+        out.append(_table(["mode a", "mode b", "MAC", "video amplitude / noise floor (&micro;m)", "|scale a/b|",
+                           "scale phase (deg)", "f a (Hz)", "f b (Hz)", "&Delta;f (%)"], rows, 2)
+                   if rows else "<p>No pairs.</p>")
         sensors = [str(s) for s in doc.get("sensors", [])]
         comac = c.get("comac", [])
         if comac:

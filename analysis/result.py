@@ -11,6 +11,8 @@ from .crosscheck import ViewCheck
 from .ema import ModalFit
 from .frf import FRFResult
 from .imagepoles import ImagePoles
+from .noise import NoiseFloor
+from .verdict import Verdict
 
 
 @dataclass(frozen=True)
@@ -44,6 +46,7 @@ class VideoModes:
     sensor_displacement_m: np.ndarray  # (T, S) the video's motion at the sensors, along their directions
     crosscheck: tuple[ViewCheck, ...] = ()   # the 3D motion against 2D tracks in single views
     shapes_from: str = "trajectories"        # the motion the residues are fitted to: or "measured" (unfiltered)
+    noise: NoiseFloor | None = None          # that motion's noise floor, and each mode's amplitude against it
 
 
 @dataclass(frozen=True)
@@ -61,7 +64,10 @@ class AnalysisResult:
     #                                    video's ODS at every surface point (video.surface_points_m), synthesised
     image: ImagePoles | None = None      # poles from the raw frames of every synced take
     files: dict[str, str] = field(default_factory=dict)
-    notes: tuple[str, ...] = ()          # what the numbers cannot show: peaks with no mode, a band that cuts one
+    notes: tuple[str, ...] = ()          # what the numbers cannot show: peaks with no mode, a band that cuts one,
+    #                                      modes below the video's noise floor
+    mac_verdict: Verdict | None = None         # MAC target over the modes above the video's noise floor
+    crosscheck_verdict: Verdict | None = None  # the 2D cross-check's gain and correlation against thresholds
 
     def summary(self) -> dict:
         """The key numbers, as plain JSON values."""
@@ -83,6 +89,10 @@ class AnalysisResult:
                             "window_s": [float(v.times_s[0]), float(v.times_s[-1])],
                             "n_surface_points": int(len(v.surface_points_m)), "shapes_from": v.shapes_from,
                             "crosscheck": [dataclasses.asdict(c) for c in v.crosscheck]}
+            if v.noise is not None:
+                out["video"]["noise_floor"] = v.noise.summary(m.freq_hz[v.mode_index])
+            if self.crosscheck_verdict is not None:
+                out["video"]["crosscheck_verdict"] = self.crosscheck_verdict.summary()
             if v.crosscheck:
                 out["video"]["crosscheck_gain_median"] = float(np.median([c.gain for c in v.crosscheck]))
                 out["video"]["crosscheck_correlation_median"] = float(np.median([c.correlation
@@ -93,7 +103,16 @@ class AnalysisResult:
                                   "n_views": im.n_views, "n_pixels": im.n_pixels, "window_s": list(im.window_s),
                                   "component_snr": im.snr.tolist()}
         if self.correlation is not None:
-            out["correlation"] = {"pairs": self.correlation.summary(), "comac": self.correlation.comac.tolist()}
+            pairs = self.correlation.summary()
+            if self.video is not None and self.video.noise is not None:
+                nf = self.video.noise
+                for p in pairs:      # paired as fitted: b indexes the video's modes
+                    b = p["b"]
+                    p.update(video_amplitude_um=float(1e6 * nf.mode_amplitude_m[b]),
+                             noise_floor_um=float(1e6 * nf.mode_floor_m[b]), below_noise_floor=bool(nf.below[b]))
+            out["correlation"] = {"pairs": pairs, "comac": self.correlation.comac.tolist()}
+            if self.mac_verdict is not None:
+                out["correlation"]["verdict"] = self.mac_verdict.summary()
         if len(self.ods_freq_hz) and self.ods_video.size:
             out["ods"] = [{"freq_hz": float(f), "mac": float(mac(a, b)[0, 0])}
                           for f, a, b in zip(self.ods_freq_hz, self.ods_accel, self.ods_video)]
@@ -113,10 +132,15 @@ class AnalysisResult:
                          f"{', '.join(str(int(k) + 1) for k in v.mode_index)} fitted (sensor r2 "
                          f"{', '.join(f'{r:.2f}' for r in v.sensor_r2)}); video-only poles "
                          + (", ".join(f"{f:.1f}" for f in v.freq_hz) or "none") + " Hz")
+            if v.noise is not None:
+                lines.append(f"video noise floor: {1e6 * v.noise.sigma_m:.3g} um per point and timestep "
+                             f"({1e6 * float(np.median(v.noise.sensor_sigma_m)):.3g} um at the sensors)")
             if v.crosscheck:
                 lines.append(f"2D cross-check ({len(v.crosscheck)} views): gain tracked/3D median "
                              f"{np.median([c.gain for c in v.crosscheck]):.2f}, correlation median "
                              f"{np.median([c.correlation for c in v.crosscheck]):.2f}")
+            if self.crosscheck_verdict is not None:
+                lines.append(f"verdict ({self.crosscheck_verdict.status}): {self.crosscheck_verdict.line}")
         if self.image is not None:
             im = self.image
             lines.append(f"image poles ({im.n_views} views, {im.n_pixels} px, {1e3 * im.window_s[0]:.1f}-"
@@ -124,9 +148,13 @@ class AnalysisResult:
                          + " Hz")
         if self.correlation is not None:
             c = self.correlation
+            below = self.video.noise.below if self.video is not None and self.video.noise is not None else None
             lines.append("MAC video/accelerometers: " + ", ".join(
-                f"mode {i + 1} {c.pair_mac[k]:.3f} (scale {abs(c.scale_factor[k]):.2f})"
-                for k, (i, _) in enumerate(c.pairs)))
+                f"mode {i + 1} {c.pair_mac[k]:.3f} (scale {abs(c.scale_factor[k]):.2f}"
+                + ("; below the noise floor" if below is not None and below[j] else "") + ")"
+                for k, (i, j) in enumerate(c.pairs)))
+            if self.mac_verdict is not None:
+                lines.append(f"verdict ({self.mac_verdict.status}): {self.mac_verdict.line}")
         lines += [f"note: {n}" for n in self.notes]
         lines.append(f"-> {', '.join(self.files.values())}")
         return "\n".join(lines)

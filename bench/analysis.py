@@ -23,6 +23,10 @@ fits, exports and plots), against the baselines' own seconds on the analysis' FR
 Targets: every true frequency within 1 % (accelerometers; video: over the modes it finds), MAC >= 0.9 at the
 sensors for every mode fitted to the video.
 
+`--seeds N` (default 3) records N captures (seeds seed..seed+N-1) and reports, beside each run's figures (`runs`),
+every figure's worst and median over them (`spread`: for errors and times the largest, for MAC, PSNR and counts found
+the smallest, for gains and scale factors the furthest from 1); the targets are judged on the worst (met on every seed).
+
 Prints one JSON line on stdout; progress goes to stderr.
 """
 from __future__ import annotations
@@ -43,6 +47,9 @@ from scipy.spatial import cKDTree
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "bench"))
+
+from spread import spread, targets_on_worst  # noqa: E402
 
 from odsplat.analysis.analyze import AnalysisResult, AnalyzeSettings, analyze_capture  # noqa: E402
 from odsplat.analysis.correlation import mac, modal_scale_factor  # noqa: E402
@@ -50,7 +57,7 @@ from odsplat.analysis.ods import SurfaceMotion, stable_poles  # noqa: E402
 from odsplat.errors import InputError  # noqa: E402
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
 from odsplat.hil_sim.camera import SimCameraConfig  # noqa: E402
-from odsplat.hil_sim.rig import TakeTruth, truth_path  # noqa: E402
+from odsplat.hil_sim.rig import RigConfig, SimRig, TakeTruth, truth_path  # noqa: E402
 from odsplat.hil_sim.structure import ModalStructure  # noqa: E402
 from odsplat.processing.magnify import MagnifySettings, magnify_capture, parse_options  # noqa: E402
 from odsplat.reconstruction.dynamic import FitSettings  # noqa: E402
@@ -94,7 +101,8 @@ def record_and_process(out: Path, args, figures: dict, perfect: bool) -> Capture
     figures["stages_s"] = {}
     stage(figures, "record", (out / "capture.json").exists(), lambda: simulate_capture(
         out, n_views=args.views, n_frames=args.frames, pretrigger_frames=6, record_s=args.record_s,
-        settings=SimBenchSettings(camera=SimCameraConfig(fps=2000.0), seed=args.seed)))
+        settings=SimBenchSettings(camera=SimCameraConfig(fps=2000.0), seed=args.seed),
+        rig=SimRig(config=RigConfig(seed=args.seed))))      # the rig's seed: its DAQ, hammer and camera noise
     cap = Capture.open(out)
     synced = (cap.derived_dir / "sync.json").exists() and (cap.derived_dir / "sync").is_dir()
     stage(figures, "sync", synced,
@@ -399,7 +407,10 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--magnify-option", action="append", default=[], metavar="KEY=VALUE",
                     help="a keyword of the phase magnifier, e.g. warp=true (repeatable)")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--seed", type=int, default=3, help="the first seed")
+    ap.add_argument("--seeds", type=int, default=3,
+                    help="captures recorded with seeds seed..seed+N-1; the JSON line gives each figure's worst and "
+                         "median over them, and the targets are judged on the worst")
     ap.add_argument("--perfect", action="store_true",
                     help="the true surface motion instead of the reconstruction (a real one is set aside and put back)")
     ap.add_argument("--keep", type=Path, default=None, help="record the capture here, keep it, reuse what is there")
@@ -407,12 +418,31 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="%(name)s: %(message)s")
     torch.set_num_threads(args.threads)
+    if args.seeds < 1:
+        ap.error("--seeds must be at least 1")
+    seeds = [args.seed] if args.capture is not None else [args.seed + i for i in range(args.seeds)]
     tmp = tempfile.TemporaryDirectory(prefix="bench-analysis-")
-    figures: dict = {"bench": "analysis", "perfect": args.perfect}
+    runs = []
+    for seed in seeds:
+        print(f"seed {seed}", file=sys.stderr)
+        if args.keep is not None and len(seeds) == 1:
+            where = args.keep
+        else:
+            where = (args.keep or Path(tmp.name)) / (f"seed{seed}" if len(seeds) > 1 else "cap")
+        runs.append(run_seed(argparse.Namespace(**{**vars(args), "seed": seed}), where))
+    figures = {"bench": "analysis", "perfect": args.perfect, "seeds": seeds, "spread": spread(runs),
+               "targets": targets_on_worst(runs), "runs": runs}
+    print(json.dumps(figures, default=float))
+    return figures
+
+
+def run_seed(args, out: Path) -> dict:
+    """One capture (recorded with args.seed unless --capture) through the analysis, and its figures."""
+    figures: dict = {"perfect": args.perfect, "seed": args.seed}
     if args.capture is not None:
         cap = Capture.open(args.capture)
     else:
-        cap = record_and_process(args.keep or Path(tmp.name) / "cap", args, figures, args.perfect)
+        cap = record_and_process(out, args, figures, args.perfect)
     traj = cap.paths.trajectories_npz
     asides = {p: p.with_name(p.name + ".bench-aside") for p in (traj, cap.paths.measured_motion_npz)}
     if args.perfect and traj.exists():
@@ -444,7 +474,6 @@ def main(argv: list[str] | None = None) -> dict:
                                max_order=args.max_order, threads=args.threads, seed=args.seed,
                                magnify_options=args.magnify_option,
                                capture=str(args.capture) if args.capture else None)
-    print(json.dumps(figures, default=float))
     return figures
 
 

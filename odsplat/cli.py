@@ -520,7 +520,8 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
 @click.option("--fmin", "fmin_hz", type=float, default=None, help="Modal fit band, low end (Hz).")
 @click.option("--fmax", "fmax_hz", type=float, default=None,
               help="Modal fit band, high end (Hz; default 0.45 x the frame rate, or 0.4 x the DAQ rate).")
-@click.option("--max-order", type=int, default=120, show_default=True, help="Highest LSCF model order.")
+@click.option("--max-order", type=int, default=None,
+              help="Highest LSCF model order (default: 120, at most half the fit band's frequency lines).")
 @click.option("--freq", "approx_freq_hz", type=float, multiple=True,
               help="Pick the pole nearest this frequency (repeatable) instead of automatic selection.")
 @click.option("--ods", "ods_freq_hz", type=float, multiple=True,
@@ -534,7 +535,7 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
 @click.option("--report/--no-report", "with_report", default=True, show_default=True,
               help="Also write derived/analysis/report.html.")
 def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, ...], all_takes: bool,
-            fmin_hz: float | None, fmax_hz: float | None, max_order: int, approx_freq_hz: tuple[float, ...],
+            fmin_hz: float | None, fmax_hz: float | None, max_order: int | None, approx_freq_hz: tuple[float, ...],
             ods_freq_hz: tuple[float, ...], exp_end: float, record_s: float | None, no_video: bool,
             image_poles: bool, with_report: bool) -> None:
     """FRFs, modes, the video's 3D shapes and their correlation for CAPTURE_DIR, into derived/analysis/

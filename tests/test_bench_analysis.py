@@ -11,10 +11,15 @@ def test_bench_analysis_perfect_small(tmp_path, capsys, bench_script):
     # under half the chart and automatic selection dropped it; the video's 31 Hz residue then absorbed its motion).
     figures = bench_script("analysis").main(["--perfect", "--views", "3", "--frames", "72", "--timesteps", "64",
                                              "--step", "1", "--max-order", "120", "--threads", "1",
-                                             "--keep", str(tmp_path / "cap")])
+                                             "--seeds", "1", "--keep", str(tmp_path / "cap")])
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1 and json.loads(lines[0])["bench"] == "analysis"
     assert json.loads(lines[0])["targets"] == figures["targets"]
+    assert figures["seeds"] == [3] and len(figures["runs"]) == 1
+    # one seed: its worst and median are its own figures
+    assert figures["spread"]["accel.max_freq_err"]["worst"] == figures["runs"][0]["accel"]["max_freq_err"]
+    assert figures["targets"] == figures["runs"][0]["targets"]
+    figures = figures["runs"][0]
     for key in ("accel", "peak_picking", "video", "ratios", "targets", "stages_s", "analysis_s", "baseline_s"):
         assert key in figures, key
     assert figures["perfect"] and figures["true_modes"] == 6

@@ -54,16 +54,21 @@ def _truth(cap: Capture, name: str | None = None) -> TakeTruth:
 
 
 def _write_trajectories(cap: Capture, n_steps: int = 64, wander_fraction: float = 0.0,
-                        drop_mode: int | None = None) -> TakeTruth:
+                        drop_mode: int | None = None, noise_m: float = 0.0, mode_scale: dict[int, float] | None = None,
+                        pre_steps: int = 1, floor: bool = False) -> TakeTruth:
     """derived/reconstruction/trajectories.npz as a perfect reconstruction would leave it: hil_sim's surface
     points moving as the structure did, averaged over the synced takes (each hit a little different), on the
     impact-locked timeline, magnified ALPHA times. wander_fraction: that share of the points drift off as a
     per-timestep fit leaves a few Gaussians (a random walk growing to 10x the largest true motion).
     drop_mode: leave that mode out, as the linear model's basis does with a mode below its noise floor, and
     write measured_motion.npz beside it as the linear model would: every mode, on a coarse node graph (one point
-    in 5), with noise. Without drop_mode any measured_motion.npz goes, as `odsplat reconstruct` does."""
+    in 5), with noise. Without drop_mode any measured_motion.npz goes, as `odsplat reconstruct` does.
+    noise_m: white noise of that rms on every point, timestep and component (a real reconstruction's nodes read
+    14 um on hil_sim's static base, docs/analysis.md); mode_scale: {mode: factor} on that mode's motion (a weakly
+    excited mode); pre_steps: timesteps before the impact; floor: add points on the base's top face, which does not
+    move (the static background)."""
     grid = load_sync(cap).times_s                  # the reconstruction trains on the sync grid's frames
-    k0 = int(np.searchsorted(grid, 0.0)) - 1        # from the last frame before the impact
+    k0 = int(np.searchsorted(grid, 0.0)) - pre_steps   # from the last frame(s) before the impact
     times = grid[k0:k0 + n_steps]
     assert len(times) == n_steps
     qs = []
@@ -74,8 +79,16 @@ def _write_trajectories(cap: Capture, n_steps: int = 64, wander_fraction: float 
         qs.append(np.stack([np.interp(x, np.arange(n), row) for row in tr.modal_q_daq]))   # (R, T)
     points = _surface_points()
     q = np.mean(qs, axis=0)
+    for r, factor in (mode_scale or {}).items():
+        q[r] *= factor
     phi = ModalStructure().mode_shapes(points)                  # (P, R, 3)
     disp = np.einsum("prc,rt->tpc", phi, q)
+    if floor:
+        top = _floor_points()
+        points = np.concatenate([points, top])
+        disp = np.concatenate([disp, np.zeros((len(times), len(top), 3))], axis=1)
+    if noise_m:
+        disp = disp + np.random.default_rng(3).normal(0, noise_m, disp.shape)
     dest = cap.derived_dir / "reconstruction"
     dest.mkdir(parents=True, exist_ok=True)
     (dest / "measured_motion.npz").unlink(missing_ok=True)
@@ -111,6 +124,16 @@ def _surface_points(n_per_face: int = 600) -> np.ndarray:
                 p[:, axis] = side[axis]
                 out.append(p)
     return np.concatenate(out)
+
+
+def _floor_points(n: int = 1200) -> np.ndarray:
+    """Points on the base's top face around the column: the static background (hil_sim's base does not move)."""
+    lo, hi = ModalStructure().geometry.boxes()["base"]
+    clo, chi = ModalStructure().geometry.boxes()["column"]
+    p = np.random.default_rng(4).uniform(lo, hi, (3 * n, 3))
+    p[:, 2] = hi[2]
+    off = np.any((p[:, :2] < clo[:2] - 0.01) | (p[:, :2] > chi[:2] + 0.01), axis=1)
+    return p[off][:n]
 
 
 def _truth_shapes(tr: TakeTruth, points, dirs) -> np.ndarray:
@@ -271,3 +294,106 @@ def test_cli_analyze_and_report(capture):
     assert "image_poles" not in json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text())
     r = CliRunner().invoke(main, ["analyze", str(capture.root), "--exp-end", "2"])
     assert r.exit_code == 2 and "--exp-end" in r.output
+
+
+def _true_amplitudes_m(cap: Capture, res, times_s, mode_scale: dict[int, float]) -> np.ndarray:
+    """(R,) each fitted mode's true amplitude at the sensors (rms over them of its peak along their directions
+    over the window), from hil_sim's modal coordinates averaged over the synced takes."""
+    grid_q = []
+    for take in load_sync(cap).ok:
+        tr = _truth(cap, take.name)
+        x = float(np.ravel(tr.impact_daq_sample)[0]) + np.asarray(times_s) * tr.daq_rate_hz
+        grid_q.append(np.stack([np.interp(x, np.arange(tr.modal_q_daq.shape[1]), r) for r in tr.modal_q_daq]))
+    q = np.mean(grid_q, axis=0)
+    for r, factor in mode_scale.items():
+        q[r] *= factor
+    pos = np.stack([s.position_m for s in res.sensors])
+    dirs = np.stack([s.direction for s in res.sensors])
+    phi = _truth_shapes(tr, pos, dirs)                                           # (R_true, S)
+    f_true = np.asarray(tr.freqs_hz)
+    rows = [int(np.argmin(np.abs(f_true - res.modes.freq_hz[k]))) for k in res.video.mode_index]
+    return np.array([np.sqrt(np.mean(phi[r] ** 2)) * np.abs(q[r]).max() for r in rows]), rows
+
+
+def test_noise_floor_reads_the_known_noise_and_flags_a_weak_mode(capture):
+    """White noise of 5 um on every point and timestep (a real reconstruction's nodes read 14 um on the rig's
+    static base), static points on the base's top face and 4 timesteps before the impact; the 86 Hz mode's
+    motion scaled by 1e-3, as a mode the hit hardly excites. The noise floor must read the 5 um wherever it is
+    measured; every mode whose true amplitude stands above its floor must not be flagged, the weak one must be,
+    in the result, analysis.json and the report, and the MAC verdict must judge the others only."""
+    sigma, weak = 5e-6, 2
+    _write_trajectories(capture, noise_m=sigma, floor=True, pre_steps=4, mode_scale={weak: 1e-3})
+    try:
+        res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False))
+        nf = res.video.noise
+        # the median over 8400 points of 61 samples each: statistical error under 1 %; 10 % allowed
+        assert nf.sigma_m == pytest.approx(sigma, rel=0.1)
+        assert nf.static_sigma_m == pytest.approx(sigma, rel=0.1) and nf.n_static >= 600   # of 1200 floor points
+        assert nf.n_pre_impact == 4 and nf.pre_impact_sigma_m == pytest.approx(sigma, rel=0.15)
+        # each mode against its floor: the true amplitude decides, the flag must agree
+        truth_m, rows = _true_amplitudes_m(capture, res, res.video.times_s, {weak: 1e-3})
+        for r, (a, fl, below) in enumerate(zip(truth_m, nf.mode_floor_m, nf.below)):
+            if rows[r] == weak:
+                assert below and a < 0.1 * fl, (a, fl)
+            else:
+                assert a > 1.5 * fl and not below, (res.modes.freq_hz[res.video.mode_index[r]], a, fl)
+        assert int(np.sum(nf.below)) == 1
+        # the video's amplitude of a strong mode is the truth's within its floor and the readout's 10 % (the
+        # neighbours' mean at a sensor; the main test's scale factors)
+        strong = [r for r in range(len(rows)) if rows[r] != weak]
+        err = np.abs(nf.mode_amplitude_m[strong] - truth_m[strong])
+        assert np.all(err < nf.mode_floor_m[strong] + 0.1 * truth_m[strong]), (err, nf.mode_floor_m[strong])
+        f_weak = res.modes.freq_hz[res.video.mode_index[[rows.index(weak)]]][0]
+        assert res.mac_verdict.status == "met" and res.mac_verdict.details["below_floor_hz"] == [f_weak]
+        summary = json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text())
+        pairs = summary["correlation"]["pairs"]
+        assert [p["below_noise_floor"] for p in pairs] == [rows[p["b"]] == weak for p in pairs]
+        assert summary["correlation"]["verdict"]["status"] == "met"
+        assert summary["video"]["noise_floor"]["sigma_um"] == pytest.approx(5, rel=0.1)
+        assert any(n.startswith(f"mode {weak + 1} ({f_weak:.1f} Hz): below the video's noise floor (")
+                   for n in summary["notes"]), summary["notes"]
+        from odsplat.analysis import write_report
+        html = write_report(capture).read_text()
+        assert "below the video&#x27;s noise floor" in html and html.count("below the noise floor: not judged") == 1
+    finally:
+        _write_trajectories(capture)
+
+
+def test_crosscheck_verdict(capture):
+    """Exact 3D motion agrees with the 2D tracks; the same motion read 3x too large (a reconstruction that
+    over-reads it) does not: its gain falls to a third."""
+    _write_trajectories(capture)
+    res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=2, image_poles=False))
+    v = res.crosscheck_verdict
+    assert v.status == "met", v.line
+    assert all(0 < c.noise_px < 0.02 for c in res.video.crosscheck)      # the trackers' noise before the impact
+    assert not res.video.noise.below.any() and res.mac_verdict.status == "met"
+    try:
+        _write_trajectories(capture, mode_scale={r: 3.0 for r in range(6)})
+        res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=2, image_poles=False))
+        assert res.crosscheck_verdict.status == "not met" and "gain" in res.crosscheck_verdict.line
+        summary = json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text())
+        assert summary["video"]["crosscheck_verdict"]["status"] == "not met"
+    finally:
+        _write_trajectories(capture)
+
+
+def test_a_short_record_analyses_with_the_defaults(capture):
+    """170 ms of each hit (5.9 Hz lines) in a 300 Hz band holds 49 lines: the former fixed order 120 stopped
+    ("needs more than 60 lines"); the default order follows the band, and 24 timesteps lower the pencil's ranks."""
+    tr = _write_trajectories(capture, n_steps=24)
+    try:
+        with pytest.raises(InputError, match="order 120 needs more than 60 lines"):
+            analyze_capture(capture, AnalyzeSettings(record_s=0.17, fmax_hz=300.0, max_order=120, video=False))
+        res = analyze_capture(capture, AnalyzeSettings(record_s=0.17, fmax_hz=300.0, crosscheck_views=0,
+                                                       image_poles=False))
+        f_true = np.asarray(tr.freqs_hz)
+        # 23.5 and 31 Hz are 1.3 lines apart and the band starts at 3 lines (17.6 Hz): 31, 86, 142, 262 Hz
+        assert len(res.modes.freq_hz) >= 4
+        for f in res.modes.freq_hz:
+            assert np.min(np.abs(f_true - f) / f_true) < 0.005, res.modes.freq_hz
+        assert res.video is not None and len(res.video.times_s) == 24
+        assert json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text()
+                          )["settings"]["max_order"] is None
+    finally:
+        _write_trajectories(capture)

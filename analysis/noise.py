@@ -1,0 +1,164 @@
+"""The video's noise floor in metres, measured where nothing moves, and what it means for each mode: the amplitude
+a mode needs at the sensors before its video shape can be told from the noise.
+
+Where nothing moves: the motion the accelerometer modes do not explain (the decay fit's residual, every point and
+sensor), the points whose motion they do not explain at all (the static background: a floor, a base), and the
+timesteps before the impact (t < 0 on the sync grid), where the structure is at rest.
+
+A mode's floor comes from the same fit: with the poles held fixed, its amplitude at a sensor is a linear function
+of the samples, so noise of white-equivalent level sigma at the mode's frequency gives it a standard deviation of
+sigma times the design matrix's gain for that mode ((A^T A)^-1). A shape whose rms amplitude over the sensors is
+x, read with complex noise of rms n at each sensor, has an expected MAC against the exact shape of x^2/(x^2 + n^2):
+0.9 at x = 3n. So the floor is FLOOR_SIGMAS = 3 noise standard deviations: below it, a MAC under 0.9 is what the
+noise alone gives, and the MAC says nothing about the video.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from odsplat.errors import InputError
+
+from .ema import pole_freq_hz
+from .ods import DecayFit, decay_design
+
+log = logging.getLogger(__name__)
+
+FLOOR_SIGMAS = 3.0      # a mode's amplitude must reach this many noise standard deviations (expected MAC 0.9)
+MIN_PRE_IMPACT = 3      # timesteps before the impact needed to measure the noise there
+SMOOTH_BINS = 2         # the residual's spectrum is averaged over this many lines either side
+
+
+@dataclass(frozen=True)
+class NoiseFloor:
+    """The video's displacement noise (metres, per timestep and component, white-equivalent) and each mode's
+    amplitude against the amplitude it needs to stand above it (metres at the sensors, the decay's start)."""
+
+    sigma_m: float                   # at a surface point: the median over points of point_sigma_m
+    point_sigma_m: np.ndarray        # (N,) per surface point: rms of the motion the modes do not explain
+    sensor_sigma_m: np.ndarray       # (S,) the same at each sensor point, along its direction
+    static_sigma_m: float            # rms motion of the points the modes do not explain at all (NaN: none)
+    n_static: int
+    pre_impact_sigma_m: float        # rms motion before the impact, every point (NaN: fewer than MIN_PRE_IMPACT)
+    n_pre_impact: int                # timesteps before the impact
+    spectrum_gain: np.ndarray        # (R,) the noise's spectral level at each mode's frequency over its mean
+    mode_amplitude_m: np.ndarray     # (R,) each mode's video amplitude: rms over the sensors of 2|C_r|
+    mode_floor_m: np.ndarray         # (R,) FLOOR_SIGMAS x the noise's standard deviation of that amplitude
+
+    @property
+    def below(self) -> np.ndarray:
+        """(R,) bool: modes whose video amplitude does not stand above the floor."""
+        return self.mode_amplitude_m < self.mode_floor_m
+
+    def point_floor_m(self, design_gain: np.ndarray) -> np.ndarray:
+        """(R, N) the amplitude each mode needs at each surface point, from the fit's per-mode gains."""
+        return FLOOR_SIGMAS * np.outer(design_gain, self.point_sigma_m)
+
+    def summary(self, freq_hz: np.ndarray) -> dict:
+        fin = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731  (JSON has no NaN)
+        return {"sigma_um": 1e6 * self.sigma_m, "static_sigma_um": fin(1e6 * self.static_sigma_m),
+                "n_static_points": self.n_static, "pre_impact_sigma_um": fin(1e6 * self.pre_impact_sigma_m),
+                "n_pre_impact": self.n_pre_impact, "sensor_sigma_um": (1e6 * self.sensor_sigma_m).tolist(),
+                "point_sigma_um_p10_p90": [float(1e6 * np.percentile(self.point_sigma_m, q)) for q in (10, 90)],
+                "floor_sigmas": FLOOR_SIGMAS,
+                "modes": [{"freq_hz": float(f), "amplitude_um": float(1e6 * a), "floor_um": float(1e6 * fl),
+                           "spectrum_gain": float(g), "below_floor": bool(a < fl)}
+                          for f, a, fl, g in zip(freq_hz, self.mode_amplitude_m, self.mode_floor_m,
+                                                 self.spectrum_gain)]}
+
+
+def _dof_rms(resid: np.ndarray, n_params: int) -> np.ndarray:
+    """Per column, the residual's rms with the fitted parameters' degrees of freedom given back."""
+    n = resid.shape[0]
+    return np.sqrt(np.sum(resid ** 2, axis=0) / max(n - n_params, 1))
+
+
+def _smooth(p: np.ndarray) -> np.ndarray:
+    k = 2 * SMOOTH_BINS + 1
+    return np.convolve(np.pad(p, SMOOTH_BINS, mode="edge"), np.ones(k) / k, mode="valid")
+
+
+def spectrum_shape(resid: np.ndarray, design: np.ndarray, dt_s: float, freq_hz: np.ndarray) -> np.ndarray:
+    """The residual's power spectrum at freq_hz against what white noise of the same variance would leave after the
+    fit (Hann window, averaged over the channels and SMOOTH_BINS lines either side): 1 for white noise. The fit
+    takes out the noise near the poles (the more, the shorter the record), so the residual's own spectrum would
+    read the noise low exactly there; the white reference, (I - P) for the fit's projection P, is depleted alike."""
+    n = resid.shape[0]
+    if n < 8 or resid.shape[1] == 0:
+        return np.ones(len(freq_hz))
+    w = np.hanning(n)
+    p = _smooth(np.mean(np.abs(np.fft.rfft(resid * w[:, None], axis=0)) ** 2, axis=1))
+    keep = np.eye(n) - design @ np.linalg.pinv(design)                          # (I - P)
+    white = _smooth(np.sum(np.abs(np.fft.rfft(w[:, None] * keep, axis=0)) ** 2, axis=1))
+    var = float(np.mean(np.sum(resid ** 2, axis=0))) / max(float(np.trace(keep)), 1.0)
+    if not var > 0:
+        return np.ones(len(freq_hz))
+    ratio = p / np.maximum(white, 1e-12 * float(white.max())) / var
+    return np.interp(freq_hz, np.fft.rfftfreq(n, dt_s), ratio)
+
+
+def design_gains(times_s: np.ndarray, poles_rad_s: np.ndarray, t_min_s: float, offset: bool = True) -> np.ndarray:
+    """(R,) per mode, sqrt(var(a_r) + var(b_r)) / sigma for the decay fit's cosine and sine coefficients under
+    white noise of unit level: the standard deviation of the amplitude 2|C_r| that noise alone gives a channel."""
+    t = np.asarray(times_s, float)
+    A = decay_design(t[t >= t_min_s], poles_rad_s, offset=offset)
+    cov = np.linalg.pinv(A.T @ A)
+    R = len(np.atleast_1d(poles_rad_s))
+    d = np.diag(cov)
+    return np.sqrt(np.maximum(d[:R] + d[R:2 * R], 0.0))
+
+
+def noise_floor(times_s, sensors_m, surface_m, fit: DecayFit, *, point_components: int = 3) -> NoiseFloor:
+    """The noise floor of the motion a decay fit was made to: sensors_m (T, S) and surface_m (T, N * components),
+    the fit's channels in that order (as `video_modes` fits them in one solve)."""
+    t = np.asarray(times_s, float).reshape(-1)
+    xs = np.asarray(sensors_m, float).reshape(len(t), -1)
+    xp = np.asarray(surface_m, float).reshape(len(t), -1)
+    S = xs.shape[1]
+    if fit.amplitudes.shape[1] != S + xp.shape[1]:
+        raise InputError("noise_floor: fit", f"expected a fit of {S + xp.shape[1]} channels (the sensors, then the "
+                         f"surface); got {fit.amplitudes.shape[1]}")
+    if xp.shape[1] % point_components:
+        raise InputError("noise_floor: surface_m", f"expected {point_components} components per point")
+    use = t >= fit.t_min_s
+    poles = fit.poles_rad_s
+    n_params = 2 * len(poles) + 1
+    model = fit.synthesize(t[use])
+    resid_s = xs[use] - model[:, :S]
+    resid_p = xp[use] - model[:, S:]
+    sensor_sigma = _dof_rms(resid_s, n_params)
+    comp = _dof_rms(resid_p, n_params).reshape(-1, point_components)
+    point_sigma = np.sqrt(np.mean(comp ** 2, axis=1))
+    # the static background: points whose motion the modes do not explain beyond chance (adjusted r2 <= 0)
+    n = int(use.sum())
+    ss_res = np.sum(resid_p ** 2, axis=0).reshape(-1, point_components).sum(axis=1)
+    dev = xp[use] - xp[use].mean(axis=0)
+    ss_tot = np.sum(dev ** 2, axis=0).reshape(-1, point_components).sum(axis=1)
+    r2_adj = 1 - (ss_res / np.maximum(ss_tot, 1e-300)) * (n - 1) / max(n - n_params, 1)
+    static = r2_adj <= 0
+    raw = np.sqrt(np.sum(dev ** 2, axis=0).reshape(-1, point_components).sum(axis=1)
+                  / (point_components * max(n - 1, 1)))
+    static_sigma = float(np.median(raw[static])) if static.any() else float("nan")
+    pre = t < 0
+    pre_sigma = float("nan")
+    if pre.sum() >= MIN_PRE_IMPACT:
+        d = xp[pre] - xp[pre].mean(axis=0)
+        pre_sigma = float(np.median(np.sqrt(np.sum(d ** 2, axis=0).reshape(-1, point_components).sum(axis=1)
+                                            / (point_components * (pre.sum() - 1)))))
+    # each mode's floor at the sensors: the noise's level at its frequency through the fit's gain for it
+    dt = float(np.median(np.diff(t)))
+    design = decay_design(t[use], poles)
+    gain = spectrum_shape(resid_p if resid_p.shape[1] else resid_s, design, dt, pole_freq_hz(poles))
+    sd = design_gains(t, poles, fit.t_min_s) * np.sqrt(gain)                       # (R,) per unit sigma
+    floor = FLOOR_SIGMAS * sd * float(np.sqrt(np.mean(sensor_sigma ** 2)))
+    amplitude = np.sqrt(np.mean(np.abs(2 * fit.amplitudes[:, :S]) ** 2, axis=1))
+    out = NoiseFloor(float(np.median(point_sigma)) if len(point_sigma) else float(np.median(sensor_sigma)),
+                     point_sigma, sensor_sigma, static_sigma, int(static.sum()), pre_sigma, int(pre.sum()),
+                     gain, amplitude, floor)
+    log.info("video noise floor: %.3g um per point (static points %.3g um, %d; before the impact %.3g um), "
+             "%.3g um at the sensors; modes below it: %s", 1e6 * out.sigma_m, 1e6 * static_sigma, out.n_static,
+             1e6 * pre_sigma, 1e6 * float(np.median(sensor_sigma)),
+             ", ".join(f"{f:.1f} Hz" for f in pole_freq_hz(poles)[out.below]) or "none")
+    return out
