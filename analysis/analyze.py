@@ -51,6 +51,9 @@ class AnalyzeSettings:
     approx_freq_hz: tuple[float, ...] | None = None  # pick these poles instead of automatic selection
     ods_freq_hz: tuple[float, ...] | None = None     # ODS lines; None: the modal frequencies
     video: bool = True                               # use derived/reconstruction when it is there
+    floor_margin_m: float | None = 0.01              # the structure's points: above the floor (z = 0) by this
+    structure_box_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None  # min, max corner
+    structure_motion: bool = True                    # ... and moving (the modes explain some of their motion)
     measured_motion: bool = True                     # fit the shapes to its unfiltered motion when it has one
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
@@ -73,7 +76,15 @@ class AnalyzeSettings:
             "min_opacity": FRACTION, "k_neighbours": COUNT, "video_ranks": maybe(COUNT),
             "crosscheck_views": Range(at_least=0, integer=True), "crosscheck_points": COUNT,
             "image_ranks": maybe(COUNT),
-            "image_pixel_fraction": Range(above=0, at_most=1)})
+            "image_pixel_fraction": Range(above=0, at_most=1), "floor_margin_m": maybe(NON_NEGATIVE)})
+        if self.structure_box_m is not None:
+            try:
+                box = np.asarray(self.structure_box_m, float)
+            except (TypeError, ValueError):
+                box = None
+            if box is None or box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] >= box[1]):
+                raise InputError("AnalyzeSettings.structure_box_m", "expected [[x, y, z] min, [x, y, z] max] in "
+                                 f"metres, min below max on every axis; got {self.structure_box_m!r}")
         if self.fmin_hz is not None and self.fmax_hz is not None and not self.fmin_hz < self.fmax_hz:
             raise InputError("AnalyzeSettings.fmin_hz",
                              f"expected below fmax_hz={self.fmax_hz:g}; got {self.fmin_hz:g}")
@@ -237,9 +248,40 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
                               k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []
     residues = fit.residues(F)
-    return VideoModes(poles, np.flatnonzero(use), residues[:, :n_s], motion.points_m,
-                      residues[:, n_s:].reshape(len(poles), -1, 3), fit.r2[:n_s], fit.condition, f_hz, zeta, t,
-                      at_sensors, tuple(checks), shapes_from, noise)
+    keep, rule = _structure(capture, motion.points_m, noise, s)
+    disp = motion.displacement_m[:, ~keep]                                          # (T, N_bg, 3)
+    background = float(np.median(np.sqrt(np.mean((disp - disp.mean(axis=0)) ** 2, axis=(0, 2))))) \
+        if disp.shape[1] else float("nan")
+    log.info("video: %d of %d surface points on the structure (%s); the background's %d move %.3g um rms",
+             keep.sum(), len(keep), rule, (~keep).sum(), 1e6 * background)
+    return VideoModes(poles, np.flatnonzero(use), residues[:, :n_s], motion.points_m[keep],
+                      residues[:, n_s:].reshape(len(poles), -1, 3)[:, keep], fit.r2[:n_s], fit.condition, f_hz,
+                      zeta, t, at_sensors, tuple(checks), shapes_from, noise, int((~keep).sum()), background, rule)
+
+
+def _structure(capture: Capture, points_m: np.ndarray, noise, s: AnalyzeSettings) -> tuple[np.ndarray, str]:
+    """Which surface points are the structure's: inside the box the user gave, above the floor (z = 0 in the
+    tag layout's frame) by floor_margin_m where the capture has floor tags, and moving (the modes explain some of
+    their motion: analysis/noise.py's static test). The rest is background: fitted, kept out of the shapes."""
+    p = np.asarray(points_m, float)
+    keep = np.ones(len(p), bool)
+    rules = []
+    if s.structure_box_m is not None:
+        lo, hi = np.asarray(s.structure_box_m, float)
+        keep &= np.all((p >= lo) & (p <= hi), axis=1)
+        rules.append("inside the box given")
+    tags = capture.manifest.tags
+    if s.floor_margin_m is not None and tags is not None and any(not t.on_structure for t in tags.tags):
+        keep &= p[:, 2] > s.floor_margin_m
+        rules.append(f"more than {1e3 * s.floor_margin_m:g} mm above the floor")
+    if s.structure_motion and noise is not None and noise.static is not None and (keep & ~noise.static).any():
+        keep &= ~noise.static
+        rules.append("moving")
+    if not keep.any():
+        log.warning("no surface point passes the structure rules (%s); the shapes keep every point",
+                    ", ".join(rules))
+        return np.ones(len(p), bool), "every point (the structure rules left none)"
+    return keep, ", ".join(rules) or "every point"
 
 
 # ---------------------------------------------------------------------------------------------- the stage

@@ -46,6 +46,7 @@ class NoiseFloor:
     spectrum_gain: np.ndarray        # (R,) the noise's spectral level at each mode's frequency over its mean
     mode_amplitude_m: np.ndarray     # (R,) each mode's video amplitude: rms over the sensors of 2|C_r|
     mode_floor_m: np.ndarray         # (R,) FLOOR_SIGMAS x the noise's standard deviation of that amplitude
+    static: np.ndarray | None = None  # (N,) bool: the points whose motion the modes do not explain at all
 
     @property
     def below(self) -> np.ndarray:
@@ -156,7 +157,7 @@ def noise_floor(times_s, sensors_m, surface_m, fit: DecayFit, *, point_component
     amplitude = np.sqrt(np.mean(np.abs(2 * fit.amplitudes[:, :S]) ** 2, axis=1))
     out = NoiseFloor(float(np.median(point_sigma)) if len(point_sigma) else float(np.median(sensor_sigma)),
                      point_sigma, sensor_sigma, static_sigma, int(static.sum()), pre_sigma, int(pre.sum()),
-                     gain, amplitude, floor)
+                     gain, amplitude, floor, static)
     log.info("video noise floor: %.3g um per point (static points %.3g um, %d; before the impact %.3g um), "
              "%.3g um at the sensors; modes below it: %s", 1e6 * out.sigma_m, 1e6 * static_sigma, out.n_static,
              1e6 * pre_sigma, 1e6 * float(np.median(sensor_sigma)),

@@ -160,7 +160,11 @@ def _video(doc: dict) -> str:
     out = ["<h2>Video</h2><p>Modes fitted to the video's motion with the accelerometer poles: "
            + (", ".join(_mode_name(modes, k) for k in fitted) or "none")]
     if "n_surface_points" in v:
-        out.append(f"; {int(v['n_surface_points'])} surface points")
+        out.append(f"; {int(v['n_surface_points'])} surface points on the structure")
+        if v.get("n_background_points"):
+            out.append(f" ({escape(str(v.get('structure_rule', '')))}); the {int(v['n_background_points'])} "
+                       f"points of the background (floor, base) are left out of the shapes, and move "
+                       f"{_num(v.get('background_rms_um'), '.3g')} &micro;m rms: the video's noise in the open")
     if "window_s" in v and len(v["window_s"]) == 2:
         out.append(f"; window {_num(v['window_s'][0], '.1f', 1e3)} to {_num(v['window_s'][1], '.1f', 1e3)} ms")
     if "condition" in v:

@@ -47,6 +47,12 @@ class VideoModes:
     crosscheck: tuple[ViewCheck, ...] = ()   # the 3D motion against 2D tracks in single views
     shapes_from: str = "trajectories"        # the motion the residues are fitted to: or "measured" (unfiltered)
     noise: NoiseFloor | None = None          # that motion's noise floor, and each mode's amplitude against it
+    # The surface above is the structure's; the background (the floor, what does not move) was fitted too and
+    # left out of the shapes, exports and figures: how many points, why, and how much they move (rms, metres,
+    # the video's noise in the open).
+    n_background: int = 0
+    background_rms_m: float = float("nan")
+    structure_rule: str = ""
 
 
 @dataclass(frozen=True)
@@ -88,6 +94,9 @@ class AnalysisResult:
                             "condition": v.condition, "freq_hz": v.freq_hz.tolist(), "damping": v.damping.tolist(),
                             "window_s": [float(v.times_s[0]), float(v.times_s[-1])],
                             "n_surface_points": int(len(v.surface_points_m)), "shapes_from": v.shapes_from,
+                            "n_background_points": v.n_background, "structure_rule": v.structure_rule,
+                            "background_rms_um": float(1e6 * v.background_rms_m)
+                            if np.isfinite(v.background_rms_m) else None,
                             "crosscheck": [dataclasses.asdict(c) for c in v.crosscheck]}
             if v.noise is not None:
                 out["video"]["noise_floor"] = v.noise.summary(m.freq_hz[v.mode_index])
