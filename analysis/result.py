@@ -62,6 +62,8 @@ class AnalysisResult:
     image: ImagePoles | None = None      # poles from the raw frames of every synced take
     files: dict[str, str] = field(default_factory=dict)
     notes: tuple[str, ...] = ()          # what the numbers cannot show: peaks with no mode, a band that cuts one
+    reference: Sensor | None = None      # the hammer (the force channel): the impact point and the force's direction
+    #                                      on the structure where the capture records them (exports: node 100)
 
     def summary(self) -> dict:
         """The key numbers, as plain JSON values."""
