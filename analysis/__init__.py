@@ -8,10 +8,13 @@ from .analyze import AnalyzeSettings, analyze_capture
 from .correlation import Correlation, comac, correlate, mac, modal_scale_factor
 from .ema import LSFDResult, ModalFit, StabilisationChart, fit_modes, lscf, lsfd, select_poles, stabilisation
 from .export import (
+    CoherenceRecord,
     FRFRecord,
     Geometry,
+    MACRecord,
     ResultSet,
     ShapeRecord,
+    StabilisationRecord,
     TimeSeries,
     read_results_h5,
     read_uff,
@@ -35,11 +38,11 @@ from .tracking import Tracks, good_points, project_displacement, track_points
 
 run = analyze_capture  # the analyze stage's entry
 
-__all__ = ["AnalysisResult", "AnalyzeSettings", "Correlation", "DecayFit", "FRFRecord", "FRFResult", "FRFSettings",
-           "Geometry", "HitCheck", "LSFDResult", "ModalFit", "ResultSet", "Sensor", "ShapeRecord",
-           "StabilisationChart", "SurfaceMotion", "TimeSeries", "Tracks", "VideoModes", "analyze_capture",
-           "check_frf_hit", "comac", "correlate", "estimate_frf", "fit_decay", "fit_modes", "force_transform",
-           "good_points", "lscf", "lsce_poles", "lsfd", "mac", "modal_scale_factor", "pencil_poles",
-           "project_displacement", "read_analysis", "read_results_h5", "read_uff", "receptance", "run", "select_poles",
-           "split_hits", "stabilisation", "stable_poles", "track_points", "write_report", "write_results_h5",
-           "write_uff"]
+__all__ = ["AnalysisResult", "AnalyzeSettings", "CoherenceRecord", "Correlation", "DecayFit", "FRFRecord", "FRFResult",
+           "FRFSettings", "Geometry", "HitCheck", "LSFDResult", "MACRecord", "ModalFit", "ResultSet", "Sensor",
+           "ShapeRecord", "StabilisationChart", "StabilisationRecord", "SurfaceMotion", "TimeSeries", "Tracks",
+           "VideoModes", "analyze_capture", "check_frf_hit", "comac", "correlate", "estimate_frf", "fit_decay",
+           "fit_modes", "force_transform", "good_points", "lscf", "lsce_poles", "lsfd", "mac", "modal_scale_factor",
+           "pencil_poles", "project_displacement", "read_analysis", "read_results_h5", "read_uff", "receptance", "run",
+           "select_poles", "split_hits", "stabilisation", "stable_poles", "track_points", "write_report",
+           "write_results_h5", "write_uff"]

@@ -127,6 +127,13 @@ def _channels(capture: Capture, s: AnalyzeSettings) -> tuple[str, tuple[Sensor, 
     return force, tuple(sensors)
 
 
+def _reference(capture: Capture, force: str) -> Sensor:
+    """The hammer as the manifest's force channel places it: impact point and force direction, where recorded."""
+    c = capture.manifest.channel(force)
+    d = None if c.direction is None else np.asarray(c.direction, float) / np.linalg.norm(c.direction)
+    return Sensor(force, None if c.position_m is None else np.asarray(c.position_m, float), d)
+
+
 def _take_names(capture: Capture, s: AnalyzeSettings) -> list[str]:
     takes = [t.name for t in capture.select_takes(s.takes) if t.n_samples > 0]
     if not takes:
@@ -357,7 +364,8 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     for note in notes:
         log.info("note: %s", note)
     result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video,
-                            ods_surface, image, notes=tuple(notes), mac_verdict=verdict, crosscheck_verdict=xverdict)
+                            ods_surface, image, notes=tuple(notes), mac_verdict=verdict, crosscheck_verdict=xverdict,
+                            reference=_reference(capture, force))
     return _write(capture, result, s)
 
 

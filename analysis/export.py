@@ -2,12 +2,15 @@
 documented HDF5 layout, and back, through plain records that do not depend on how the analysis made them.
 
 UFF (`write_uff` / `read_uff`, through pyuff): 151 header and 164 units (SI: metre, newton, second), 2411 nodes
-(metres), 82 trace lines, 58 functions (function type 1 time response, 4 FRF; double precision, complex FRFs),
-55 shapes (3-DOF translation vectors; real modes as analysis type 2 with frequency and viscous damping ratio,
-complex modes as type 3 with the eigenvalue -zeta*wn + i*wn*sqrt(1-zeta^2) in rad/s, ODS as type 5 at a
-frequency line). Headers hold 6 significant digits (E13.5): abscissa start and step, frequencies, dampings and
-all of dataset 55; ordinates of 58 hold 12. ID line 1 is the record's name; an `odsplat unit=...` tag in ID
-line 4 of a 55 keeps its unit, and a direction given as a vector is kept in ID line 5 (`rsp=(x,y,z)`).
+(metres), 82 trace lines, 58 functions (function type 1 time response, 4 FRF, 6 coherence; double precision,
+complex FRFs, real coherence), 55 shapes (3-DOF translation vectors; real modes as analysis type 2 with frequency
+and viscous damping ratio, complex modes as type 3 with the eigenvalue -zeta*wn + i*wn*sqrt(1-zeta^2) in rad/s,
+ODS as type 5 at a frequency line). Headers hold 6 significant digits (E13.5): abscissa start and step,
+frequencies, dampings and all of dataset 55; ordinates of 58 hold 12. ID line 1 is the record's name; an
+`odsplat ... unit=U set=S` tag in ID line 4 of a 55 keeps its unit and shape set, and a direction given as a
+vector is kept in ID line 5 (`rsp=(x,y,z)`). A 55's shape set is its load case (1, 2, ... in the order the sets
+first appear), its number the mode number (modes) or frequency step number (ODS), counted within its set and
+kind unless the record gives one: two sets may each hold a mode 3 (the same pole seen by two instruments).
 
 HDF5 layout (`write_results_h5` / `read_results_h5`), groups kept in the order written::
 
@@ -18,10 +21,20 @@ HDF5 layout (`write_results_h5` / `read_results_h5`), groups kept in the order w
     /time_series/<name>    values (N,) float64; attrs node_id, direction, quantity, unit, t0_s, dt_s
     /frfs/<name>           freq_hz (F,) float64, values (F,) complex128; attrs response_node,
                            response_direction, reference_node, reference_direction, quantity, unit
+    /coherence/<name>      freq_hz (F,) float64, values (F,) float64 in [0, 1]; attrs response_node,
+                           response_direction, reference_node, reference_direction
     /shapes/<name>         node_ids (P,) int64, values (P,3) complex128 (X, Y, Z); attrs freq_hz, damping,
-                           kind ("mode"|"ods"), unit
+                           kind ("mode"|"ods"), unit, number (0: by order), shape_set
+    /mac/<name>            mac (A,B) float64, modes_a (A,) int64, modes_b (B,) int64, pairs (K,2) int64 (row,
+                           column), pair_mac (K,), scale_factor (K,) complex128 (a ~ s b), pair_freq_a_hz,
+                           pair_freq_b_hz (K,) float64 (NaN: not found), comac (D,) float64, comac_nodes (D,)
+                           int64; attrs label_a, label_b
+    /stabilisation/<name>  order (P,) int64, poles_rad_s (P,) complex128, status (P,) utf-8 ("stable", "damping",
+                           "freq", "new"), selected_rad_s (M,) complex128; attrs freq_tol, damping_tol,
+                           window_tau_s (the poles are as fitted, with the exponential window's 1/tau)
 
-A direction attr is a string ("+X", "-Z", "scalar", ...) or a float64 unit vector (3,).
+A direction attr is a string ("+X", "-Z", "scalar", ...) or a float64 unit vector (3,). Schema 3 added
+coherence, mac, stabilisation and the shapes' number and shape_set; schema 2 files read with their defaults.
 """
 from __future__ import annotations
 
@@ -30,7 +43,7 @@ import logging
 import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -45,7 +58,8 @@ from odsplat.store import atomic_path
 log = logging.getLogger(__name__)
 
 RESULTS_KIND = "odsplat.results"
-RESULTS_SCHEMA = 2
+RESULTS_SCHEMA = 3
+READABLE_SCHEMAS = (2, 3)
 # UFF direction codes (58 record 6): 1..3 translations, 4..6 rotations, 0 scalar.
 _DIR_CODE = {"scalar": 0, **{f"{s}{a}": (1 if s == "+" else -1) * (i + 1) for s in "+-"
                              for i, a in enumerate(("X", "Y", "Z", "RX", "RY", "RZ"))}}
@@ -61,6 +75,8 @@ _FRF_NUMERATOR = {"receptance": "displacement", "mobility": "velocity", "acceler
 _MONTHS = ("Jan", "Feb", "Mar", "Apr", "May", "Jun", "Jul", "Aug", "Sep", "Oct", "Nov", "Dec")
 _VECTOR_TAG = re.compile(r"\b(rsp|ref)=\(([^)]*)\)")
 _UNIT_TAG = re.compile(r"\bodsplat\b.*\bunit=(\S+)")
+_SET_TAG = re.compile(r"\bodsplat\b.*\bset=(\S+)")
+_STATUSES = ("stable", "damping", "freq", "new")
 
 Direction = str | tuple[float, float, float]
 
@@ -132,6 +148,24 @@ def _unit(unit: str, default: str, source: str) -> str:
     if not isinstance(unit, str) or len(unit) > 20 or " " in unit:
         raise InputError(source, f"unit {unit!r} must be a string of at most 20 characters without spaces")
     return unit
+
+
+def _even_axis(value: Any, source: str) -> np.ndarray:
+    f = _array(value, source, "freq_hz", float, (None,))
+    if len(f) < 2:
+        raise InputError(source, "freq_hz needs at least 2 lines")
+    step, df = np.diff(f), (f[-1] - f[0]) / (len(f) - 1)
+    if not df > 0 or np.max(np.abs(step - df)) > 1e-6 * df:
+        raise InputError(source, f"freq_hz is not uniformly spaced (steps {step.min():.6g} to {step.max():.6g} Hz);"
+                                 " UFF 58 and odsplat FRFs need an even frequency axis")
+    return f
+
+
+def _tag(text: str, source: str, fld: str) -> str:
+    """A short word for an ID-line tag: at most 20 characters, no spaces ("" allowed)."""
+    if not isinstance(text, str) or len(text) > 20 or any(c.isspace() for c in text):
+        raise InputError(source, f"{fld} {text!r} must be a string of at most 20 characters without spaces")
+    return text
 
 
 # ------------------------------------------------------------------------------------------------------ records
@@ -220,15 +254,8 @@ class FRFRecord:
             raise InputError(src, f"quantity {self.quantity!r}; expected one of {sorted(_FRF_NUMERATOR)}")
         num = _QUANTITY[_FRF_NUMERATOR[self.quantity]][2]
         self.unit = _unit(self.unit, num + "/N" if num else "", src)
-        self.freq_hz = _array(self.freq_hz, src, "freq_hz", float, (None,))
+        self.freq_hz = _even_axis(self.freq_hz, src)
         self.values = _array(self.values, src, "values", complex, (len(self.freq_hz),))
-        f = self.freq_hz
-        if len(f) < 2:
-            raise InputError(src, "freq_hz needs at least 2 lines")
-        step, df = np.diff(f), (f[-1] - f[0]) / (len(f) - 1)
-        if not df > 0 or np.max(np.abs(step - df)) > 1e-6 * df:
-            raise InputError(src, f"freq_hz is not uniformly spaced (steps {step.min():.6g} to {step.max():.6g} Hz);"
-                                  " UFF 58 and odsplat FRFs need an even frequency axis")
 
 
 @dataclass(eq=False)
@@ -243,6 +270,8 @@ class ShapeRecord:
     values: np.ndarray                            # (P, 3) complex
     kind: str = "mode"
     unit: str = "m"
+    number: int = 0              # mode number (modes) or frequency step number (ODS); 0: by order in its set
+    shape_set: str = ""          # which instrument or analysis the shape is from ("accelerometers", "video")
 
     def __post_init__(self) -> None:
         src = f"shape {self.name!r}"
@@ -256,6 +285,119 @@ class ShapeRecord:
         if len(set(self.node_ids.tolist())) != len(self.node_ids):
             raise InputError(src, "node_ids must be unique")
         self.unit = _unit(self.unit, "", src)
+        self.number = _whole(self.number, src, "number")
+        self.shape_set = _tag(self.shape_set, src, "shape_set")
+
+
+@dataclass(eq=False)
+class CoherenceRecord:
+    """The ordinary coherence of one response with the reference, on an even frequency axis (dimensionless,
+    0..1), as estimated beside the FRF of the same pair of nodes."""
+
+    name: str
+    response_node: int
+    response_direction: Direction
+    reference_node: int
+    reference_direction: Direction
+    freq_hz: np.ndarray                           # (F,)
+    values: np.ndarray                            # (F,) real
+
+    def __post_init__(self) -> None:
+        src = f"coherence {self.name!r}"
+        self.name = _name(self.name, src)
+        self.response_node = _whole(self.response_node, src, "response_node")
+        self.reference_node = _whole(self.reference_node, src, "reference_node")
+        self.response_direction = _direction(self.response_direction, src, "response_direction")
+        self.reference_direction = _direction(self.reference_direction, src, "reference_direction")
+        self.freq_hz = _even_axis(self.freq_hz, src)
+        self.values = _array(self.values, src, "values", float, (len(self.freq_hz),))
+        if self.values.size and not (self.values.min() >= -1e-9 and self.values.max() <= 1 + 1e-9):
+            raise InputError(src, f"values from {self.values.min():.6g} to {self.values.max():.6g}; a coherence "
+                                  "lies in [0, 1]")
+
+
+@dataclass(eq=False)
+class MACRecord:
+    """Two sets of shapes compared at the same degrees of freedom: the MAC matrix (rows: set a, columns: set b,
+    each labelled by its mode number), the pairs taken from it with their MAC, modal scale factor (a ~ s b) and
+    frequencies (NaN where a set has none), and the CoMAC per coordinate (node) over the pairs."""
+
+    name: str
+    mac: np.ndarray                               # (A, B)
+    modes_a: np.ndarray                           # (A,) int
+    modes_b: np.ndarray                           # (B,) int
+    pairs: np.ndarray                             # (K, 2) int: (row, column) indices into mac
+    pair_mac: np.ndarray                          # (K,)
+    scale_factor: np.ndarray                      # (K,) complex
+    pair_freq_a_hz: np.ndarray                    # (K,), NaN: unknown
+    pair_freq_b_hz: np.ndarray                    # (K,)
+    comac: np.ndarray                             # (D,)
+    comac_nodes: np.ndarray                       # (D,) int: the node of each coordinate
+    label_a: str = ""
+    label_b: str = ""
+
+    def __post_init__(self) -> None:
+        src = f"MAC {self.name!r}"
+        self.name = _name(self.name, src)
+        self.mac = _array(self.mac, src, "mac", float, (None, None))
+        a, b = self.mac.shape
+        self.modes_a = _array(self.modes_a, src, "modes_a", np.int64, (a,))
+        self.modes_b = _array(self.modes_b, src, "modes_b", np.int64, (b,))
+        self.pairs = _array(np.reshape(self.pairs, (-1, 2)), src, "pairs", np.int64, (None, 2))
+        k = len(self.pairs)
+        if k and not (np.all(self.pairs >= 0) and np.all(self.pairs[:, 0] < a) and np.all(self.pairs[:, 1] < b)):
+            raise InputError(src, f"pairs must index the ({a}, {b}) MAC matrix")
+        self.pair_mac = _array(self.pair_mac, src, "pair_mac", float, (k,))
+        self.scale_factor = _array(self.scale_factor, src, "scale_factor", complex, (k,))
+        for fld in ("pair_freq_a_hz", "pair_freq_b_hz"):       # NaN is allowed: a frequency not found
+            v = np.asarray(getattr(self, fld), float)
+            if v.shape != (k,) or np.any(np.isinf(v)):
+                raise InputError(src, f"{fld} must be ({k},) finite or NaN; got shape {v.shape}")
+            setattr(self, fld, v)
+        self.comac = _array(self.comac, src, "comac", float, (None,))
+        self.comac_nodes = _array(self.comac_nodes, src, "comac_nodes", np.int64, (len(self.comac),))
+        self.label_a, self.label_b = str(self.label_a), str(self.label_b)
+
+
+@dataclass(eq=False)
+class StabilisationRecord:
+    """A stabilisation chart: every pole of every model order with its status against the previous order
+    ("stable", "damping", "freq", "new"), and the poles selected from it. Poles in rad/s, as fitted."""
+
+    name: str
+    order: np.ndarray                             # (P,) int
+    poles_rad_s: np.ndarray                       # (P,) complex
+    status: np.ndarray                            # (P,) str
+    selected_rad_s: np.ndarray                    # (M,) complex
+    freq_tol: float = 0.01
+    damping_tol: float = 0.05
+    window_tau_s: float = 0.0    # the exponential window's time constant (0: none): the chart's poles carry its
+    #                              1/tau of added decay rate; modes corrected for it differ by that much
+
+    def __post_init__(self) -> None:
+        src = f"stabilisation {self.name!r}"
+        self.name = _name(self.name, src)
+        self.order = _array(self.order, src, "order", np.int64, (None,))
+        self.poles_rad_s = _array(self.poles_rad_s, src, "poles_rad_s", complex, (len(self.order),))
+        status = np.asarray([s.decode() if isinstance(s, bytes) else str(s) for s in np.ravel(self.status)])
+        if status.shape != self.order.shape or not set(status.tolist()) <= set(_STATUSES):
+            raise InputError(src, f"status must hold one of {_STATUSES} per pole")
+        self.status = status.astype(str)
+        self.selected_rad_s = _array(self.selected_rad_s, src, "selected_rad_s", complex, (None,))
+        self.freq_tol = _finite(self.freq_tol, src, "freq_tol", 0.0)
+        self.damping_tol = _finite(self.damping_tol, src, "damping_tol", 0.0)
+        self.window_tau_s = _finite(self.window_tau_s, src, "window_tau_s", 0.0)
+
+    @property
+    def freq_hz(self) -> np.ndarray:
+        """Undamped natural frequency |lambda| / 2 pi of each pole."""
+        return np.abs(self.poles_rad_s) / (2 * np.pi)
+
+    @property
+    def damping(self) -> np.ndarray:
+        """Viscous damping ratio -Re(lambda) / |lambda| of each pole."""
+        mag = np.abs(self.poles_rad_s)
+        return -self.poles_rad_s.real / np.where(mag > 0, mag, 1.0)
 
 
 @dataclass(eq=False)
@@ -266,14 +408,42 @@ class ResultSet:
     time_series: list[TimeSeries] = field(default_factory=list)
     frfs: list[FRFRecord] = field(default_factory=list)
     shapes: list[ShapeRecord] = field(default_factory=list)
+    coherence: list[CoherenceRecord] = field(default_factory=list)
+    mac: list[MACRecord] = field(default_factory=list)                  # results.h5 only
+    stabilisation: list[StabilisationRecord] = field(default_factory=list)  # results.h5 only
     description: str = ""
     attrs: dict[str, Any] = field(default_factory=dict)
     skipped: list[str] = field(default_factory=list)
 
 
-def _check_records(geometry, time_series, frfs, shapes) -> None:
-    for kind, cls, recs in (("time series", TimeSeries, time_series), ("FRF", FRFRecord, frfs),
-                            ("shape", ShapeRecord, shapes)):
+_KINDS = {"time_series": ("time series", TimeSeries), "frfs": ("FRF", FRFRecord), "shapes": ("shape", ShapeRecord),
+          "coherence": ("coherence", CoherenceRecord), "mac": ("MAC", MACRecord),
+          "stabilisation": ("stabilisation", StabilisationRecord)}
+
+
+def _shape_numbers(shapes: Sequence[ShapeRecord]) -> list[tuple[int, int]]:
+    """(load case, number) of each shape: its set's place among the sets (1, 2, ...), and its given number or its
+    place among its set's shapes of its kind. Two shapes of one set and kind may not share a number."""
+    cases: dict[str, int] = {}
+    count: dict[tuple[str, str], int] = {}
+    seen: dict[tuple[str, str, int], str] = {}
+    out = []
+    for r in shapes:
+        case = cases.setdefault(r.shape_set, len(cases) + 1)
+        key = (r.shape_set, r.kind)
+        count[key] = count.get(key, 0) + 1
+        n = r.number or count[key]
+        if (*key, n) in seen:
+            raise InputError(f"shape {r.name!r}", f"{r.kind} number {n} of set {r.shape_set!r} is also "
+                                                  f"{seen[(*key, n)]!r}'s; numbers are unique within a set")
+        seen[(*key, n)] = r.name
+        out.append((case, n))
+    return out
+
+
+def _check_records(geometry: Geometry | None, records: dict[str, list]) -> None:
+    for group, recs in records.items():
+        kind, cls = _KINDS[group]
         names = []
         for r in recs:
             if not isinstance(r, cls):
@@ -282,10 +452,11 @@ def _check_records(geometry, time_series, frfs, shapes) -> None:
             if r.name in names:
                 raise InputError(f"{kind} {r.name!r}", "name used by more than one record; names must be unique")
             names.append(r.name)
+    _shape_numbers(records.get("shapes", ()))
     if geometry is not None:
         geometry.__post_init__()
         known = set(geometry.node_ids.tolist())
-        for s in shapes:
+        for s in records.get("shapes", ()):
             missing = sorted(set(s.node_ids.tolist()) - known)
             if missing:
                 raise InputError(f"shape {s.name!r}", f"node_ids {missing[:5]} are not in the geometry")
@@ -335,14 +506,23 @@ def _frf_dset(frf: FRFRecord, id2: str, id3: str) -> dict:
                    denominator=den if spec else (0, "NONE", den[2]))
 
 
-def _shape_dset(s: ShapeRecord, n: int, id2: str, id3: str) -> dict:
+def _coherence_dset(c: CoherenceRecord, id2: str, id3: str) -> dict:
+    return _dset58(func_type=6, name=c.name, id2=id2, id3=id3,
+                   id5=_vector_tags(rsp=c.response_direction, ref=c.reference_direction),
+                   rsp=(c.response_node, _code(c.response_direction)),
+                   ref=(c.reference_node, _code(c.reference_direction)), x=c.freq_hz, data=c.values,
+                   abscissa=(18, "Frequency", "Hz"), ordinate=(0, "Coherence", "NONE"),
+                   denominator=(0, "NONE", "NONE"))
+
+
+def _shape_dset(s: ShapeRecord, case: int, n: int, id2: str, id3: str) -> dict:
     base = s.unit[:-2] if s.unit.endswith("/N") else s.unit
     spec = {"m": 8, "m/s": 11, "m/s^2": 12}.get(base, 0)
     real = not np.any(s.values.imag)
     v = s.values.real if real else s.values
-    common = dict(id1=s.name, id2=id2, id3=id3, id4=f"odsplat {s.kind} unit={s.unit or 'NONE'}", model_type=1,
-                  data_ch=2, spec_data_type=spec, node_nums=s.node_ids, load_case=1, r1=v[:, 0], r2=v[:, 1],
-                  r3=v[:, 2])
+    id4 = f"odsplat {s.kind} unit={s.unit or 'NONE'}" + (f" set={s.shape_set}" if s.shape_set else "")
+    common = dict(id1=s.name, id2=id2, id3=id3, id4=id4, model_type=1, data_ch=2, spec_data_type=spec,
+                  node_nums=s.node_ids, load_case=case, r1=v[:, 0], r2=v[:, 1], r3=v[:, 2])
     if s.kind == "ods":
         if s.damping:
             log.warning("shape %r: an ODS record (UFF 55 analysis type 5) carries no damping; %g dropped",
@@ -359,13 +539,15 @@ def _shape_dset(s: ShapeRecord, n: int, id2: str, id3: str) -> dict:
 
 
 def write_uff(path: str | Path, *, geometry: Geometry | None = None, time_series: Sequence[TimeSeries] = (),
-              frfs: Sequence[FRFRecord] = (), shapes: Sequence[ShapeRecord] = (), description: str = "") -> Path:
-    """Write the records to one ASCII universal file (atomically: a failure leaves no partial file)."""
+              frfs: Sequence[FRFRecord] = (), shapes: Sequence[ShapeRecord] = (),
+              coherence: Sequence[CoherenceRecord] = (), description: str = "") -> Path:
+    """Write the records to one ASCII universal file (atomically: a failure leaves no partial file). Each
+    coherence follows the FRFs; MAC and stabilisation records have no UFF dataset (results.h5 holds them)."""
     path = Path(path)
-    time_series, frfs, shapes = list(time_series), list(frfs), list(shapes)
-    _check_records(geometry, time_series, frfs, shapes)
-    if geometry is None and not (time_series or frfs or shapes):
-        raise InputError(path, "nothing to write: no geometry, time series, FRFs or shapes")
+    time_series, frfs, shapes, coherence = list(time_series), list(frfs), list(shapes), list(coherence)
+    _check_records(geometry, {"time_series": time_series, "frfs": frfs, "shapes": shapes, "coherence": coherence})
+    if geometry is None and not (time_series or frfs or shapes or coherence):
+        raise InputError(path, "nothing to write: no geometry, time series, FRFs, coherence or shapes")
     id2, id3 = (description.strip()[:80] or "NONE"), _uff_date()
     sets: list[tuple[str, dict]] = [
         ("header", pyuff.prepare_151(model_name=description.strip()[:80] or "NONE",
@@ -384,10 +566,9 @@ def write_uff(path: str | Path, *, geometry: Geometry | None = None, time_series
                                                                         color=8, id="odsplat geometry", nodes=nodes)))
     sets += [(f"time series {r.name!r}", _ts_dset(r, id2, id3)) for r in time_series]
     sets += [(f"FRF {r.name!r}", _frf_dset(r, id2, id3)) for r in frfs]
-    numbers = {"mode": 0, "ods": 0}
-    for s in shapes:
-        numbers[s.kind] += 1
-        sets.append((f"shape {s.name!r}", _shape_dset(s, numbers[s.kind], id2, id3)))
+    sets += [(f"coherence {r.name!r}", _coherence_dset(r, id2, id3)) for r in coherence]
+    sets += [(f"shape {s.name!r}", _shape_dset(s, case, n, id2, id3))
+             for s, (case, n) in zip(shapes, _shape_numbers(shapes))]
     with atomic_path(path) as tmp:
         uff = pyuff.UFF(str(tmp))
         for i, (label, dset) in enumerate(sets):
@@ -420,10 +601,10 @@ def _directions(d: dict, id5: str) -> dict[str, Direction]:
     return {k: vectors.get(k, _CODE_DIR.get(int(d[f"{k}_dir"]), "scalar")) for k in ("rsp", "ref")}
 
 
-def _from_58(d: dict, i: int, taken: set[str]) -> TimeSeries | FRFRecord:
+def _from_58(d: dict, i: int, taken: set[str]) -> TimeSeries | FRFRecord | CoherenceRecord:
     ft, src = int(d["func_type"]), f"dataset #{i} (58, {_label(d.get('id1')) or 'unnamed'})"
-    if ft not in (1, 4):
-        raise InputError(src, f"function type {ft} is neither a time response (1) nor an FRF (4)")
+    if ft not in (1, 4, 6):
+        raise InputError(src, f"function type {ft} is not a time response (1), an FRF (4) or a coherence (6)")
     n = len(d["data"])
     if int(d["abscissa_spacing"]) == 1:
         x0, dx = float(d["abscissa_min"]), float(d["abscissa_inc"])
@@ -436,7 +617,13 @@ def _from_58(d: dict, i: int, taken: set[str]) -> TimeSeries | FRFRecord:
     num, den = _label(d.get("ordinate_axis_units_lab")), _label(d.get("orddenom_axis_units_lab"))
     quantity = _SPEC_QUANTITY.get(int(d["ordinate_spec_data_type"]), "unknown")
     data = np.asarray(d["data"])
-    name = _unique(_label(d.get("id1")) or _label(d.get("rsp_ent_name")), f"{'time' if ft == 1 else 'frf'} {i}", taken)
+    fallback = {1: "time", 4: "frf", 6: "coherence"}[ft]
+    name = _unique(_label(d.get("id1")) or _label(d.get("rsp_ent_name")), f"{fallback} {i}", taken)
+    if ft == 6:
+        if np.iscomplexobj(data) and np.any(data.imag):
+            raise InputError(src, "a coherence with complex values")
+        return CoherenceRecord(name, int(d["rsp_node"]), dirs["rsp"], int(d["ref_node"]), dirs["ref"],
+                               x0 + dx * np.arange(n), data.real.astype(float))
     if ft == 1:
         if np.iscomplexobj(data) and np.any(data.imag):
             raise InputError(src, "a time response with complex values")
@@ -455,8 +642,10 @@ def _from_55(d: dict, i: int, taken: set[str]) -> ShapeRecord:
     if int(d.get("data_ch", 2)) not in (2, 3) or "r3" not in d:
         raise InputError(src, f"data characteristic {d.get('data_ch')} is not a 3- or 6-DOF vector")
     values = np.stack([np.asarray(d[k], complex) for k in ("r1", "r2", "r3")], axis=1)
-    tag = _UNIT_TAG.search(_label(d.get("id4")))
+    id4 = _label(d.get("id4"))
+    tag, set_tag = _UNIT_TAG.search(id4), _SET_TAG.search(id4)
     unit = _label(tag.group(1)) if tag else {8: "m", 11: "m/s", 12: "m/s^2"}.get(int(d["spec_data_type"]), "")
+    shape_set = set_tag.group(1)[:20] if set_tag else ""
     if at == 2:
         kind, n, freq, damping = "mode", d["mode_n"], d["freq"], d.get("modal_damp_vis", 0.0)
     elif at in (3, 7):
@@ -467,12 +656,13 @@ def _from_55(d: dict, i: int, taken: set[str]) -> ShapeRecord:
     else:
         raise InputError(src, f"analysis type {at} is not a mode (2, 3, 7) or a frequency response (5)")
     name = _unique(d.get("id1"), f"{kind} {n}", taken)
-    return ShapeRecord(name, freq, damping, np.asarray(d["node_nums"]).astype(np.int64), values, kind, unit)
+    return ShapeRecord(name, freq, damping, np.asarray(d["node_nums"]).astype(np.int64), values, kind, unit,
+                       number=max(int(n), 0), shape_set=shape_set)
 
 
 def read_uff(path: str | Path) -> ResultSet:
-    """Read nodes (2411 or 15), trace lines (82), time responses and FRFs (58, 58b) and shapes (55) from a
-    universal file. Datasets of other kinds, or that do not fit the records, are listed in `skipped`."""
+    """Read nodes (2411 or 15), trace lines (82), time responses, FRFs and coherence (58, 58b) and shapes (55)
+    from a universal file. Datasets of other kinds, or that do not fit the records, are listed in `skipped`."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "no such file")
@@ -512,7 +702,8 @@ def read_uff(path: str | Path) -> ResultSet:
                 out.skipped.append(str(exc))
                 log.warning("%s: skipped %s", path, exc)
                 continue
-            {TimeSeries: out.time_series, FRFRecord: out.frfs, ShapeRecord: out.shapes}[type(rec)].append(rec)
+            {TimeSeries: out.time_series, FRFRecord: out.frfs, ShapeRecord: out.shapes,
+             CoherenceRecord: out.coherence}[type(rec)].append(rec)
     if nodes:
         ids, coords = np.concatenate([n[0] for n in nodes]), np.concatenate([n[1] for n in nodes]) / length_factor
         known = set(ids.tolist())
@@ -520,7 +711,7 @@ def read_uff(path: str | Path) -> ResultSet:
             out.geometry = Geometry(ids, coords, [ln for ln in lines if set(ln) <= known] if lines else None)
         except InputError as exc:
             raise InputError(path, f"nodes (2411/15): {exc.problem}") from exc
-    if out.geometry is None and not (out.time_series or out.frfs or out.shapes):
+    if out.geometry is None and not (out.time_series or out.frfs or out.shapes or out.coherence):
         raise InputError(path, f"holds no nodes, functions (58) or shapes (55) odsplat can read; dataset types "
                                f"{sorted(set(types))}" + (f"; skipped: {out.skipped[:3]}" if out.skipped else ""))
     return out
@@ -528,7 +719,6 @@ def read_uff(path: str | Path) -> ResultSet:
 
 # ------------------------------------------------------------------------------------------------------- HDF5
 
-_H5_GROUPS = (("time_series", TimeSeries), ("frfs", FRFRecord), ("shapes", ShapeRecord))
 _RESERVED = ("kind", "schema_version", "created_utc", "json_attrs")
 
 
@@ -543,12 +733,14 @@ def _plain(value: Any) -> Any:
 
 def write_results_h5(path: str | Path, *, geometry: Geometry | None = None, time_series: Sequence[TimeSeries] = (),
                      frfs: Sequence[FRFRecord] = (), shapes: Sequence[ShapeRecord] = (),
-                     attrs: dict[str, Any] | None = None) -> Path:
+                     coherence: Sequence[CoherenceRecord] = (), mac: Sequence[MACRecord] = (),
+                     stabilisation: Sequence[StabilisationRecord] = (), attrs: dict[str, Any] | None = None) -> Path:
     """Write the records to an HDF5 file in the layout of the module docstring (atomically)."""
     path = Path(path)
-    records = {"time_series": list(time_series), "frfs": list(frfs), "shapes": list(shapes)}
+    records = {"time_series": list(time_series), "frfs": list(frfs), "shapes": list(shapes),
+               "coherence": list(coherence), "mac": list(mac), "stabilisation": list(stabilisation)}
     attrs = dict(attrs or {})
-    _check_records(geometry, *records.values())
+    _check_records(geometry, records)
     if set(_RESERVED) & set(attrs):
         raise InputError("attrs", f"{sorted(set(_RESERVED) & set(attrs))} are reserved by the results layout")
     json_keys = [k for k, v in attrs.items() if v is None or isinstance(v, (dict, list, tuple))]
@@ -570,11 +762,29 @@ def write_results_h5(path: str | Path, *, geometry: Geometry | None = None, time
                 g = parent.create_group(r.name, track_order=True)
                 for fld in fields(r):
                     value = getattr(r, fld.name)
-                    if isinstance(value, np.ndarray):
+                    if isinstance(value, np.ndarray) and value.dtype.kind == "U":
+                        g.create_dataset(fld.name, data=value.tolist(), dtype=h5py.string_dtype())
+                    elif isinstance(value, np.ndarray):
                         g.create_dataset(fld.name, data=value)
                     elif fld.name != "name":
                         g.attrs[fld.name] = np.asarray(value, float) if isinstance(value, tuple) else value
     return path
+
+
+def _h5_record(cls: type, name: str, g: h5py.Group) -> Any:
+    """One record from its group; a field a schema-2 file lacks takes the record's default."""
+    kw = {}
+    for fld in fields(cls):
+        if fld.name == "name":
+            continue
+        if fld.name in g:
+            ds = g[fld.name]
+            kw[fld.name] = ds.asstr()[()] if h5py.check_string_dtype(ds.dtype) else ds[()]
+        elif fld.name in g.attrs:
+            kw[fld.name] = _plain(g.attrs[fld.name])
+        elif fld.default is MISSING:
+            raise KeyError(f"{g.name}/{fld.name}")
+    return cls(name=name, **kw)
 
 
 def read_results_h5(path: str | Path) -> ResultSet:
@@ -590,8 +800,9 @@ def read_results_h5(path: str | Path) -> ResultSet:
         if _plain(f.attrs.get("kind")) != RESULTS_KIND:
             raise InputError(path, f"not an {RESULTS_KIND} file (kind={_plain(f.attrs.get('kind'))!r})")
         version = _plain(f.attrs.get("schema_version"))
-        if version != RESULTS_SCHEMA:
-            raise SchemaError(path, f"results schema {version}; this odsplat reads {RESULTS_SCHEMA}")
+        if version not in READABLE_SCHEMAS:
+            raise SchemaError(path, f"results schema {version}; this odsplat reads "
+                                    f"{', '.join(str(v) for v in READABLE_SCHEMAS)}")
         json_keys = json.loads(_plain(f.attrs.get("json_attrs", "[]")))
         out = ResultSet(attrs={k: json.loads(v) if k in json_keys else _plain(v) for k, v in f.attrs.items()
                                if k not in _RESERVED})
@@ -601,11 +812,9 @@ def read_results_h5(path: str | Path) -> ResultSet:
                 lines = [(int(a), int(b)) for a, b in g["lines"][()]] if "lines" in g else None
                 names = [_plain(s) for s in g["names"][()]] if "names" in g else None
                 out.geometry = Geometry(g["node_ids"][()], g["coords_m"][()], lines, names)
-            for group, cls in _H5_GROUPS:
+            for group, (_, cls) in _KINDS.items():
                 for name, g in f.get(group, {}).items():
-                    kw = {fld.name: g[fld.name][()] if fld.name in g else _plain(g.attrs[fld.name])
-                          for fld in fields(cls) if fld.name != "name"}
-                    getattr(out, group).append(cls(name=name, **kw))
+                    getattr(out, group).append(_h5_record(cls, name, g))
         except KeyError as exc:
             raise InputError(path, f"incomplete results file: {exc}") from exc
     return out

@@ -74,6 +74,8 @@ class AnalysisResult:
     #                                      modes below the video's noise floor
     mac_verdict: Verdict | None = None         # MAC target over the modes above the video's noise floor
     crosscheck_verdict: Verdict | None = None  # the 2D cross-check's gain and correlation against thresholds
+    reference: Sensor | None = None      # the hammer (the force channel): the impact point and the force's direction
+    #                                      on the structure where the capture records them (exports: node 100)
 
     def summary(self) -> dict:
         """The key numbers, as plain JSON values."""

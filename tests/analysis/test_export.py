@@ -179,7 +179,7 @@ def test_h5_round_trip_is_exact(tmp_path, rec):
     attrs = {"capture": "plate_01", "n_averages": 5, "window": {"force": "rect", "response": "exp"}}
     path = write_results_h5(tmp_path / "results.h5", attrs=attrs, **rec)
     with h5py.File(path, "r") as f:
-        assert (f.attrs["kind"], f.attrs["schema_version"]) == ("odsplat.results", 2)
+        assert (f.attrs["kind"], f.attrs["schema_version"]) == ("odsplat.results", 3)
         assert list(f["frfs"]) == ["H102", "H103", "H104"] and f["frfs/H102/values"].dtype == np.complex128
         assert f["shapes/mode 1/values"].shape == (6, 3) and f["time_series/hammer"].attrs["dt_s"] == DT_S
     back = read_results_h5(path)

@@ -3,6 +3,7 @@ video side from a reconstruction file holding hil_sim's exact surface motion, th
 the report and the command line. Ground truth: the rig's modes and each take's truth file."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import h5py
@@ -13,6 +14,8 @@ from click.testing import CliRunner
 
 from odsplat.analysis.analyze import AnalyzeSettings, analyze_capture
 from odsplat.analysis.correlation import mac, modal_scale_factor
+from odsplat.analysis.export import read_results_h5
+from odsplat.analysis.outputs import FORCE_NODE, NO_NODE, records
 from odsplat.cli import main
 from odsplat.errors import InputError
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
@@ -255,11 +258,80 @@ def test_outputs_read_back(capture):
     assert "video ODS 23.50 Hz" in names and any(n.startswith("accelerometer mode") for n in names)
     sets = pyuff.UFF(str(dest / "analysis.uff")).read_sets()
     types = [d["type"] for d in sets]
-    assert 2411 in types and types.count(58) == len(res.sensors) and types.count(55) >= len(res.modes.freq_hz)
+    assert 2411 in types and types.count(58) == 2 * len(res.sensors) and types.count(55) >= len(res.modes.freq_hz)
     frf58 = [d for d in sets if d["type"] == 58][0]
     assert np.allclose(frf58["data"], res.frf.h1[:, 0], rtol=1e-6, atol=1e-9 * np.abs(res.frf.h1[:, 0]).max())
     for key, rel in summary["files"].items():
         assert (dest / rel).is_file(), key
+    _check_uff(sets, res, _truth(capture))
+    _check_h5(read_results_h5(dest / "results.h5"), res)
+    # Without the impact point the hammer is no node, and the FRFs' reference is node 0 (none), not a dangling 100
+    recs = records(dataclasses.replace(res, reference=None))
+    assert FORCE_NODE not in recs["geometry"].node_ids
+    assert {r.reference_node for r in recs["frfs"] + recs["coherence"]} == {NO_NODE}
+    assert {r.reference_direction for r in recs["frfs"]} == {"scalar"}
+
+
+def _check_uff(sets: list[dict], res, tr: TakeTruth) -> None:
+    """analysis.uff as pyuff reads it: the hammer at the impact point, trace lines between existing nodes, coherence
+    as the analysis computed it, and each set's modes numbered 1..N by the accelerometer mode they share a pole
+    with."""
+    nodes = [d for d in sets if d["type"] == 2411][0]
+    ids = np.asarray(nodes["node_nums"], int)
+    xyz = np.stack([nodes["x"], nodes["y"], nodes["z"]], axis=1)
+    assert FORCE_NODE in ids
+    np.testing.assert_allclose(xyz[ids == FORCE_NODE][0], tr.impact_point_m[0], atol=1e-12)   # hil_sim's truth
+    assert set(ids) >= set(range(1, len(res.sensors) + 1)) and ids.max() > 1001
+    lines = [(a, b) for d in sets if d["type"] == 82
+             for a, b in zip(np.asarray(d["nodes"], int)[:-1], np.asarray(d["nodes"], int)[1:]) if a and b]
+    assert set(np.ravel(lines)) <= set(ids.tolist())                               # every line joins two nodes
+    assert len(lines) == len(set(lines)) and all(a != b for a, b in lines)
+    assert sum(1 for a, b in lines if b < 1000) == len(res.sensors) - 1            # the sensors' tree
+    n_surface = int(np.sum(ids >= 1001))
+    assert 1.2 * n_surface < sum(1 for a, b in lines if a >= 1001) < 2.5 * n_surface
+    direction = res.reference.direction
+    code = (int(np.argmax(np.abs(direction))) + 1) * int(np.sign(direction[np.argmax(np.abs(direction))]))
+    frf, coh = ([d for d in sets if d["type"] == 58 and d["func_type"] == ft] for ft in (4, 6))
+    assert len(frf) == len(coh) == len(res.sensors)
+    for j, d in enumerate(coh):
+        assert (d["rsp_node"], d["ref_node"], d["ref_dir"]) == (j + 1, FORCE_NODE, code)
+        assert frf[j]["ref_node"] == FORCE_NODE
+        np.testing.assert_allclose(d["data"], res.frf.coherence[:, j], rtol=1e-10, atol=1e-12)
+    modes = [d for d in sets if d["type"] == 55 and d["analysis_type"] in (2, 3)]
+    by_set = {case: [d for d in modes if d["load_case"] == case] for case in (1, 2)}
+    assert [d["mode_n"] for d in by_set[1]] == list(range(1, res.modes.n_modes + 1))
+    assert [d["mode_n"] for d in by_set[2]] == [int(k) + 1 for k in res.video.mode_index]
+    assert all("set=accelerometers" in d["id4"] for d in by_set[1]) and all("set=video" in d["id4"] for d in by_set[2])
+    for d in by_set[1] + by_set[2]:
+        k = d["mode_n"] - 1
+        f = abs(d["eig"]) / (2 * np.pi) if d["analysis_type"] == 3 else d["freq"]
+        assert f == pytest.approx(res.modes.freq_hz[k], rel=1e-5)
+
+
+def _check_h5(back, res) -> None:
+    """results.h5 read back: coherence, the MAC of the correlation and the stabilisation chart, exactly."""
+    assert len(back.coherence) == len(res.sensors)
+    for j, c in enumerate(back.coherence):
+        np.testing.assert_array_equal(c.values, res.frf.coherence[:, j])
+        assert c.reference_node == FORCE_NODE
+    vm = {m.name: m for m in back.mac}["video vs accelerometers"]
+    corr = res.correlation
+    np.testing.assert_array_equal(vm.mac, corr.mac)
+    np.testing.assert_array_equal(vm.pairs, np.asarray(corr.pairs))
+    np.testing.assert_array_equal(vm.pair_mac, corr.pair_mac)
+    np.testing.assert_array_equal(vm.scale_factor, corr.scale_factor)
+    np.testing.assert_array_equal(vm.comac, corr.comac)
+    np.testing.assert_array_equal(vm.modes_a, res.video.mode_index + 1)
+    (stab,) = back.stabilisation
+    order, poles, status = res.modes.chart.flat()
+    np.testing.assert_array_equal(stab.order, order)
+    np.testing.assert_array_equal(stab.poles_rad_s, poles)
+    assert stab.status.tolist() == status.tolist()
+    np.testing.assert_array_equal(stab.selected_rad_s, res.modes.lsfd.poles_rad_s)
+    assert stab.window_tau_s == res.frf.exp_tau_s
+    video = [s for s in back.shapes if s.shape_set == "video" and s.kind == "mode"]
+    assert [s.number for s in video] == [int(k) + 1 for k in res.video.mode_index]
+    np.testing.assert_array_equal([s.freq_hz for s in video], res.modes.freq_hz[res.video.mode_index])
 
 
 def test_accelerometers_only_and_bad_channels(capture):
