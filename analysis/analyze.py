@@ -281,9 +281,9 @@ def _structure(capture: Capture, points_m: np.ndarray, noise, s: AnalyzeSettings
     if s.floor_margin_m is not None and tags is not None and any(not t.on_structure for t in tags.tags):
         keep &= p[:, 2] > s.floor_margin_m
         rules.append(f"more than {1e3 * s.floor_margin_m:g} mm above the floor")
-    if s.structure_motion and noise is not None and noise.static is not None and (keep & ~noise.static).any():
-        keep &= ~noise.static
-        rules.append("moving")
+    if s.structure_motion and noise is not None and noise.moving is not None and (keep & noise.moving).any():
+        keep &= noise.moving
+        rules.append("moving above their noise")
     if not keep.any():
         log.warning("no surface point passes the structure rules (%s); the shapes keep every point",
                     ", ".join(rules))

@@ -47,6 +47,7 @@ class NoiseFloor:
     mode_amplitude_m: np.ndarray     # (R,) each mode's video amplitude: rms over the sensors of 2|C_r|
     mode_floor_m: np.ndarray         # (R,) FLOOR_SIGMAS x the noise's standard deviation of that amplitude
     static: np.ndarray | None = None  # (N,) bool: the points whose motion the modes do not explain at all
+    moving: np.ndarray | None = None  # (N,) bool: the points whose modal amplitudes stand above their noise
 
     @property
     def below(self) -> np.ndarray:
@@ -111,6 +112,24 @@ def design_gains(times_s: np.ndarray, poles_rad_s: np.ndarray, t_min_s: float, o
     return np.sqrt(np.maximum(d[:R] + d[R:2 * R], 0.0))
 
 
+MOVING_FALSE_ALARM = 1e-3   # the chance that a point of noise alone is taken for a moving one
+
+
+def moving_points(amplitudes: np.ndarray, gains: np.ndarray, point_sigma_m: np.ndarray, components: int = 3,
+                  false_alarm: float = MOVING_FALSE_ALARM) -> np.ndarray:
+    """(N,) bool: the points whose fitted modal amplitudes (amplitudes (R, N * components), the decay fit's C)
+    stand above what their own noise (point_sigma_m, per unit design gain `gains` (R,)) would give. Under noise
+    alone, sum over modes and components of |2C|^2 / (sd^2 / 2) is chi-square with 2 R components degrees of
+    freedom; a point moves when it passes that distribution's 1 - false_alarm quantile."""
+    from scipy.stats import chi2
+
+    R = amplitudes.shape[0]
+    a2 = np.abs(2 * np.asarray(amplitudes)) ** 2                                        # (R, N * c)
+    sd2 = (np.asarray(gains, float)[:, None] * np.repeat(np.asarray(point_sigma_m, float), components)[None]) ** 2
+    stat = np.sum(2 * a2 / np.maximum(sd2, 1e-300), axis=0).reshape(-1, components).sum(axis=1)
+    return stat > chi2.ppf(1 - false_alarm, 2 * R * components)
+
+
 def noise_floor(times_s, sensors_m, surface_m, fit: DecayFit, *, point_components: int = 3) -> NoiseFloor:
     """The noise floor of the motion a decay fit was made to: sensors_m (T, S) and surface_m (T, N * components),
     the fit's channels in that order (as `video_modes` fits them in one solve)."""
@@ -157,7 +176,9 @@ def noise_floor(times_s, sensors_m, surface_m, fit: DecayFit, *, point_component
     amplitude = np.sqrt(np.mean(np.abs(2 * fit.amplitudes[:, :S]) ** 2, axis=1))
     out = NoiseFloor(float(np.median(point_sigma)) if len(point_sigma) else float(np.median(sensor_sigma)),
                      point_sigma, sensor_sigma, static_sigma, int(static.sum()), pre_sigma, int(pre.sum()),
-                     gain, amplitude, floor, static)
+                     gain, amplitude, floor, static,
+                     moving_points(fit.amplitudes[:, S:], design_gains(t, poles, fit.t_min_s), point_sigma,
+                                   point_components))
     log.info("video noise floor: %.3g um per point (static points %.3g um, %d; before the impact %.3g um), "
              "%.3g um at the sensors; modes below it: %s", 1e6 * out.sigma_m, 1e6 * static_sigma, out.n_static,
              1e6 * pre_sigma, 1e6 * float(np.median(sensor_sigma)),

@@ -469,3 +469,39 @@ def test_a_short_record_analyses_with_the_defaults(capture):
                           )["settings"]["max_order"] is None
     finally:
         _write_trajectories(capture)
+
+
+def test_shapes_and_exports_are_the_structures_not_the_backgrounds(capture):
+    """The base's static top face (1200 points, 5 um of noise like every point) is fitted and kept out: the
+    shapes, the UFF's surface nodes and the ODS plots hold the structure (the column and arm), and the report
+    states the background's motion as the video's noise in the open."""
+    sigma = 5e-6
+    _write_trajectories(capture, noise_m=sigma, floor=True)
+    try:
+        res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False))
+        v = res.video
+        structure = {tuple(p) for p in np.round(_surface_points(), 9)}
+        on = np.array([tuple(p) in structure for p in np.round(v.surface_points_m, 9)])
+        # 99.7 % of the points kept are the structure's; 86 % of its points are kept: those near the column's foot
+        # move less than their 5 um of noise in every mode (motion above the noise, at a 1e-3 false alarm)
+        assert on.mean() >= 0.95 and on.sum() >= 0.8 * len(structure), (on.mean(), on.sum())
+        assert v.n_background >= 0.95 * 1200
+        assert v.background_rms_m == pytest.approx(sigma, rel=0.15)
+        sets = pyuff.UFF(str(capture.derived_dir / "analysis" / "analysis.uff")).read_sets()
+        nodes = next(d for d in sets if d["type"] == 2411)
+        surface = np.asarray(nodes["node_nums"]) >= 1001
+        xyz = np.stack([nodes["x"], nodes["y"], nodes["z"]], axis=1)[surface]
+        assert np.mean([tuple(p) in structure for p in np.round(xyz, 9)]) >= 0.95
+        summary = json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text())
+        assert summary["video"]["n_background_points"] == v.n_background
+        assert summary["video"]["background_rms_um"] == pytest.approx(5, rel=0.15)
+        from odsplat.analysis import write_report
+        assert "points of the background (floor, base) are left out of the shapes" in write_report(capture).read_text()
+        # A box the user gives keeps only what is inside it.
+        lo, hi = ModalStructure().geometry.boxes()["arm"]
+        res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False,
+                                                       structure_box_m=(tuple(lo - 1e-6), tuple(hi + 1e-6))))
+        p = res.video.surface_points_m
+        assert len(p) and np.all((p >= lo - 1e-6) & (p <= hi + 1e-6))
+    finally:
+        _write_trajectories(capture)
