@@ -15,6 +15,7 @@ from matplotlib.patches import Rectangle
 from odsplat.errors import InputError
 from odsplat.store import atomic_open
 
+from .animate import ods_gif
 from .correlation import mac
 
 if TYPE_CHECKING:
@@ -95,7 +96,13 @@ def plot_frf(frf: FRFResult, modes: ModalFit | None = None) -> Figure:
     ax_m.legend(fontsize="small", ncols=2 if h.shape[1] > 4 else 1)
     ax_p.set(ylabel="phase (deg)", ylim=(-180, 180), yticks=[-180, -90, 0, 90, 180])
     ax_c.set(ylabel="coherence", ylim=(0, 1.05), xlabel="frequency (Hz)")
-    if len(f) and np.isfinite(f).any():
+    if band is not None:       # the analysis band, where the modes are: not the DAQ's whole Nyquist range
+        ax_c.set_xlim(0.0, min(float(np.nanmax(f)), 1.1 * float(band[1])))
+        inside = (f >= band[0]) & (f <= 1.1 * band[1]) & np.isfinite(mag).all(axis=1)
+        if inside.any() and np.nanmax(mag[inside]) > 0:
+            lo_y = np.nanmin(mag[inside][mag[inside] > 0]) if (mag[inside] > 0).any() else None
+            ax_m.set_ylim(0.5 * lo_y if lo_y else None, 2 * float(np.nanmax(mag[inside])))
+    elif len(f) and np.isfinite(f).any():
         ax_c.set_xlim(np.nanmin(f), np.nanmax(f))
     for ax in (ax_m, ax_p, ax_c):
         ax.grid(True, alpha=0.3)
@@ -294,4 +301,32 @@ def write_plots(dest: Path, result: AnalysisResult) -> dict[str, str]:
             log.warning("plot %s failed: %s", key, exc, exc_info=True)
             continue
         files[key] = f"plots/{path.name}"
+    for key, (points, shape, title) in _animations(result).items():
+        path = out / f"{key}.gif"
+        try:
+            data = ods_gif(points, shape, title=title)
+            with atomic_open(path, "wb") as fh:
+                fh.write(data)
+        except Exception as exc:  # noqa: BLE001 (see the docstring)
+            log.warning("animation %s failed: %s", key, exc, exc_info=True)
+            continue
+        files[key] = f"plots/{path.name}"
     return files
+
+
+def _animations(result: AnalysisResult) -> dict[str, tuple[np.ndarray, np.ndarray, str]]:
+    """Per mode, what to animate: the video's shape on the structure's surface where the video has the mode,
+    else the accelerometers' shape at their positions (when every sensor is placed)."""
+    m, v = result.modes, result.video
+    out = {}
+    video_rows = {int(k): r for r, k in enumerate(v.mode_index)} if v is not None else {}
+    placed = all(sn.placed for sn in result.sensors) and result.sensors
+    for k in range(m.n_modes):
+        title = f"mode {k + 1}: {m.freq_hz[k]:.2f} Hz, {100 * m.damping[k]:.2f} %"
+        if k in video_rows and len(v.surface_points_m):
+            out[f"anim_{k + 1:02d}"] = (v.surface_points_m, v.surface_residues[video_rows[k]], title + " (video)")
+        elif placed:
+            pos = np.stack([sn.position_m for sn in result.sensors])
+            dirs = np.stack([sn.direction for sn in result.sensors])
+            out[f"anim_{k + 1:02d}"] = (pos, m.shapes[k][:, None] * dirs, title + " (accelerometers)")
+    return out

@@ -100,7 +100,7 @@ def _table(head: list[str], rows: list[list[str]], text_cols: int = 1) -> str:
     h = "".join(f"<th>{c}</th>" for c in head)
     body = "".join("<tr>" + "".join(f'<td class="t">{c}</td>' if i < text_cols else f"<td>{c}</td>"
                                     for i, c in enumerate(r)) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
+    return f"<table>{f'<tr>{h}</tr>' if any(head) else ''}{body}</table>"
 
 
 def _mode_name(modes: list[dict], k) -> str:
@@ -310,10 +310,97 @@ def _settings(doc: dict) -> str:
     return f"<details><summary>Settings</summary><pre>{escape(json.dumps(s, indent=1))}</pre></details>"
 
 
-def render_report(doc: dict, folder: Path, title: str) -> str:
-    """The report's HTML from a loaded analysis.json (`folder` holds it and its plots)."""
-    sections = [_notes(doc), _hits(doc), _modes(doc), _video(doc), _correlation(doc), _figures(doc, folder),
-                _settings(doc)]
+def _summary(doc: dict, setup: dict) -> str:
+    """The page's top: the setup, the modes with their MAC, the quality of the take, and a verdict line."""
+    modes = doc["modes"]
+    fitted = (doc.get("video") or {}).get("modes_fitted", [])
+    c = doc.get("correlation") or {}
+    by_mode = {}
+    for p in c.get("pairs", []):
+        b = p.get("b")
+        k = fitted[b] if isinstance(b, int) and b < len(fitted) else None
+        if k is not None:
+            by_mode[int(k)] = p
+    rows = []
+    for k, m in enumerate(modes):
+        p = by_mode.get(k)
+        mac = "&ndash;" if p is None else (_num(p.get("mac"), ".3f")
+                                           + (" (below the video's noise floor)" if p.get("below_noise_floor") else ""))
+        scale = "&ndash;" if p is None else _num(p.get("scale_factor_abs"), ".2f")
+        rows.append([str(k + 1), _num(m["freq_hz"], ".2f"), _num(m["damping"], ".2f", 100), mac, scale])
+    verdict = (c.get("verdict") or {}).get("line")
+    notes = doc.get("notes") or []
+    if verdict:
+        line = escape(str(verdict))
+    elif doc.get("video"):
+        line = "The video's shapes were fitted; no MAC verdict was made."
+    else:
+        line = (f"{len(modes)} modes from the accelerometers; no video side"
+                + (f" ({len(notes)} note(s) below)" if notes else "") + ".")
+    cls = "ok" if (c.get("verdict") or {}).get("status") == "met" else ("bad" if notes or verdict else "")
+    band = doc.get("band_hz") or [None, None]
+    setup_rows = [[escape(k), escape(str(v))] for k, v in setup.items()]
+    setup_rows += [["hits averaged", f"{escape(str(doc.get('n_averages', '?')))} of {len(doc.get('takes', []))}"],
+                   ["sensors", escape(", ".join(str(s) for s in doc.get("sensors", [])))],
+                   ["fit band", f"{_num(band[0], '.0f')} to {_num(band[-1], '.0f')} Hz"]]
+    return ("<h2>Summary</h2>" + f'<p class="{cls}"><b>Verdict:</b> {line}</p>'
+            + _table(["", ""], setup_rows, 2)
+            + _table(["mode", "frequency (Hz)", "damping (%)", "MAC video/accelerometers", "|scale|"], rows))
+
+
+def _animations(doc: dict, folder: Path) -> str:
+    """The modes in motion: each animation inline (a GIF in the page itself)."""
+    out = []
+    for key, rel in doc["files"].items():
+        if not (isinstance(rel, str) and rel.lower().endswith(".gif")):
+            continue
+        path = folder / rel
+        if not path.is_file():
+            continue
+        data = base64.b64encode(path.read_bytes()).decode("ascii")
+        out.append(f'<figure style="display:inline-block"><img src="data:image/gif;base64,{data}" '
+                   f'alt="{escape(str(key))}"><figcaption>mode {escape(str(key).rpartition("_")[2].lstrip("0"))}'
+                   "</figcaption></figure>")
+    return ("<h2>The modes in motion</h2><p>Each shape through one cycle (grey: at rest), exaggerated.</p>"
+            + "".join(out)) if out else ""
+
+
+def capture_setup(capture: Capture) -> dict:
+    """The setup in a few facts, from the capture and (where they ran) sync and poses: what the summary shows."""
+    m = capture.manifest
+    out = {"capture": capture.root.name}
+    if m.daq_sample_rate_hz:
+        out["DAQ"] = f"{m.daq_sample_rate_hz:g} Hz, {len(m.channels)} channels"
+    if m.camera.fps:
+        out["camera"] = f"{m.camera.fps:g} fps, {m.camera.width_px}x{m.camera.height_px} px, {m.camera.bit_depth} bit"
+    try:
+        from odsplat.sync import load_sync
+
+        sync = load_sync(capture)
+        res = [abs(t.residual_frames) for t in sync.ok if t.residual_frames is not None]
+        out["views synced"] = (f"{len(sync.ok)} of {len(sync.takes)}"
+                               + (f", timing residual median {np.median(res):.3f} frame" if res else ""))
+    except InputError:
+        pass
+    try:
+        from odsplat.reconstruction import PoseResult
+
+        poses = PoseResult.read(capture)
+        takes = [v for v in poses.views if v.kind == "take"]
+        out["views posed"] = f"{len(takes)}"
+        rms = [v.reproj_rms_px for v in takes if v.reproj_rms_px is not None]
+        if rms:
+            out["views posed"] += f", reprojection {float(np.median(rms)):.2f} px rms median ({poses.method})"
+    except InputError:
+        pass
+    return out
+
+
+def render_report(doc: dict, folder: Path, title: str, setup: dict | None = None) -> str:
+    """The report's HTML from a loaded analysis.json (`folder` holds it and its plots); `setup`: facts of the
+    capture for the summary (capture_setup)."""
+    sections = [_summary(doc, setup or {}), _notes(doc), _animations(doc, folder), _hits(doc), _modes(doc),
+                _video(doc), _correlation(doc), _figures(doc, folder), _settings(doc)]
     return _PAGE.format(title=escape(str(doc.get("capture") or title)),
                         created=escape(str(doc.get("created_utc", "(no date)"))),
                         n_sensors=len(doc.get("sensors", [])), n_avg=escape(str(doc.get("n_averages", "?"))),
@@ -324,6 +411,6 @@ def write_report(capture: Capture) -> Path:
     """derived/analysis/report.html from derived/analysis/analysis.json and the plots it lists; returns its path."""
     doc = read_analysis(capture)
     path = capture.paths.report_html
-    atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name))
+    atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name, capture_setup(capture)))
     log.info("report written to %s", path)
     return path

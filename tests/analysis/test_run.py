@@ -505,3 +505,46 @@ def test_shapes_and_exports_are_the_structures_not_the_backgrounds(capture):
         assert len(p) and np.all((p >= lo - 1e-6) & (p <= hi + 1e-6))
     finally:
         _write_trajectories(capture)
+
+
+def test_the_report_opens_with_a_summary_and_plays_the_modes_inline(capture, tmp_path):
+    """The report's first section is the summary with its verdict; each mode's shape is an inline animation whose
+    frames differ; nothing in the page is fetched from elsewhere; headless Chromium renders it (when installed)."""
+    import base64
+    import io
+    import re
+    import shutil
+    import subprocess
+
+    from PIL import Image
+
+    from odsplat.analysis import write_report
+
+    _write_trajectories(capture)
+    analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False))
+    path = write_report(capture)
+    html = path.read_text()
+    heads = re.findall(r"<h2>(.*?)</h2>", html)
+    assert heads[0] == "Summary" and "<b>Verdict:</b>" in html.split("<h2>", 2)[1]
+    assert "views synced" in html and "DAQ" in html
+    gifs = re.findall(r'src="data:image/gif;base64,([^"]+)"', html)
+    assert len(gifs) == 6                                              # one per mode, each in the video's band
+    for data in gifs:
+        im = Image.open(io.BytesIO(base64.b64decode(data)))
+        assert im.n_frames == 12
+        frames = []
+        for k in (0, 3):
+            im.seek(k)
+            frames.append(np.asarray(im.convert("RGB"), float))
+        assert np.abs(frames[0] - frames[1]).mean() > 0.05            # the structure moves between frames
+    assert not re.findall(r'(?:src|href)="(?!data:|#)', html)          # every resource inline: no request leaves
+    assert "http://" not in html and "https://" not in html
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("headless Chromium is not installed (apt-get install chromium); the HTML checks above passed")
+    shot = tmp_path / "report.png"
+    subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--host-resolver-rules=MAP * ~NOTFOUND",
+                    f"--screenshot={shot}", "--window-size=1100,1400", path.as_uri()], check=True, timeout=120,
+                   capture_output=True)
+    img = np.asarray(Image.open(shot).convert("L"), float)
+    assert img.std() > 10                                              # a rendered page, not a blank one
