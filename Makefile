@@ -44,6 +44,7 @@ demo: $(STAMP)
 	cp examples/demo.toml $(DEMO_OUT)/sim-rig/odsplat.toml
 	$(BIN)/odsplat run $(DEMO_OUT)/sim-rig
 	$(BIN)/odsplat render $(DEMO_OUT)/sim-rig --camera orbit:16:30 --times -0.0005:0.031:16 --alpha 30
+	$(BIN)/odsplat report $(DEMO_OUT)/sim-rig
 	@if test -d $(SHARED_DATA); then \
 	  rm -rf $(DEMO_OUT)/ladisk-beam && \
 	  $(BIN)/odsplat import examples/ladisk-beam.toml --data $(SHARED_DATA) -o $(DEMO_OUT)/ladisk-beam && \

@@ -365,6 +365,22 @@ def _animations(doc: dict, folder: Path) -> str:
             + "".join(out)) if out else ""
 
 
+MAX_INLINE_VIDEO_BYTES = 30_000_000   # a larger render stays beside the report, linked by name only
+
+
+def render_video(path: Path) -> str:
+    """The reconstruction's magnified novel-view render (`odsplat render`'s mp4) inline, when there is one."""
+    if not path.is_file():
+        return ""
+    if path.stat().st_size > MAX_INLINE_VIDEO_BYTES:
+        return (f"<h2>The magnified render</h2><p>{escape(path.name)} ({path.stat().st_size / 1e6:.0f} MB) is "
+                "too large to hold in the page; it lies beside the reconstruction.</p>")
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return ("<h2>The magnified render</h2><p>The reconstruction seen from new viewpoints as time runs, magnified "
+            f"in 3D (`odsplat render`).</p><video controls loop muted autoplay style=\"max-width:100%\" "
+            f'src="data:video/mp4;base64,{data}"></video>')
+
+
 def capture_setup(capture: Capture) -> dict:
     """The setup in a few facts, from the capture and (where they ran) sync and poses: what the summary shows."""
     m = capture.manifest
@@ -396,10 +412,10 @@ def capture_setup(capture: Capture) -> dict:
     return out
 
 
-def render_report(doc: dict, folder: Path, title: str, setup: dict | None = None) -> str:
+def render_report(doc: dict, folder: Path, title: str, setup: dict | None = None, video: str = "") -> str:
     """The report's HTML from a loaded analysis.json (`folder` holds it and its plots); `setup`: facts of the
-    capture for the summary (capture_setup)."""
-    sections = [_summary(doc, setup or {}), _notes(doc), _animations(doc, folder), _hits(doc), _modes(doc),
+    capture for the summary (capture_setup); `video`: the render's section (render_video)."""
+    sections = [_summary(doc, setup or {}), _notes(doc), _animations(doc, folder), video, _hits(doc), _modes(doc),
                 _video(doc), _correlation(doc), _figures(doc, folder), _settings(doc)]
     return _PAGE.format(title=escape(str(doc.get("capture") or title)),
                         created=escape(str(doc.get("created_utc", "(no date)"))),
@@ -411,6 +427,7 @@ def write_report(capture: Capture) -> Path:
     """derived/analysis/report.html from derived/analysis/analysis.json and the plots it lists; returns its path."""
     doc = read_analysis(capture)
     path = capture.paths.report_html
-    atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name, capture_setup(capture)))
+    atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name, capture_setup(capture),
+                                          render_video(capture.paths.render_dir / "render.mp4")))
     log.info("report written to %s", path)
     return path

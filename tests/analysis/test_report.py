@@ -105,8 +105,14 @@ def written(result, tmp_path_factory):
 def test_write_plots_writes_every_figure_as_a_png(written, result):
     dest, files = written
     ods = {f"ods_{i + 1:02d}" for i in range(len(result.ods_freq_hz))}
-    assert set(files) == {"frf", "stabilisation", "automac", "mac", "time"} | ods
+    anims = {f"anim_{k + 1:02d}" for k in range(result.modes.n_modes)}
+    assert set(files) == {"frf", "stabilisation", "automac", "mac", "time"} | ods | anims
+    for key in anims:
+        with Image.open(dest / files[key]) as im:
+            assert files[key] == f"plots/{key}.gif" and im.format == "GIF" and im.n_frames == 12
     for key, rel in files.items():
+        if key in anims:
+            continue
         path = dest / rel
         assert rel == f"plots/{key}.png" and path.is_file()
         assert path.read_bytes()[:8] == PNG_SIGNATURE
@@ -159,7 +165,8 @@ def test_report_embeds_the_numbers_and_figures(written, result):
         assert f"<td>{m:.3f}</td>" in html
     assert "double hit at +2.1 ms" in html and "3 of 4 hits used" in html
     imgs = re.findall(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)"', html)
-    assert len(imgs) == len(files)
+    assert len(imgs) == len([f for f in files.values() if f.endswith(".png")])
+    assert len(re.findall(r'<img src="data:image/gif;base64,', html)) == result.modes.n_modes
     assert all(base64.b64decode(b)[:8] == PNG_SIGNATURE for b in imgs)
     assert "bench-arm" in html and "2024-05-01" in html
 
@@ -188,3 +195,18 @@ def test_report_input_errors(tmp_path):
     with pytest.raises(InputError) as err:
         write_report(capture)
     assert err.value.source.endswith("modes[0]: freq_hz") and err.value.problem == "missing"
+
+
+def test_the_render_plays_inline_when_there_is_one(tmp_path):
+    import cv2
+
+    from odsplat.analysis.report import render_video
+
+    assert render_video(tmp_path / "render.mp4") == ""
+    path = tmp_path / "render.mp4"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"), 10, (64, 48))
+    for k in range(5):
+        writer.write(np.full((48, 64, 3), 40 * k, np.uint8))
+    writer.release()
+    html = render_video(path)
+    assert '<video controls loop' in html and 'src="data:video/mp4;base64,' in html
