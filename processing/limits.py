@@ -69,7 +69,7 @@ class MotionLimit:
         head = (f"{take}: alpha {self.alpha:g} x {self.motion_px:.3g} px of motion "
                 f"= {self.alpha * self.motion_px:.3g} px")
         where = (f"the {self.method} method's limit ({self.limit_px:.3g} px, {self.bound} at its finest "
-                 f"level used, {self.level_wavelength_px:g} px)")
+                 f"level used, {self.level_wavelength_px:.3g} px)")
         if not self.passes:
             return f"{head} keeps within {where}"
         fit = self.fits_alpha
