@@ -375,15 +375,48 @@ def sync(capture_dir: Path, method: str, all_takes: bool, normalize_impulse: boo
 @click.option("--take", "takes", multiple=True, help="Only these takes (repeatable).")
 @click.option("--option", "options", multiple=True, metavar="KEY=VALUE",
               help="A keyword of the method (e.g. n_orientations=8, cutoff_wavelength_px=4); repeatable.")
+@click.option("--video/--no-video", default=True, show_default=True, help="Write NAME.mp4 beside each take.")
+@click.option("--video-fps", type=float, default=30.0, show_default=True, help="The mp4s' playback rate.")
+@click.option("--side-by-side", is_flag=True, help="The mp4s show the input beside the magnified frames.")
 def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: str | None, mode: str, source: str,
-            workers: int | None, takes: tuple[str, ...], options: tuple[str, ...]) -> None:
-    """Magnify the motion in every view of CAPTURE_DIR into derived/magnified/METHOD/."""
+            workers: int | None, takes: tuple[str, ...], options: tuple[str, ...], video: bool, video_fps: float,
+            side_by_side: bool) -> None:
+    """Magnify the motion in every view of CAPTURE_DIR into derived/magnified/METHOD/ (frames, and an mp4 to watch);
+    warns where alpha x the measured motion passes the method's bound."""
     from .processing import parse_options
 
     _, result = _stage(capture_dir, "magnify", _given(
         method="method", alpha="alpha", band_hz="band_hz", filter_kind="filter", mode="mode", source="source",
-        workers="workers", takes="takes", options=("options", lambda v: [list(kv) for kv in parse_options(v)])))
+        workers="workers", takes="takes", options=("options", lambda v: [list(kv) for kv in parse_options(v)]),
+        video="video", video_fps="video_fps", side_by_side="side_by_side"))
     click.echo(result.summary())
+
+
+@main.command("export-video")
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--take", default=None, help="The take (default: every take of the source).")
+@click.option("--source", default="raw", show_default=True,
+              help="raw (the take), sync (on sync's common grid) or magnified/METHOD.")
+@click.option("-o", "--out", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="The mp4 to write, one take only; must not exist (default: derived/videos/SOURCE/TAKE.mp4).")
+@click.option("--fps", type=float, default=30.0, show_default=True,
+              help="Playback rate (the recorded rate goes in the file's comment).")
+def export_video(capture_dir: Path, take: str | None, source: str, out: Path | None, fps: float) -> None:
+    """Write a take's raw, aligned or magnified frames to an 8-bit mp4 to watch (docs/processing.md)."""
+    from .errors import InputError
+    from .processing import check_export, export_video, source_takes
+    from .store import Capture
+
+    cap = Capture.open(capture_dir)
+    check_export(cap, take or "", source, out, fps)
+    takes = [take] if take else source_takes(cap, source)
+    if out is not None and len(takes) != 1:
+        raise InputError("-o", f"one file for {len(takes)} takes: name one with --take")
+    for name in takes:
+        done = export_video(cap, name, source, out, fps)
+        v = done.mp4
+        click.echo(f"{name}: {v.n_frames} frames {v.width_px}x{v.height_px} px ({source}) -> {v.path} "
+                   f"({v.bytes / 1e6:.2f} MB, {v.codec}, {v.fps:g} frames/s; recorded at {done.recorded_fps:g})")
 
 
 @main.command()

@@ -41,18 +41,25 @@ def begin_outputs(index: Path, folder: Path) -> str:
     return uuid.uuid4().hex[:16]
 
 
+OUTPUT_PATTERNS = ("*.h5", "*.mp4")   # a stage's files in its folder: frames, and the videos made from them
+
+
+def _outputs(folder: Path) -> list[Path]:
+    return [p for pattern in OUTPUT_PATTERNS for p in folder.glob(pattern)] if folder.is_dir() else []
+
+
 def discard_outputs(folder: Path) -> None:
-    """After a failed run: remove the folder's frame files, which no index lists any more (`begin_outputs`
-    removed the old one), so no reader finds half a set."""
-    for path in folder.glob("*.h5") if folder.is_dir() else ():
+    """After a failed run: remove the folder's frame files and videos, which no index lists any more
+    (`begin_outputs` removed the old one), so no reader finds half a set."""
+    for path in _outputs(folder):
         path.unlink(missing_ok=True)
 
 
 def prune_outputs(folder: Path, keep: Iterable[Path]) -> None:
-    """After the index is written: remove the frame files in `folder` it does not list (a take no longer
-    selected, another run's leftovers)."""
+    """After the index is written: remove the frame files and videos in `folder` it does not list (a take no
+    longer selected, videos turned off, another run's leftovers)."""
     keep = {Path(p).resolve() for p in keep}
-    for path in folder.glob("*.h5") if folder.is_dir() else ():
+    for path in _outputs(folder):
         if path.resolve() not in keep:
             path.unlink()
 

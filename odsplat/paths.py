@@ -57,6 +57,11 @@ class DerivedPaths:
     def magnified(self, method: str, take: str) -> Path:
         return self.magnified_dir(method) / f"{take}.h5"
 
+    def magnified_video(self, method: str, take: str) -> Path:
+        """The magnified take as an 8-bit mp4 to watch, beside its frames (slow motion: magnify.json says at what
+        rate it plays and was recorded)."""
+        return self.magnified_dir(method) / f"{take}.mp4"
+
     def magnify_json(self, method: str) -> Path:
         return self.magnified_dir(method) / "magnify.json"
 
@@ -68,6 +73,11 @@ class DerivedPaths:
 
     def frames_dir(self, source: str) -> Path:
         return self.aligned_dir if source == "sync" else self.root / source
+
+    def exported_video(self, source: str, take: str) -> Path:
+        """`odsplat export-video`'s default output: a take's frames by source ('raw', 'sync', 'magnified/METHOD')
+        as an mp4 (no stage's output: written on request, replaced by the next request)."""
+        return self.root / "videos" / source / f"{take}.mp4"
 
     # -- poses ---------------------------------------------------------------------------------------------------
     @property

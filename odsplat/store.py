@@ -24,6 +24,7 @@ import functools
 import json
 import logging
 import os
+import re
 import shutil
 import uuid
 from collections.abc import Iterator, Mapping, Sequence
@@ -76,12 +77,16 @@ def fsync_path(path: Path) -> None:
         os.close(fd)
 
 
+_TEMPORARY = re.compile(r"\..+\.(?P<pid>\d+)\.tmp(\.\w+)?")   # what atomic_path names its temporaries
+
+
 @contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
+def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     """A temporary path beside `path` to write; on a clean exit the file is fsynced and renamed over `path` (and
-    the directory fsynced), on an error removed. A crash leaves either the old file or the new one, never half."""
+    the directory fsynced), on an error removed. A crash leaves either the old file or the new one, never half.
+    `suffix` ends the temporary's name, for writers that choose a format by it (OpenCV's mp4: ".mp4")."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{suffix}")
     try:
         yield tmp
         fsync_path(tmp)
@@ -93,15 +98,15 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 
 def remove_stale_temporaries(folder: str | Path) -> list[Path]:
-    """Remove the temporaries `atomic_path` leaves when its writer is killed (`.NAME.PID.tmp`, in `folder` and
-    below) whose process is gone; a live writer's are left alone. Returns what was removed."""
+    """Remove the temporaries `atomic_path` leaves when its writer is killed (`.NAME.PID.tmp[SUFFIX]`, in `folder`
+    and below) whose process is gone; a live writer's are left alone. Returns what was removed."""
     folder = Path(folder)
     removed = []
     if not folder.is_dir():
         return removed
-    for tmp in folder.rglob(".*.tmp"):
-        pid = tmp.name[:-len(".tmp")].rpartition(".")[2]
-        if not pid.isdigit() or _alive(int(pid)):
+    for tmp in folder.rglob(".*.tmp*"):
+        match = _TEMPORARY.fullmatch(tmp.name)
+        if match is None or _alive(int(match["pid"])):
             continue
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

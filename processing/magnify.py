@@ -1,5 +1,6 @@
 """Magnify every view of a capture: stream each take's frames through a magnifier into
-`derived/magnified/METHOD/NAME.h5`, views in parallel processes when cores allow.
+`derived/magnified/METHOD/NAME.h5` and a video to watch, `NAME.mp4`, views in parallel processes when cores
+allow; each take's motion is checked against the method's bound (`limits.py`).
 
 The input is the takes' frames on sync's common grid (`derived/sync/NAME.h5`) when sync has run, so every
 view's magnified motion shares one timeline; otherwise the raw takes (flagged in the output).
@@ -12,6 +13,7 @@ import logging
 import math
 import os
 import time
+from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
@@ -36,16 +38,19 @@ from odsplat.framefile import (
     to_stored,
 )
 from odsplat.manifest import load_json, utc_now
+from odsplat.mp4 import Mp4Writer, display_range, to_8bit
 from odsplat.store import Capture, atomic_write_text
 
 from .base import Magnifier, check_alpha
 from .filters import KINDS, check_band, make_filter
+from .limits import check_limit, motion_px, sample_indices
 
 log = logging.getLogger(__name__)
 
 METHODS = ("phase", "linear", "learned")
 KIND = "odsplat.magnify"
-SCHEMA = 2   # 2: generation, the run id its magnified files carry
+SCHEMA = 3   # 2: generation, the run id its magnified files carry; 3: each take's video and motion limit
+LUMA = np.array([0.299, 0.587, 0.114], np.float32)   # Y of YIQ, what the methods magnify
 
 
 @dataclass(frozen=True)
@@ -60,6 +65,9 @@ class MagnifySettings:
     workers: int | None = None                   # default: one per core, at most one per take
     takes: tuple[str, ...] = ()                  # default: every take sync kept, else every accepted take
     options: tuple[tuple[str, Any], ...] = ()    # the method's own keyword arguments, e.g. (("n_orientations", 8),)
+    video: bool = True                           # an 8-bit mp4 to watch beside each magnified take
+    video_fps: float = 30.0                      # its playback rate (slow motion; the recorded rate is in its comment)
+    side_by_side: bool = False                   # the video shows the input (left) beside the magnified (right)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -71,7 +79,8 @@ class MagnifySettings:
             raise InputError("--band", f"the {self.filter} filter needs a band LOW HIGH in Hz")
         if self.source not in ("auto", "aligned", "raw"):
             raise InputError("--source", f"expected auto, aligned or raw, got {self.source!r}")
-        check_fields(self, {"band_hz": maybe(POSITIVE), "chunk_frames": COUNT, "workers": maybe(COUNT)})
+        check_fields(self, {"band_hz": maybe(POSITIVE), "chunk_frames": COUNT, "workers": maybe(COUNT),
+                            "video_fps": POSITIVE})
         if self.band_hz is not None and not self.band_hz[0] < self.band_hz[1]:
             raise InputError("MagnifySettings.band_hz", f"expected LOW < HIGH in Hz, got {list(self.band_hz)}")
         check_options(self.method, self.options)
@@ -166,6 +175,9 @@ class MagnifiedTake:
     n_frames: int
     file: str
     seconds: float
+    video: dict[str, Any] | None = None    # the mp4: file, fps (playback), recorded_fps, dn_range, codec, bytes, ...
+    limit: dict[str, Any] | None = None    # the motion against the method's bound (limits.MotionLimit)
+    warning: str | None = None             # the limit's line, when alpha x motion passes it
 
 
 @dataclass
@@ -201,8 +213,14 @@ class MagnifyResult:
     def summary(self) -> str:
         band = f", band {self.band_hz[0]:g}-{self.band_hz[1]:g} Hz ({self.filter})" if self.band_hz else ", static"
         lines = [f"{len(self.takes)} view(s) magnified by {self.alpha:g} with {self.method}{band}"]
-        lines += [f"  {t.name:<10} {t.n_frames} frames from {t.source} in {t.seconds:.1f} s -> {t.file}"
-                  for t in self.takes]
+        for t in self.takes:
+            video = f" and {Path(t.video['file']).name}" if t.video else ""
+            lines.append(f"  {t.name:<10} {t.n_frames} frames from {t.source} in {t.seconds:.1f} s -> {t.file}{video}")
+        if self.takes and self.takes[0].video:
+            v = self.takes[0].video
+            lines.append(f"  videos play at {v['fps']:g} frames/s (recorded at {v['recorded_fps']:g}: "
+                         f"{v['recorded_fps'] / v['fps']:.3g}x slower)")
+        lines += [f"  warning: {t.warning}" for t in self.takes if t.warning]
         return "\n".join(lines)
 
 
@@ -251,12 +269,23 @@ def _from_tensor(x: torch.Tensor, full_scale: float, rgb: bool) -> np.ndarray:
     return a * full_scale
 
 
+def video_comment(take: str, what: str, recorded_fps: float, fps: float, dn_range: tuple[float, float]) -> str:
+    """The mp4's comment: what it shows, its real frame rate and its 8-bit mapping."""
+    return (f"odsplat: {take}, {what}; recorded at {recorded_fps:g} frames/s, played at {fps:g} frames/s "
+            f"({recorded_fps / fps:.4g}x slower); 8-bit from {dn_range[0]:g} to {dn_range[1]:g} DN")
+
+
+def _luma(block: np.ndarray) -> np.ndarray:
+    return block if block.ndim == 3 else block @ LUMA
+
+
 def magnify_take(capture_root: str, name: str, aligned_file: str | None, settings: MagnifySettings,
                  out_path: str, threads: int = 1, derived_root: str | None = None, generation: str = "",
-                 sync_generation: str | None = None) -> MagnifiedTake:
+                 sync_generation: str | None = None, video_path: str | None = None) -> MagnifiedTake:
     """Stream one take (`aligned_file`: the path of its aligned frames, of sync's run `sync_generation`, or None
     for the raw take) through a fresh magnifier into out_path (temporary file, fsync, rename), marked as this
-    run's (`generation`)."""
+    run's (`generation`), and into an 8-bit mp4 at `video_path` (None: none). The take's motion is measured on
+    its input frames against the method's bound."""
     torch.set_num_threads(threads)
     t0 = time.perf_counter()
     capture = Capture.open(capture_root, derived=derived_root)
@@ -269,6 +298,11 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
         rgb = len(src.frame_shape) == 3
         out = Path(out_path)
         written = 0
+        dn_range: tuple[float, float] | None = None
+        samples = set(sample_indices(src.n_frames).tolist())
+        reference, sampled, read = None, [], 0
+        held: deque[np.ndarray] = deque()   # side by side: input frames waiting for their magnified frames
+        writer = Mp4Writer(video_path, settings.video_fps) if video_path else None
         with atomic_h5(out) as f:
             attrs = dict(take=name, source=src.kind, method=settings.method, alpha=settings.alpha,
                          filter=settings.filter_kind, mode=settings.mode,
@@ -281,19 +315,51 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
                 nonlocal written
                 if y.shape[0] == 0:
                     return
+                dn = _from_tensor(y, full, rgb)
                 ds.resize(written + len(y), axis=0)
-                ds[written:written + len(y)] = to_stored(_from_tensor(y, full, rgb), scale)
+                ds[written:written + len(y)] = to_stored(dn, scale)
                 written += len(y)
+                if writer is not None:
+                    for frame in to_8bit(dn, dn_range):
+                        writer.write(np.concatenate([held.popleft(), frame], axis=1) if settings.side_by_side
+                                     else frame)
 
-            for block in src.chunks(settings.chunk_frames):
-                emit(mag.push(_to_tensor(block, full)))
-            emit(mag.flush())
-            if written != src.n_frames:
-                raise OdsplatError(f"{name}: the magnifier returned {written} frames for {src.n_frames}")
+            try:
+                for block in src.chunks(settings.chunk_frames):
+                    if dn_range is None:
+                        dn_range = display_range(block)
+                    if settings.side_by_side and writer is not None:
+                        held.extend(to_8bit(block, dn_range))
+                    y8 = to_8bit(_luma(block), dn_range)
+                    reference = y8[0] if reference is None else reference
+                    sampled += [y8[i - read] for i in range(read, read + len(block)) if i in samples]
+                    read += len(block)
+                    emit(mag.push(_to_tensor(block, full)))
+                emit(mag.flush())
+                if written != src.n_frames:
+                    raise OdsplatError(f"{name}: the magnifier returned {written} frames for {src.n_frames}")
+                video = None
+                if writer is not None:
+                    what = (f"magnified x{settings.alpha:g} ({settings.method}"
+                            + (f", {settings.band_hz[0]:g}-{settings.band_hz[1]:g} Hz" if settings.band_hz else
+                               ", static") + ")" + ("; left: input, right: magnified" if settings.side_by_side else ""))
+                    writer.comment = video_comment(name, what, src.fps, settings.video_fps, dn_range)
+                    info = writer.close()
+                    video = dict(file=os.path.relpath(info.path, capture.paths.root), fps=info.fps,
+                                 recorded_fps=src.fps, dn_range=list(dn_range), codec=info.codec, bytes=info.bytes,
+                                 width_px=info.width_px, height_px=info.height_px, side_by_side=settings.side_by_side,
+                                 comment=info.comment)
+            except BaseException:
+                if writer is not None:
+                    writer.abort()
+                raise
     finally:
         src.close()
+    limit = check_limit(settings.method, settings.alpha, motion_px(reference, sampled), dict(settings.options),
+                        list(settings.band_hz) if settings.band_hz else None)
     return MagnifiedTake(name, None if src.view is None else int(src.view), src.kind, written,
-                         os.path.relpath(out, capture.paths.root), time.perf_counter() - t0)
+                         os.path.relpath(out, capture.paths.root), time.perf_counter() - t0, video, asdict(limit),
+                         limit.line(name) if limit.passes else None)
 
 
 # ---------------------------------------------------------------------------------------------- a capture
@@ -324,7 +390,8 @@ def _inputs(capture: Capture, s: MagnifySettings) -> tuple[list[tuple[str, str |
 
 
 def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bool = True) -> MagnifyResult:
-    """Magnify every selected view; writes derived/magnified/METHOD/NAME.h5 and magnify.json beside them."""
+    """Magnify every selected view; writes derived/magnified/METHOD/NAME.h5 (and NAME.mp4 unless `video` is off)
+    and magnify.json beside them; warns for each take whose magnified motion passes the method's bound."""
     s = settings
     jobs, sync_generation = _inputs(capture, s)
     if not jobs:
@@ -337,7 +404,8 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
     result = MagnifyResult(s.method, s.alpha, list(s.band_hz) if s.band_hz else None, s.filter_kind,
                            settings=asdict(s), generation=generation)
     args = [(str(capture.root), n, a, s, str(capture.paths.magnified(s.method, n)), threads, str(capture.paths.root),
-             generation, sync_generation) for n, a in jobs]
+             generation, sync_generation, str(capture.paths.magnified_video(s.method, n)) if s.video else None)
+            for n, a in jobs]
     bar = tqdm(total=len(args), desc=f"magnify ({s.method})", unit="view", disable=not progress)
     try:
         if workers == 1:
@@ -355,7 +423,11 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
     finally:
         bar.close()
     result.write(capture)
-    prune_outputs(dest, [capture.paths.root / t.file for t in result.takes])
+    prune_outputs(dest, [capture.paths.root / f for t in result.takes
+                         for f in (t.file, *([t.video["file"]] if t.video else []))])
+    for t in result.takes:
+        if t.warning:
+            log.warning("%s", t.warning)
     log.info("magnified %d view(s) into %s", len(result.takes), dest)
     return result
 

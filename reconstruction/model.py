@@ -24,6 +24,7 @@ from odsplat.contract import check, describe, plain
 from odsplat.errors import InputError
 from odsplat.geometry import look_at
 from odsplat.manifest import load_json, utc_now
+from odsplat.mp4 import write_mp4
 from odsplat.store import Capture, atomic_path, atomic_write_text
 
 from .dynamic import FitSettings, Trajectory, fit_dynamic, fit_static, render
@@ -526,15 +527,8 @@ def render_sequence(scene: DynamicScene, cameras: list[Camera], times_s: np.ndar
         paths.append(path)
         frames.append(u8)
     if mp4 and frames:
-        h, w = frames[0].shape[:2]
-        video = out / "render.mp4"
-        writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-        if not writer.isOpened():
-            raise InputError(video, "OpenCV cannot write mp4 (mp4v) here")
-        for f in frames:
-            writer.write(f if f.ndim == 3 else cv2.cvtColor(f, cv2.COLOR_GRAY2BGR))
-        writer.release()
-        paths.append(video)
+        rgb = (cv2.cvtColor(f, cv2.COLOR_BGR2RGB) if f.ndim == 3 else f for f in frames)
+        paths.append(write_mp4(out / "render.mp4", rgb, fps, comment=f"odsplat render at {fps:g} frames/s").path)
     return paths
 
 
