@@ -53,7 +53,8 @@ class AnalyzeSettings:
     video: bool = True                               # use derived/reconstruction when it is there
     floor_margin_m: float | None = 0.01              # the structure's points: above the floor (z = 0) by this
     structure_box_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None  # min, max corner
-    structure_motion: bool = True                    # ... and moving (the modes explain some of their motion)
+    structure_motion: bool | None = None             # ... and moving above their noise; None: only where no box
+                                                     # is given and the capture has no floor tags
     measured_motion: bool = True                     # fit the shapes to its unfiltered motion when it has one
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
@@ -268,8 +269,9 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
 
 def _structure(capture: Capture, points_m: np.ndarray, noise, s: AnalyzeSettings) -> tuple[np.ndarray, str]:
     """Which surface points are the structure's: inside the box the user gave, above the floor (z = 0 in the
-    tag layout's frame) by floor_margin_m where the capture has floor tags, and moving (the modes explain some of
-    their motion: analysis/noise.py's static test). The rest is background: fitted, kept out of the shapes."""
+    tag layout's frame) by floor_margin_m where the capture has floor tags, and, where neither rule applies (or
+    structure_motion says so), moving above their own noise (analysis/noise.py). The rest is background: fitted,
+    kept out of the shapes. The motion test alone would also drop the structure's quiet parts (a column's foot)."""
     p = np.asarray(points_m, float)
     keep = np.ones(len(p), bool)
     rules = []
@@ -281,7 +283,8 @@ def _structure(capture: Capture, points_m: np.ndarray, noise, s: AnalyzeSettings
     if s.floor_margin_m is not None and tags is not None and any(not t.on_structure for t in tags.tags):
         keep &= p[:, 2] > s.floor_margin_m
         rules.append(f"more than {1e3 * s.floor_margin_m:g} mm above the floor")
-    if s.structure_motion and noise is not None and noise.moving is not None and (keep & noise.moving).any():
+    by_motion = s.structure_motion if s.structure_motion is not None else not rules
+    if by_motion and noise is not None and noise.moving is not None and (keep & noise.moving).any():
         keep &= noise.moving
         rules.append("moving above their noise")
     if not keep.any():
