@@ -38,13 +38,15 @@ def ods_gif(points_m: np.ndarray, shape: np.ndarray, *, title: str = "", n_frame
     w, h = size_px
     if not len(p):
         raise ValueError("no finite point to animate")
-    size = float(np.linalg.norm(np.ptp(p, axis=0))) or 1.0
+    # the structure's size and the view's bounds from the 1st-99th percentiles: a stray point does not shrink it
+    size = float(np.linalg.norm(np.percentile(p, 99, axis=0) - np.percentile(p, 1, axis=0))) or 1.0
     amp = np.linalg.norm(np.abs(s), axis=1)
     peak = float(amp.max()) if amp.size and amp.max() > 0 else 1.0
     scale = DEFORM * size / peak
     P = _view(p)
     xy0 = p @ P
-    lo, hi = xy0.min(axis=0) - 0.15 * size, xy0.max(axis=0) + 0.15 * size
+    lo = np.percentile(xy0, 1, axis=0) - 0.15 * size
+    hi = np.percentile(xy0, 99, axis=0) + 0.15 * size
     k = min((w - 20) / max(hi[0] - lo[0], 1e-12), (h - 50) / max(hi[1] - lo[1], 1e-12))
 
     def to_px(xy: np.ndarray) -> np.ndarray:
