@@ -425,9 +425,15 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
     result.write(capture)
     prune_outputs(dest, [capture.paths.root / f for t in result.takes
                          for f in (t.file, *([t.video["file"]] if t.video else []))])
-    for t in result.takes:
-        if t.warning:
+    warned = [t for t in result.takes if t.warning]
+    if len(warned) <= 3:
+        for t in warned:
             log.warning("%s", t.warning)
+    else:   # one line for the run; each take's in magnify.json and the stage's summary
+        fits = [t.limit.get("fits_alpha") for t in warned if t.limit and t.limit.get("fits_alpha") is not None]
+        log.warning("%d of %d takes: alpha %g x their motion passes the %s method's limit%s (each take's line in %s)",
+                    len(warned), len(result.takes), s.alpha, s.method,
+                    f"; alpha <= {min(fits):.3g} fits them all" if fits else "", capture.paths.magnify_json(s.method))
     log.info("magnified %d view(s) into %s", len(result.takes), dest)
     return result
 
