@@ -3,6 +3,7 @@ images inline, that can be mailed."""
 from __future__ import annotations
 
 import base64
+import io
 import json
 import logging
 from html import escape
@@ -365,20 +366,30 @@ def _animations(doc: dict, folder: Path) -> str:
             + "".join(out)) if out else ""
 
 
-MAX_INLINE_VIDEO_BYTES = 30_000_000   # a larger render stays beside the report, linked by name only
+RENDER_WIDTH_PX = 480     # the render's frames, downscaled, as one animated WebP in the page
 
 
-def render_video(path: Path) -> str:
-    """The reconstruction's magnified novel-view render (`odsplat render`'s mp4) inline, when there is one."""
-    if not path.is_file():
+def render_video(folder: Path) -> str:
+    """The reconstruction's magnified novel-view render (`odsplat render`'s frames in `folder`) inline, as an
+    animated WebP: browsers play it in the page, where they cannot play the mp4 this OpenCV build writes
+    (MPEG-4 Part 2)."""
+    frames = sorted(folder.glob("frame_*.png")) if folder.is_dir() else []
+    if not frames:
         return ""
-    if path.stat().st_size > MAX_INLINE_VIDEO_BYTES:
-        return (f"<h2>The magnified render</h2><p>{escape(path.name)} ({path.stat().st_size / 1e6:.0f} MB) is "
-                "too large to hold in the page; it lies beside the reconstruction.</p>")
-    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    from PIL import Image
+
+    images = []
+    for path in frames:
+        with Image.open(path) as im:
+            w, h = im.size
+            scale = min(1.0, RENDER_WIDTH_PX / w)
+            images.append(im.convert("RGB").resize((max(1, round(w * scale)), max(1, round(h * scale)))))
+    buf = io.BytesIO()
+    images[0].save(buf, format="WEBP", save_all=True, append_images=images[1:], duration=120, loop=0, quality=80)
+    data = base64.b64encode(buf.getvalue()).decode("ascii")
     return ("<h2>The magnified render</h2><p>The reconstruction seen from new viewpoints as time runs, magnified "
-            f"in 3D (`odsplat render`).</p><video controls loop muted autoplay style=\"max-width:100%\" "
-            f'src="data:video/mp4;base64,{data}"></video>')
+            f"in 3D (`odsplat render`, {len(frames)} frames; the mp4 lies beside them).</p>"
+            f'<img src="data:image/webp;base64,{data}" alt="render">')
 
 
 def capture_setup(capture: Capture) -> dict:
@@ -428,6 +439,6 @@ def write_report(capture: Capture) -> Path:
     doc = read_analysis(capture)
     path = capture.paths.report_html
     atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name, capture_setup(capture),
-                                          render_video(capture.paths.render_dir / "render.mp4")))
+                                          render_video(capture.paths.render_dir)))
     log.info("report written to %s", path)
     return path
