@@ -178,6 +178,39 @@ def run_(capture_dir: Path, start: str | None, stop: str | None, force: tuple[st
     click.echo(result.text())
 
 
+@main.command("batch")
+@click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path, file_okay=False, exists=True))
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="A running Dask scheduler (e.g. tcp://host:8786) whose workers see the captures at these paths; "
+                   "default: a local cluster.")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Worker processes of the local cluster, one thread each (default: one per core).")
+@click.option("--from", "start", type=click.Choice(STAGES), default=None,
+              help="Run from this stage on, whether or not it is current.")
+@click.option("--to", "stop", type=click.Choice(STAGES), default=None, help="Stop after this stage.")
+@click.option("--force", "force", type=click.Choice(STAGES), multiple=True,
+              help="Run this stage even if it is current (repeatable); what depends on it follows.")
+@click.option("--config", "config_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Configuration file for every capture (default: each capture's odsplat.toml when it exists).")
+@click.option("--set", "sets", multiple=True, metavar="STAGE.FIELD=VALUE",
+              help="Override one setting in every capture (repeatable; VALUE in TOML syntax).")
+def batch_(captures: tuple[Path, ...], scheduler: str | None, workers: int | None, start: str | None,
+           stop: str | None, force: tuple[str, ...], config_path: Path | None, sets: tuple[str, ...]) -> None:
+    """Run the pipeline on many CAPTURES at once on Dask distributed: a task per capture, and the views of the
+    per-view stages (sync's aligned frames, magnify) as tasks of their own. Stages that are current are skipped
+    as by `odsplat run`; a capture that fails is reported with its stage and the others finish (exit status 1).
+    Prints the Dask dashboard's address, and a line per capture and stage as they finish."""
+    from .batch import run_batch
+
+    # Dask's own INFO lines (workers started and closed) only with -v, like odsplat's
+    logging.getLogger("distributed").setLevel(max(logging.WARNING, logging.getLogger().level))
+    result = run_batch(captures, scheduler=scheduler, workers=workers, start=start, stop=stop, force=force,
+                       sets=sets, config_path=config_path, echo=click.echo)
+    click.echo(result.text())
+    if result.failed:
+        sys.exit(1)
+
+
 @main.command("config")
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--config", "config_path", type=click.Path(path_type=Path, dir_okay=False), default=None,

@@ -26,3 +26,9 @@ class SchemaError(InputError):
 
 class IncompleteTakeError(InputError):
     """A take that was never finalised (its writer died); it must be recovered explicitly."""
+
+
+def one_line(exc: BaseException) -> str:
+    """An error in one line: odsplat's own as they are (they name their culprit), others with their type."""
+    text = " ".join(str(exc).split())
+    return text if isinstance(exc, OdsplatError) else f"{type(exc).__name__}: {text}" if text else type(exc).__name__

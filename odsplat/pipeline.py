@@ -16,13 +16,14 @@ import logging
 import os
 import time
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from .config import STAGES, Config, load_config
 from .contract import Provenance, check, describe, digest, plain
-from .errors import InputError, OdsplatError
+from .errors import InputError, OdsplatError, one_line
 from .manifest import load_json
 from .sensors import geometry_identity
 from .store import Capture, atomic_write_text, fsync_path, remove_stale_temporaries
@@ -48,14 +49,15 @@ class Stage:
     raw: bool = False                                  # reads the raw takes themselves
     needs_views: int = 0                               # takes with frames from this many views, or it does not apply
     geometry: bool = False                             # reads the sensors' placement (odsplat geometry changes it)
+    per_view: bool = False                             # its entry takes `executor=` for its per-view tasks
 
 
-def _entry(package: str, name: str) -> Callable[[Capture, Any], Any]:
+def _entry(package: str, name: str) -> Callable[..., Any]:
     """A stage's entry, `odsplat.<package>.<name>(capture, settings)`, imported when the stage runs (some stages
-    load torch or pycolmap). The report's entry takes no settings."""
-    def call(capture: Capture, settings: Any) -> Any:
+    load torch or pycolmap). The report's entry takes no settings; the per-view stages' take `executor=`."""
+    def call(capture: Capture, settings: Any, **kwargs: Any) -> Any:
         entry = getattr(importlib.import_module(f"odsplat.{package}"), name)
-        return entry(capture) if settings is None else entry(capture, settings)
+        return entry(capture, **kwargs) if settings is None else entry(capture, settings, **kwargs)
 
     call.__qualname__ = f"odsplat.{package}.{name}"
     return call
@@ -83,10 +85,10 @@ GRAPH: tuple[Stage, ...] = (
     Stage("sync", _entry("sync", "run"), upstream=lambda c: ("qc",),
           outputs=lambda cap, s: [cap.paths.sync_json] + ([cap.paths.sync_png] if s.plot else [])
           + ([cap.paths.aligned_dir] if s.write_frames else []),
-          summary=lambda r: r.summary(), volatile=("max_memory_mb",), raw=True, needs_views=1),
+          summary=lambda r: r.summary(), volatile=("max_memory_mb",), raw=True, needs_views=1, per_view=True),
     Stage("magnify", _entry("processing", "run"), upstream=_magnify_upstream,
           outputs=lambda cap, s: [cap.paths.magnified_dir(s.method)],
-          summary=lambda r: r.summary(), volatile=("workers",), raw=True, needs_views=1),
+          summary=lambda r: r.summary(), volatile=("workers",), raw=True, needs_views=1, per_view=True),
     Stage("poses", _entry("reconstruction", "run_poses"), upstream=lambda c: ("qc",),
           outputs=lambda cap, s: [cap.paths.poses_json, cap.paths.points_npz],
           summary=lambda r: _lines(r.report_lines()), volatile=("threads",), raw=True, needs_views=2),
@@ -238,6 +240,26 @@ def applies(capture: Capture, name: str, config: Config) -> str | None:
 
 # ------------------------------------------------------------------------------------------ running
 
+class StageFailure(Exception):
+    """A stage of `run` failed: `stage` names it, `cause` is its error in one line."""
+
+    def __init__(self, stage: str, cause: BaseException | str):
+        self.stage = stage
+        self.cause = cause if isinstance(cause, str) else one_line(cause)
+        super().__init__(f"stage {stage}: {self.cause}")
+
+    def __reduce__(self):  # crosses process boundaries with its fields
+        return type(self), (self.stage, self.cause)
+
+
+class StageError(StageFailure, OdsplatError):
+    """A stage refused its input (an odsplat error): one line, no traceback at the command line."""
+
+
+class StageCrash(StageFailure, RuntimeError):
+    """A stage failed unexpectedly (a bug, a library's error); chained to the original, whose traceback shows."""
+
+
 @dataclass
 class StageRun:
     stage: str
@@ -255,8 +277,11 @@ def _unstamp(capture: Capture, name: str) -> None:
         fsync_path(stamp.parent)
 
 
-def run_stage(capture: Capture, name: str, config: Config | None = None, settings: Any = None) -> StageRun:
+def run_stage(capture: Capture, name: str, config: Config | None = None, settings: Any = None,
+              executor: Executor | None = None) -> StageRun:
     """Run one stage now (whether or not it is current) and stamp it; `settings` replace the configuration's.
+    `executor`: where a per-view stage (sync, magnify) sends each view's work (`executor.map`); by default the
+    stage's own choice (magnify: a process pool of its `workers`).
 
     This is what the single-stage commands call, so their outputs are recorded like the pipeline's."""
     config = config or load_config(capture)
@@ -268,7 +293,7 @@ def run_stage(capture: Capture, name: str, config: Config | None = None, setting
     remove_stale_temporaries(capture.paths.root)     # what killed runs left half-written
     started = time.perf_counter()
     s = config.settings(name)
-    result = st.entry(capture, s)
+    result = st.entry(capture, s, executor=executor) if executor is not None and st.per_view else st.entry(capture, s)
     seconds = time.perf_counter() - started
     summary = st.summary(result)
     outputs = output_identity(capture, st.outputs(capture, s))
@@ -305,9 +330,12 @@ def _span(start: str | None, stop: str | None) -> Sequence[str]:
 
 
 def run(capture: Capture, config: Config | None = None, *, start: str | None = None, stop: str | None = None,
-        force: Iterable[str] = (), echo: Callable[[str], None] | None = None) -> PipelineResult:
+        force: Iterable[str] = (), echo: Callable[[str], None] | None = None,
+        executor: Executor | None = None) -> PipelineResult:
     """Run the stages from `start` to `stop` (default: all), each only when it is stale or forced; a stage from
-    `start` on is always run (`--from`). `echo` gets a line as each stage begins and ends."""
+    `start` on is always run (`--from`). `echo` gets a line as each stage begins and ends. `executor`: where the
+    per-view stages send each view's work (`run_stage`). A stage that fails raises `StageError` (an odsplat
+    error, one line) or `StageCrash` (anything else, chained to it), both naming the stage."""
     config = config or load_config(capture)
     say = echo or (lambda line: log.info("%s", line))
     forced = {stage(n).name for n in force}
@@ -330,9 +358,11 @@ def run(capture: Capture, config: Config | None = None, *, start: str | None = N
         why = "forced" if name in forced else why
         say(f"[{name}] running ({why})")
         try:
-            done = run_stage(capture, name, config)
+            done = run_stage(capture, name, config, executor=executor)
         except OdsplatError as exc:
-            raise OdsplatError(f"stage {name}: {exc}") from None
+            raise StageError(name, exc) from None
+        except Exception as exc:
+            raise StageCrash(name, exc) from exc
         done.reason = why
         out.stages.append(done)
         say(f"[{name}] done in {done.seconds:.1f} s")
@@ -360,5 +390,6 @@ def status(capture: Capture, config: Config | None = None) -> list[tuple[str, bo
     return out
 
 
-__all__ = ["GRAPH", "PipelineResult", "Stage", "StageRun", "Stamp", "applies", "expected", "is_current",
-           "output_identity", "run", "run_stage", "stage", "stage_settings", "status", "takes_identity"]
+__all__ = ["GRAPH", "PipelineResult", "Stage", "StageCrash", "StageError", "StageFailure", "StageRun", "Stamp",
+           "applies", "expected", "is_current", "output_identity", "run", "run_stage", "stage", "stage_settings",
+           "status", "takes_identity"]

@@ -15,7 +15,8 @@ import os
 import time
 from collections import deque
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -389,9 +390,14 @@ def _inputs(capture: Capture, s: MagnifySettings) -> tuple[list[tuple[str, str |
     return [(n, None) for n in names], None
 
 
-def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bool = True) -> MagnifyResult:
+def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bool = True,
+                    executor: Executor | None = None) -> MagnifyResult:
     """Magnify every selected view; writes derived/magnified/METHOD/NAME.h5 (and NAME.mp4 unless `video` is off)
-    and magnify.json beside them; warns for each take whose magnified motion passes the method's bound."""
+    and magnify.json beside them; warns for the takes whose magnified motion passes the method's bound.
+
+    Each view is its own task, in a process pool of `settings.workers`, or through `executor.map` when one is
+    given (e.g. a Dask client's executor: the views of one capture spread over a cluster, one thread each);
+    each writes only its own files, and the index is written here once they are all done."""
     s = settings
     jobs, sync_generation = _inputs(capture, s)
     if not jobs:
@@ -400,7 +406,9 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
     generation = begin_outputs(capture.paths.magnify_json(s.method), dest)
     capture.paths.ensure(dest)
     workers = max(1, min(s.workers or os.cpu_count() or 1, len(jobs)))
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    # torch's threads per view: one per task on an executor (a cluster's worker slot), like the process pool when
+    # the views outnumber the cores. With more, the frames are not reproducible to the last stored quarter DN
+    threads = 1 if executor is not None else max(1, (os.cpu_count() or 1) // workers)
     result = MagnifyResult(s.method, s.alpha, list(s.band_hz) if s.band_hz else None, s.filter_kind,
                            settings=asdict(s), generation=generation)
     args = [(str(capture.root), n, a, s, str(capture.paths.magnified(s.method, n)), threads, str(capture.paths.root),
@@ -408,12 +416,12 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
             for n, a in jobs]
     bar = tqdm(total=len(args), desc=f"magnify ({s.method})", unit="view", disable=not progress)
     try:
-        if workers == 1:
+        if workers == 1 and executor is None:
             for a in args:
                 result.takes.append(magnify_take(*a))
                 bar.update()
         else:
-            with ProcessPoolExecutor(workers) as pool:
+            with nullcontext(executor) if executor is not None else ProcessPoolExecutor(workers) as pool:
                 for done in pool.map(magnify_take, *zip(*args)):
                     result.takes.append(done)
                     bar.update()

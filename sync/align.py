@@ -14,6 +14,8 @@ import json
 import logging
 import math
 import os
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Executor
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -432,8 +434,33 @@ def _write_aligned(capture: Capture, t: TakeSync, reader: TakeReader, rest_count
     t.aligned_file = os.path.relpath(path, capture.paths.root)  # relative to the derived root
 
 
-def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, progress: bool = True) -> SyncResult:
-    """Sync every selected take of the capture; writes derived/sync.json and, if asked, the aligned frames."""
+class _Serial:
+    """Executor-like `map` in this process."""
+
+    def map(self, fn: Callable[..., Any], *iterables: Iterable[Any]) -> Iterator[Any]:
+        return map(fn, *iterables)
+
+
+def align_take(capture_root: str, derived_root: str, t: TakeSync, t0: float, fps: float, n_grid: int,
+               settings: SyncSettings, out_dir: str, generation: str, shape: list[int]) -> TakeSync:
+    """One take's frames onto the common grid, `out_dir/NAME.h5` (its own file); returns the take's record with
+    the alignment's numbers, or excluded when its frames are of another shape. Runs in any process."""
+    capture = Capture.open(capture_root, derived=derived_root)
+    with capture.open_take(t.name) as r:
+        if list(r.frame_shape) != shape:
+            return t.exclude(f"frame shape {list(r.frame_shape)} differs from the capture's {shape}")
+        hit_counter = (t.hit_daq_time_s - t.frame0_daq_time_s) / t.period_s
+        rest = np.asarray(t.counters)[np.asarray(t.counters) + 1 < hit_counter]
+        _write_aligned(capture, t, r, rest, t0, fps, n_grid, settings, Path(out_dir), generation)
+    return t
+
+
+def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, progress: bool = True,
+                 executor: Executor | None = None) -> SyncResult:
+    """Sync every selected take of the capture; writes derived/sync.json and, if asked, the aligned frames.
+
+    `executor`: writes each take's aligned frames as its own task (`executor.map`, e.g. a process pool or a Dask
+    client's executor); by default one after another in this process. The results are the same either way."""
     s = settings or SyncSettings()
     records = capture.select_takes(s.takes)
     if not records:
@@ -442,13 +469,14 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
     out_dir = capture.paths.aligned_dir
     generation = begin_outputs(capture.paths.sync_json, out_dir)
     try:
-        return _sync(capture, s, records, generation, out_dir, progress)
+        return _sync(capture, s, records, generation, out_dir, progress, executor)
     except BaseException:
         discard_outputs(out_dir)
         raise
 
 
-def _sync(capture: Capture, s: SyncSettings, records, generation: str, out_dir: Path, progress: bool) -> SyncResult:
+def _sync(capture: Capture, s: SyncSettings, records, generation: str, out_dir: Path, progress: bool,
+          executor: Executor | None) -> SyncResult:
     m = capture.manifest
     results: list[TakeSync] = []
     responses: dict[str, tuple[np.ndarray, float]] = {}
@@ -476,14 +504,12 @@ def _sync(capture: Capture, s: SyncSettings, records, generation: str, out_dir: 
             shape = list(r.frame_shape)
         if s.write_frames:
             capture.paths.ensure(out_dir)
-            for t in tqdm(ok, desc="sync: aligning frames", unit="take", disable=not progress):
-                with capture.open_take(t.name) as r:
-                    if list(r.frame_shape) != shape:
-                        t.exclude(f"frame shape {list(r.frame_shape)} differs from the capture's {shape}")
-                        continue
-                    hit_counter = (t.hit_daq_time_s - t.frame0_daq_time_s) / t.period_s
-                    rest = np.asarray(t.counters)[np.asarray(t.counters) + 1 < hit_counter]
-                    _write_aligned(capture, t, r, rest, t0, fps, n_grid, s, out_dir, generation)
+            args = [(str(capture.root), str(capture.paths.root), t, t0, fps, n_grid, s, str(out_dir), generation, shape)
+                    for t in ok]
+            done = (executor or _Serial()).map(align_take, *zip(*args))
+            aligned = {t.name: t for t in tqdm(done, total=len(ok), desc="sync: aligning frames", unit="take",
+                                               disable=not progress)}
+            results = [aligned.get(t.name, t) for t in results]
     result = SyncResult(capture=m.name, fps=fps, n_frames=n_grid, t0_s=t0, frame_shape=shape,
                         reference_impulse_n_s=ref_impulse, normalized=s.normalize_impulse, takes=results,
                         settings=asdict(s), generation=generation)
