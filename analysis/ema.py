@@ -504,11 +504,12 @@ def default_max_order(n_lines: int) -> int:
     return max(2, min(MAX_ORDER, int(n_lines) // 2))
 
 
-def fit_modes(freq_hz, frf, *, frf_kind: str, fmin_hz: float, fmax_hz: float, max_order: int | None = None,
+def fit_modes(freq_hz, frf, *, frf_kind: str, fmin_hz: float, fmax_hz: float, max_order: int | None = 80,
               approx_freq_hz: Sequence[float] | None = None, output_names: Sequence[str] | None = None,
               min_stable: float = 0.5, freq_tol: float = 0.01, damping_tol: float = 0.05,
               residuals: bool = True, peaks_hz: Sequence[float] = ()) -> ModalFit:
-    """LSCF poles up to max_order (None: `default_max_order` of the band's lines), a stabilisation chart, automatic
+    """LSCF poles up to max_order (None: `default_max_order` of the band's lines, as the analysis asks by default;
+    80 here keeps the function's own default as it was), a stabilisation chart, automatic
     (guided by the FRFs' clear peaks_hz; or, with approx_freq_hz, manual) pole selection, and LSFD modal
     constants, all in the band fmin_hz..fmax_hz."""
     f, h, trailing = _check_frf(freq_hz, frf)
