@@ -154,13 +154,21 @@ def geometry(capture_dir: Path, geometry_file: Path | None) -> None:
     click.echo("\n".join(changes) if changes else "the geometry is as the file says already")
 
 
+def _span_options(command):
+    """--from, --to and --force: which stages `odsplat run` and `odsplat batch` run."""
+    for option in reversed((
+            click.option("--from", "start", type=click.Choice(STAGES), default=None,
+                         help="Run from this stage on, whether or not it is current."),
+            click.option("--to", "stop", type=click.Choice(STAGES), default=None, help="Stop after this stage."),
+            click.option("--force", "force", type=click.Choice(STAGES), multiple=True,
+                         help="Run this stage even if it is current (repeatable); what depends on it follows."))):
+        command = option(command)
+    return command
+
+
 @main.command("run")
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--from", "start", type=click.Choice(STAGES), default=None,
-              help="Run from this stage on, whether or not it is current.")
-@click.option("--to", "stop", type=click.Choice(STAGES), default=None, help="Stop after this stage.")
-@click.option("--force", "force", type=click.Choice(STAGES), multiple=True,
-              help="Run this stage even if it is current (repeatable); what depends on it follows.")
+@_span_options
 @click.option("--config", "config_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Configuration file (default: CAPTURE_DIR/odsplat.toml when it exists).")
 @click.option("--set", "sets", multiple=True, metavar="STAGE.FIELD=VALUE",
@@ -185,11 +193,7 @@ def run_(capture_dir: Path, start: str | None, stop: str | None, force: tuple[st
                    "default: a local cluster.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Worker processes of the local cluster, one thread each (default: one per core).")
-@click.option("--from", "start", type=click.Choice(STAGES), default=None,
-              help="Run from this stage on, whether or not it is current.")
-@click.option("--to", "stop", type=click.Choice(STAGES), default=None, help="Stop after this stage.")
-@click.option("--force", "force", type=click.Choice(STAGES), multiple=True,
-              help="Run this stage even if it is current (repeatable); what depends on it follows.")
+@_span_options
 @click.option("--config", "config_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Configuration file for every capture (default: each capture's odsplat.toml when it exists).")
 @click.option("--set", "sets", multiple=True, metavar="STAGE.FIELD=VALUE",
