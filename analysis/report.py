@@ -288,17 +288,25 @@ def _correlation(doc: dict) -> str:
     return "".join(out)
 
 
-def _figures(doc: dict, folder: Path) -> str:
-    out = []
+def _inline(doc: dict, folder: Path, suffix: str):
+    """(key, file, base64 data or None when missing) for each output file of the analysis ending in `suffix`."""
     for key, rel in doc["files"].items():
-        if not (isinstance(rel, str) and rel.lower().endswith(".png")):
+        if not (isinstance(rel, str) and rel.lower().endswith(suffix)):
             continue
         path = folder / rel
         if not path.is_file():
             log.warning("report: %s not found; left out", path)
+            yield key, rel, None
+            continue
+        yield key, rel, base64.b64encode(path.read_bytes()).decode("ascii")
+
+
+def _figures(doc: dict, folder: Path) -> str:
+    out = []
+    for key, rel, data in _inline(doc, folder, ".png"):
+        if data is None:
             out.append(f'<p class="bad">{escape(rel)} not found.</p>')
             continue
-        data = base64.b64encode(path.read_bytes()).decode("ascii")
         out.append(f'<figure><img src="data:image/png;base64,{data}" alt="{escape(str(key))}">'
                    f"<figcaption>{escape(str(key))} ({escape(rel)})</figcaption></figure>")
     return ("<h2>Figures</h2>" + "".join(out)) if out else ""
@@ -352,13 +360,9 @@ def _summary(doc: dict, setup: dict) -> str:
 def _animations(doc: dict, folder: Path) -> str:
     """The modes in motion: each animation inline (a GIF in the page itself)."""
     out = []
-    for key, rel in doc["files"].items():
-        if not (isinstance(rel, str) and rel.lower().endswith(".gif")):
+    for key, _, data in _inline(doc, folder, ".gif"):
+        if data is None:
             continue
-        path = folder / rel
-        if not path.is_file():
-            continue
-        data = base64.b64encode(path.read_bytes()).decode("ascii")
         out.append(f'<figure style="display:inline-block"><img src="data:image/gif;base64,{data}" '
                    f'alt="{escape(str(key))}"><figcaption>mode {escape(str(key).rpartition("_")[2].lstrip("0"))}'
                    "</figcaption></figure>")
