@@ -354,7 +354,8 @@ def _summary(doc: dict, setup: dict) -> str:
                    ["fit band", f"{_num(band[0], '.0f')} to {_num(band[-1], '.0f')} Hz"]]
     return ("<h2>Summary</h2>" + f'<p class="{cls}"><b>Verdict:</b> {line}</p>'
             + _table(["", ""], setup_rows, 2)
-            + _table(["mode", "frequency (Hz)", "damping (%)", "MAC video/accelerometers", "|scale|"], rows))
+            + (_table(["mode", "frequency (Hz)", "damping (%)", "MAC video/accelerometers", "|scale|"], rows)
+               if doc.get("video") else _table(["mode", "frequency (Hz)", "damping (%)"], [r[:3] for r in rows])))
 
 
 def _animations(doc: dict, folder: Path) -> str:
