@@ -126,11 +126,11 @@ def test_batch_reports_a_failure_finishes_the_rest_reruns_only_what_failed_and_e
     assert _ran(out, "cap1") == set() and _ran(out, "cap2") == set(), out
     assert _ran(out, "cap3") == {"magnify", "poses", "reconstruct", "analyze", "report"}, out
 
-    # `odsplat run` on copies of a capture the batch ran whole and of the one it finished in two goes (two of the
-    # three, for the test's time): the same numbers, frames and modes. The batch magnifies with one thread per
-    # view, as `odsplat run` does when the views are at least as many as the cores.
+    # `odsplat run` on a copy of the capture the batch finished in two goes (one of the three, for the suite's
+    # time): the same numbers, frames and modes. The batch magnifies with one thread per view, as `odsplat run`
+    # does when the views are at least as many as the cores.
     exact = (os.cpu_count() or 1) <= N_VIEWS
-    for i in (1, 3):
+    for i in (3,):
         seconds = _odsplat("run", serial / f"cap{i}")[1]
         _assert_same_results(Capture.open(batch / f"cap{i}"), Capture.open(serial / f"cap{i}"), exact)
         print(f"cap{i}: odsplat run {seconds:.1f} s")

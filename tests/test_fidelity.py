@@ -16,7 +16,7 @@ def test_a_small_27_view_capture_is_synced_and_posed_whole_with_the_defaults(tmp
     out = tmp_path / "small"
     r = CliRunner().invoke(main, ["capture", str(out), "--sim", "--auto", "--no-window", "--size", "256x256",
                                   "--floor-tag-m", "0.12", "--bit-depth", "12", "--texture", "value_noise",
-                                  "--frames", "24", "--pretrigger-frames", "4"])
+                                  "--frames", "12", "--pretrigger-frames", "4"])
     assert r.exit_code == 0, r.output
     cap = Capture.open(out)
     with cap.open_take(cap.manifest.takes[0].name) as t:

@@ -183,7 +183,7 @@ def test_sync_and_magnify_killed_at_random_points_then_rerun_leave_one_consisten
     rng = np.random.default_rng(29)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     for stage, index in (("sync", cap.paths.sync_json), ("magnify", cap.paths.magnify_json("phase"))):
-        for _ in range(2):
+        for _ in range(1):      # one seeded point per stage (the test above kills sync within `odsplat run` too)
             proc = subprocess.Popen([sys.executable, "-m", "odsplat", stage, str(cap.root)], env=env,
                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             deadline = time.monotonic() + 60
