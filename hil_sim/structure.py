@@ -9,6 +9,7 @@ ground truth for every other stage.
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -153,7 +154,7 @@ class ModalResponse:
     qdd: np.ndarray
 
 
-class _ModalModel:
+class _ModalModel(ABC):
     """What every structure shares: its modes' frequencies and dampings, and the exact response built on
     `mode_shapes(points_m)` (mass-normalised, (P, n_modes, 3)), which each structure defines."""
 
@@ -171,8 +172,9 @@ class _ModalModel:
     def dampings(self) -> np.ndarray:
         return np.array([m.damping for m in self.modes])
 
+    @abstractmethod
     def mode_shapes(self, points_m: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
+        """(P, n_modes, 3) mass-normalised shapes at the points: the arm's and the plate's own."""
 
     def participation(self, point_m: Sequence[float], direction: Sequence[float]) -> np.ndarray:
         """phi_r(point) . direction for every mode: how much a force there excites each mode."""
