@@ -36,7 +36,6 @@ import json
 import logging
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -49,7 +48,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from spread import spread, targets_on_worst  # noqa: E402
+from spread import run_seeds, spread, targets_on_worst  # noqa: E402
 
 from odsplat.analysis.analyze import AnalysisResult, AnalyzeSettings, analyze_capture  # noqa: E402
 from odsplat.analysis.correlation import mac, modal_scale_factor  # noqa: E402
@@ -421,15 +420,7 @@ def main(argv: list[str] | None = None) -> dict:
     if args.seeds < 1:
         ap.error("--seeds must be at least 1")
     seeds = [args.seed] if args.capture is not None else [args.seed + i for i in range(args.seeds)]
-    tmp = tempfile.TemporaryDirectory(prefix="bench-analysis-")
-    runs = []
-    for seed in seeds:
-        print(f"seed {seed}", file=sys.stderr)
-        if args.keep is not None and len(seeds) == 1:
-            where = args.keep
-        else:
-            where = (args.keep or Path(tmp.name)) / (f"seed{seed}" if len(seeds) > 1 else "cap")
-        runs.append(run_seed(argparse.Namespace(**{**vars(args), "seed": seed}), where))
+    runs = run_seeds(args, seeds, run_seed, "bench-analysis-")
     figures = {"bench": "analysis", "perfect": args.perfect, "seeds": seeds, "spread": spread(runs),
                "targets": targets_on_worst(runs), "runs": runs}
     print(json.dumps(figures, default=float))

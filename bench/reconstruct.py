@@ -36,7 +36,6 @@ import dataclasses
 import json
 import logging
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -48,7 +47,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "bench"))
 
-from spread import spread  # noqa: E402
+from spread import run_seeds, spread  # noqa: E402
 
 from odsplat.analysis.analyze import AnalyzeSettings  # noqa: E402
 from odsplat.analysis.ods import SurfaceMotion  # noqa: E402
@@ -265,16 +264,8 @@ def main(argv: list[str] | None = None) -> dict:
     torch.set_num_threads(args.threads)
     if args.seeds < 1:
         ap.error("--seeds must be at least 1")
-    tmp = tempfile.TemporaryDirectory(prefix="bench-recon-")
     seeds = [args.seed + i for i in range(args.seeds)]
-    runs = []
-    for seed in seeds:
-        print(f"seed {seed}", file=sys.stderr)
-        if args.keep is not None and len(seeds) == 1:
-            out = args.keep
-        else:
-            out = (args.keep or Path(tmp.name)) / (f"seed{seed}" if len(seeds) > 1 else "cap")
-        runs.append(run_seed(argparse.Namespace(**{**vars(args), "seed": seed}), out))
+    runs = run_seeds(args, seeds, run_seed, "bench-recon-")
     figures = {"bench": "reconstruct", "seeds": seeds, "spread": spread(runs), "runs": runs}
     print(json.dumps(figures, default=float))
     return figures

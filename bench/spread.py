@@ -1,6 +1,12 @@
 """The spread of a bench's figures over seeds: every number's worst and median, and the targets judged on the worst."""
 from __future__ import annotations
 
+import argparse
+import sys
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
 import numpy as np
 
 HIGHER_IS_BETTER = ("mac", "found", "psnr", "ssim", "r2", "n_identified", "snr", "registered", "n_points",
@@ -62,3 +68,20 @@ def targets_on_worst(runs: list[dict]) -> dict[str, bool | None]:
         judged = [v for v in vals if v is not None]
         out[n] = all(judged) if judged else None
     return out
+
+
+def run_seeds(args: argparse.Namespace, seeds: list[int], run_seed: Callable[[argparse.Namespace, Path], dict],
+              prefix: str) -> list[dict]:
+    """Each seed's figures, its capture in --keep (one seed) or a folder per seed (in --keep, else a temporary
+    one)."""
+    tmp = tempfile.TemporaryDirectory(prefix=prefix)
+    runs = []
+    for seed in seeds:
+        print(f"seed {seed}", file=sys.stderr)
+        if args.keep is not None and len(seeds) == 1:
+            where = args.keep
+        else:
+            where = (args.keep or Path(tmp.name)) / (f"seed{seed}" if len(seeds) > 1 else "cap")
+        runs.append(run_seed(argparse.Namespace(**{**vars(args), "seed": seed}), where))
+    tmp.cleanup()
+    return runs
