@@ -27,6 +27,7 @@ from .qc import HitQC, QCLimits, QCReport, QCSettings, TakeQC, check_hit, run_qc
 from .session import (
     AutoHammerSettings,
     CaptureSession,
+    Feedback,
     LabBench,
     SessionReport,
     SessionSettings,
@@ -44,6 +45,6 @@ __all__ = [
     "PlanSettings", "PoseCheck", "check_pose", "coverage", "describe_view", "plan_views", "top_view_map",
     "view_eye_m", "view_pose",
     "HitQC", "QCLimits", "QCReport", "QCSettings", "TakeQC", "check_hit", "run_qc",
-    "AutoHammerSettings", "CaptureSession", "LabBench", "SessionReport", "SessionSettings", "choose_hammer",
+    "AutoHammerSettings", "CaptureSession", "Feedback", "LabBench", "SessionReport", "SessionSettings", "choose_hammer",
     "HammerTrigger", "NoTrigger", "TriggeredRecord", "wait_for_hit",
 ]
