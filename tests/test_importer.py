@@ -21,7 +21,7 @@ def _nothing_left(out: Path) -> bool:
 
 def test_ladisk_example_rig(shared_data, tmp_path):
     out = tmp_path / "beam"
-    cap = import_capture(REPO / "examples" / "ladisk-beam.toml", out, data_dir=shared_data)
+    cap = import_capture(REPO / "odsplat" / "examples" / "ladisk-beam.toml", out, data_dir=shared_data)
     assert cap.root == out and Capture.open(out).take_names() == ["hit_acc", "hit_cam", "showcase"]
     m = cap.manifest
     assert m.daq_sample_rate_hz == pytest.approx(50_000.0)

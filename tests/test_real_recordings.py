@@ -32,7 +32,7 @@ def _nearest(values, target: float) -> float:
 
 def test_ladisk_beam_goes_from_import_to_its_known_modes_with_the_defaults(shared_data, tmp_path):
     out = tmp_path / "beam"
-    import_capture(REPO / "examples" / "ladisk-beam.toml", out, data_dir=shared_data)
+    import_capture(REPO / "odsplat" / "examples" / "ladisk-beam.toml", out, data_dir=shared_data)
     cap = Capture.open(out)
     assert cap.select_takes() == []           # imported takes are unchecked until qc has run
     result = run(cap)
@@ -68,7 +68,7 @@ def test_ladisk_beam_goes_from_import_to_its_known_modes_with_the_defaults(share
 
 def test_geometry_files_are_checked_field_by_field(shared_data, tmp_path):
     out = tmp_path / "beam"
-    import_capture(REPO / "examples" / "ladisk-beam.toml", out, data_dir=shared_data)
+    import_capture(REPO / "odsplat" / "examples" / "ladisk-beam.toml", out, data_dir=shared_data)
     geo = tmp_path / "g.toml"
     cases = {
         'name = "acc"\nposition_m = [0, 0, 0]\ndirection = [0, 0, 0]': r"sensors\[0\]\.direction: expected a non-zero",
