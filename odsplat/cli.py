@@ -634,6 +634,25 @@ def report(capture_dir: Path) -> None:
     click.echo(path)
 
 
+@main.command()
+@click.argument("out", type=click.Path(path_type=Path), default="demo-out", required=False)
+@click.option("--quick", is_flag=True, help="The same steps at a small scale (8 views, 40 frames, a coarse "
+                                            "reconstruction): about a minute and a half.")
+@click.option("--shared-data", type=click.Path(path_type=Path), default=None,
+              help="The folder of real recordings (default: $ODSPLAT_SHARED_DATA, else ../shared/data when it "
+                   "exists; without it that part is skipped).")
+def demo(out: Path, quick: bool, shared_data: Path | None) -> None:
+    """Run the demo into OUT (default demo-out): a guided 27-view capture on the simulated rig with faults that QC
+    catches, the whole pipeline, a magnified orbit render and the report (OUT/sim-rig, made anew on each run), then
+    the real LADISK recordings imported and analysed (OUT/ladisk-beam). Prints each capture's modes and MAC, the
+    reports and the viewer command."""
+    from .demo import run_demo
+
+    result = run_demo(out, quick=quick, shared_data=shared_data, echo=click.echo)
+    click.echo("")
+    click.echo(result.text())
+
+
 def _plan(settings):
     from .acquisition import plan_views
 
