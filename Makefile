@@ -29,28 +29,16 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python tools/lint_imports.py --no-logo
 
-# The demo runs what works end to end: a guided 27-view capture on the simulated rig (with two
-# injected faults that QC catches and the session redoes), then the whole pipeline in one command
-# (`odsplat run`, with examples/demo.toml as the capture's odsplat.toml): hit QC, sync of the takes onto
-# one impact-locked timeline, phase-based magnification of every view (2D videos to watch), camera poses
-# (pycolmap + tags), dynamic 3D Gaussians (the rest state at 128 px, then 64 timesteps of motion from the raw
-# frames in one linear solve), the analysis (modes from the accelerometers, the video's 3D shapes, MAC,
-# UFF/HDF5) and the report; then an orbit render magnified 30x in 3D, and the real LADISK recordings imported
-# from $(SHARED_DATA) and run through the same pipeline (their known modes) when that folder exists.
+# The demo is `odsplat demo` (odsplat/demo.py): a guided 27-view capture on the simulated rig into
+# $(DEMO_OUT)/sim-rig (300 frames per take at 2000 fps, with a rebound and a dropped packet injected, which QC
+# rejects and the session redoes), the whole pipeline on it (`odsplat run`, with odsplat/examples/demo.toml as the
+# capture's odsplat.toml), an orbit render magnified 30x in 3D, the report rewritten with the render, and the real
+# LADISK recordings imported from $(SHARED_DATA) and run through the same pipeline when that folder exists. It ends
+# with each capture's modes and MAC, the reports' paths and the viewer command. Rerunning it redoes the captures
+# it made (never a folder it did not make); `odsplat demo --quick` is the same at a small scale.
+# SHARED_DATA given (make demo SHARED_DATA=DIR) must exist; the default is used when it exists, else skipped.
 demo: $(STAMP)
-	rm -rf $(DEMO_OUT)/sim-rig
-	$(BIN)/odsplat capture $(DEMO_OUT)/sim-rig --sim --auto --no-window --frames 100 --sim-faults 3:double_hit,9:dropped_packet
-	$(BIN)/odsplat info $(DEMO_OUT)/sim-rig
-	cp examples/demo.toml $(DEMO_OUT)/sim-rig/odsplat.toml
-	$(BIN)/odsplat run $(DEMO_OUT)/sim-rig
-	$(BIN)/odsplat render $(DEMO_OUT)/sim-rig --camera orbit:16:30 --times -0.0005:0.031:16 --alpha 30
-	$(BIN)/odsplat report $(DEMO_OUT)/sim-rig
-	@if test -d $(SHARED_DATA); then \
-	  rm -rf $(DEMO_OUT)/ladisk-beam && \
-	  $(BIN)/odsplat import examples/ladisk-beam.toml --data $(SHARED_DATA) -o $(DEMO_OUT)/ladisk-beam && \
-	  $(BIN)/odsplat info $(DEMO_OUT)/ladisk-beam && \
-	  $(BIN)/odsplat run $(DEMO_OUT)/ladisk-beam; \
-	else echo "demo: $(SHARED_DATA) not found; skipping the import of real recordings (set SHARED_DATA=...)"; fi
+	$(BIN)/odsplat demo $(DEMO_OUT) $(if $(or $(wildcard $(SHARED_DATA)),$(filter-out file,$(origin SHARED_DATA))),--shared-data $(SHARED_DATA))
 
 bench: $(STAMP)
 	$(BIN)/python bench/store.py
