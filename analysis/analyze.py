@@ -64,6 +64,7 @@ class AnalyzeSettings:
     crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
     crosscheck_points: int = 30
     image_poles: bool = True                         # poles from the synced takes' raw frames (imagepoles.py)
+    plots: bool = True                               # the figures and animations (plots/); the report inlines them
     image_ranks: tuple[int, ...] | None = None       # None: as video_ranks, from the frames after the impact
     image_pixel_fraction: float = 0.05               # the most textured pixels of each view
 
@@ -374,7 +375,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
 
 def _write(capture: Capture, result: AnalysisResult, s: AnalyzeSettings) -> AnalysisResult:
     dest = capture.paths.ensure(capture.paths.analysis_dir)
-    files = write_outputs(dest, result)
+    files = write_outputs(dest, result, plots=s.plots)
     summary = {**describe(capture.id, KIND, SCHEMA, s).header(), "capture": capture.root.name,
                "created_utc": utc_now(), "settings": plain(s), **result.summary(), "files": files}
     # Last: a reader that finds it finds the files it lists.

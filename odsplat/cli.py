@@ -602,12 +602,14 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
 @click.option("--no-video", is_flag=True, help="Accelerometers only, even with a reconstruction.")
 @click.option("--image-poles/--no-image-poles", default=True, show_default=True,
               help="Also find poles in the synced takes' raw frames (needs a few hundred ms of frames for low modes).")
+@click.option("--plots/--no-plots", default=True, show_default=True,
+              help="Write the figures and each mode's animation (derived/analysis/plots/), which the report shows.")
 @click.option("--report/--no-report", "with_report", default=True, show_default=True,
               help="Also write derived/analysis/report.html.")
 def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, ...], all_takes: bool,
             fmin_hz: float | None, fmax_hz: float | None, max_order: int | None, approx_freq_hz: tuple[float, ...],
             ods_freq_hz: tuple[float, ...], exp_end: float, record_s: float | None, no_video: bool,
-            image_poles: bool, with_report: bool) -> None:
+            image_poles: bool, plots: bool, with_report: bool) -> None:
     """FRFs, modes, the video's 3D shapes and their correlation for CAPTURE_DIR, into derived/analysis/
     (docs/analysis.md)."""
     from .errors import InputError
@@ -619,7 +621,7 @@ def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, 
         all_takes=("takes", lambda v: "all" if v else "accepted"), fmin_hz="fmin_hz", fmax_hz="fmax_hz",
         max_order="max_order", approx_freq_hz="approx_freq_hz", ods_freq_hz="ods_freq_hz",
         exp_end=("frf.exponential_end", lambda v: v or None), record_s="record_s",
-        no_video=("video", lambda v: not v), image_poles="image_poles"))
+        no_video=("video", lambda v: not v), image_poles="image_poles", plots="plots"))
     click.echo(result.text())
     if with_report:
         _, path = _stage(capture_dir, "report", {})
