@@ -44,5 +44,5 @@ __all__ = ["AnalysisResult", "AnalyzeSettings", "CoherenceRecord", "Correlation"
            "VideoModes", "analyze_capture", "check_frf_hit", "comac", "correlate", "estimate_frf", "fit_decay",
            "fit_modes", "force_transform", "good_points", "lscf", "lsce_poles", "lsfd", "mac", "modal_scale_factor",
            "pencil_poles", "project_displacement", "read_analysis", "read_results_h5", "read_uff", "receptance", "run",
-           "select_poles", "split_hits", "stabilisation", "stable_poles", "structure_mask", "track_points", "write_report",
-           "write_results_h5", "write_uff"]
+           "select_poles", "split_hits", "stabilisation", "stable_poles", "structure_mask", "track_points",
+           "write_report", "write_results_h5", "write_uff"]

@@ -561,7 +561,7 @@ def _draw_floor(img: np.ndarray, data: ViewerData, cam) -> None:
 def _draw_cameras(img: np.ndarray, data: ViewerData, cam) -> None:
     """Each capture camera as a small pyramid: its centre and the corners of its image at 8 % of the scene."""
     size = 0.08 * data.extent_m
-    for k, c in enumerate(data.cameras):
+    for c in data.cameras:
         R, t = np.asarray(c.R, float), np.asarray(c.t, float)
         centre = camera_center_m(R, t)
         Kinv = np.linalg.inv(np.asarray(c.K, float))
