@@ -19,6 +19,7 @@ from .model import (
     ViewerData,
     ViewState,
     aligned_frame,
+    best_threads,
     default_state,
     render_view,
     snap_orbit,
@@ -254,6 +255,7 @@ class ViewerWindow:
         self.timer.setInterval(TICK_MS)
         self.timer.timeout.connect(self._tick)
         self.window.resize(1500, 950)
+        self.threads = best_threads(data, self.state) if data.scene is not None else 1
         self._sync_controls()
         self.refresh()
 

@@ -501,26 +501,28 @@ def render_view(data: ViewerData, state: ViewState, *, overlays: bool = True) ->
     else:
         disp, rot = motion_at(data, state)
         keep = visible(data, state)
-        means = sc.means_m[keep] + state.alpha * disp[keep]
-        quats = sc.quats[keep]
+        every = bool(keep.all())
+        pick = (lambda a: a) if every else (lambda a: a[keep])  # noqa: E731  (no copies when all are drawn)
+        means = pick(sc.means_m) + np.float32(state.alpha) * pick(disp)
+        quats = pick(sc.quats)
         if state.mode is None and np.any(rot):
-            quats = _quat_multiply(_quat_from_rotvec(state.alpha * rot[keep].astype(np.float64)),
-                                   quats.astype(np.float64)).astype(np.float32)
+            quats = _quat_multiply(_quat_from_rotvec(np.float32(state.alpha) * pick(rot)), quats)
         if state.colour == "displacement":
             top, _ = colour_scale(data, state)
-            amp = np.linalg.norm(np.abs(data.modes[state.mode].gaussians[keep]), axis=1) if (
+            amp = np.linalg.norm(np.abs(pick(data.modes[state.mode].gaussians)), axis=1) if (
                 state.mode is not None and data.modes[state.mode].gaussians is not None) else \
-                np.linalg.norm(disp[keep], axis=1)
+                np.linalg.norm(pick(disp), axis=1)
             colours = plasma(amp / max(top, 1e-30)).astype(np.float32) / 255
             background = np.ones(3, np.float32)
-        else:
-            colours = np.repeat(sc.grey[keep, :1], 3, axis=1)
-            background = np.repeat(sc.background[:1], 3).astype(np.float32)
+        else:      # mono: one channel rendered, made grey RGB after
+            colours = pick(sc.grey[:, :1])
+            background = sc.background[:1]
         view = np.eye(4)
         view[:3, :3], view[:3, 3] = cam.R, cam.t
-        image, _ = rasterize_image(means.astype(np.float32), quats, sc.scales_m[keep], sc.opacities[keep], colours,
-                                   view, cam.K, w, h, background=background)
-        img = np.round(np.clip(image, 0, 1) * 255).astype(np.uint8)
+        image, _ = rasterize_image(means.astype(np.float32, copy=False), quats, pick(sc.scales_m),
+                                   pick(sc.opacities), colours, view, cam.K, w, h, background=background)
+        img = cv2.convertScaleAbs(image, alpha=255.0)       # rounded, saturated to 0..255
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB) if img.ndim == 2 or img.shape[2] == 1 else img
     if overlays:
         if state.show_cameras:
             _draw_cameras(img, data, cam)
@@ -530,6 +532,35 @@ def render_view(data: ViewerData, state: ViewState, *, overlays: bool = True) ->
             _draw_colour_bar(img, *colour_scale(data, state))
         _draw_caption(img, data, state)
     return img
+
+
+def best_threads(data: ViewerData, state: ViewState, repeats: int = 3) -> int:
+    """The thread count (all of torch's, or one) that renders this view faster here, measured by rendering it
+    `repeats` times with each, alternately; torch's count is left at the answer. On two cores shared with other
+    work, two threads of the rasterizer wait on each other and one is faster (bench/viewer.py: 25 against 16
+    frames/s on the loaded 2-core machine); on idle cores two are."""
+    import time
+
+    import torch
+
+    most = torch.get_num_threads()
+    if most <= 1:
+        return most
+    spent = {most: [], 1: []}
+    try:
+        for _ in range(repeats):
+            for n in (most, 1):
+                torch.set_num_threads(n)
+                t0 = time.perf_counter()
+                render_view(data, state, overlays=False)
+                spent[n].append(time.perf_counter() - t0)
+    finally:
+        torch.set_num_threads(most)
+    best = min(spent, key=lambda n: float(np.median(spent[n])))
+    torch.set_num_threads(best)
+    log.info("rendering on %d thread(s): %.0f ms a frame (%d threads: %.0f ms)", best, 1e3 * np.median(spent[best]),
+             most if best == 1 else 1, 1e3 * np.median(spent[most if best == 1 else 1]))
+    return best
 
 
 def _project(cam, pts_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -558,22 +589,31 @@ def _draw_floor(img: np.ndarray, data: ViewerData, cam) -> None:
                 _line(img, uv[0], uv[1], (210, 210, 210))
 
 
-def _draw_cameras(img: np.ndarray, data: ViewerData, cam) -> None:
-    """Each capture camera as a small pyramid: its centre and the corners of its image at 8 % of the scene."""
+def _camera_pyramids(data: ViewerData) -> np.ndarray:
+    """(M, 5, 3): each capture camera's centre and the corners of its image at 8 % of the scene's size."""
     size = 0.08 * data.extent_m
+    out = []
     for c in data.cameras:
         R, t = np.asarray(c.R, float), np.asarray(c.t, float)
         centre = camera_center_m(R, t)
         Kinv = np.linalg.inv(np.asarray(c.K, float))
         corners = [centre + size * (R.T @ (Kinv @ np.array([x, y, 1.0])))
                    for x, y in ((0, 0), (c.width_px, 0), (c.width_px, c.height_px), (0, c.height_px))]
-        uv, ok = _project(cam, np.array([centre] + corners))
-        if not ok.all():
-            continue
-        colour = (40, 120, 255)
-        for i in range(4):
-            _line(img, uv[0], uv[1 + i], colour)
-            _line(img, uv[1 + i], uv[1 + (i + 1) % 4], colour)
+        out.append([centre] + corners)
+    return np.asarray(out, float).reshape(-1, 5, 3)
+
+
+def _draw_cameras(img: np.ndarray, data: ViewerData, cam) -> None:
+    """Each capture camera as a small pyramid (one projection and one polyline call for all of them)."""
+    pyramids = _camera_pyramids(data)
+    if not len(pyramids):
+        return
+    uv, ok = _project(cam, pyramids.reshape(-1, 3))
+    uv, ok = uv.reshape(-1, 5, 2), ok.reshape(-1, 5).all(axis=1) & (np.abs(uv).reshape(-1, 10).max(axis=1) < 1e5)
+    lines = []
+    for p in np.round(uv[ok] * 16).astype(np.int32):
+        lines += [p[[1, 2, 3, 4, 1]], p[[0, 1]], p[[0, 2]], p[[0, 3]], p[[0, 4]]]
+    cv2.polylines(img, lines, False, (40, 120, 255), 1, cv2.LINE_AA, shift=4)
 
 
 def _draw_sensors(img: np.ndarray, data: ViewerData, state: ViewState, cam) -> None:
@@ -661,6 +701,6 @@ def aligned_frame(data: ViewerData, take: str, time_s: float) -> np.ndarray | No
     return np.round(np.clip((frame - lo) / max(hi - lo, 1e-9), 0, 1) * 255).astype(np.uint8)
 
 
-__all__ = ["COLOUR_MODES", "Mode", "Orbit", "Scene", "SensorInfo", "ViewState", "ViewerData",
-           "aligned_frame", "camera_for", "caption", "colour_scale", "default_state", "load_viewer", "motion_at",
+__all__ = ["COLOUR_MODES", "Mode", "Orbit", "Scene", "SensorInfo", "ViewState", "ViewerData", "aligned_frame",
+           "best_threads", "camera_for", "caption", "colour_scale", "default_state", "load_viewer", "motion_at",
            "plasma", "render_view", "snap_orbit", "visible"]
