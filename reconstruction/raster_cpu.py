@@ -624,8 +624,8 @@ def image_numba(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacit
                      float(near), float(eps2d), means2d, conics, depths, radii)
     table = np.empty((n, _N_GEOM + colors.shape[1]), dtype)
     table[:, :2], table[:, 2:5], table[:, 5], table[:, _N_GEOM:] = means2d, conics, opacities, colors
-    with np.errstate(divide="ignore"):
-        floor = np.maximum(np.log(dtype.type(alpha_min) / table[:, 5]), dtype.type(-0.5 * q_max))
+    # in torch, as composite_numba computes it, so that both round alike at the cutoff
+    floor = torch.log(alpha_min / torch.from_numpy(table[:, 5].copy())).clamp(min=-0.5 * q_max).numpy()
     bins = _bin(table, floor, radii.astype(dtype), radii, depths, width_px, height_px, tile_px,
                 float(np.finfo(dtype).eps) / 2)
     coords = np.arange(max(width_px, height_px), dtype=dtype)
