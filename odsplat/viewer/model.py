@@ -230,8 +230,13 @@ def load_viewer(capture: Capture | str, *, need_analysis: bool = True) -> Viewer
         # the background moves with no mode: its shapes are noise, and the analysis keeps them out of its own
         modes = tuple(replace(m, gaussians=None if g is None else g * scene.structure[:, None])
                       for m, g in zip(modes, _mode_shapes_on(results, modes, scene)))
-    pts = scene.means_m[scene.structure] if scene is not None and scene.structure.any() else \
-        np.array([s.position_m for s in sensors]) if sensors else np.zeros((1, 3))
+    if scene is not None and scene.structure.any():
+        pts = scene.means_m[scene.structure]
+    elif sensors:      # the sensors and the floor under them (the view without a reconstruction shows both)
+        pts = np.array([s.position_m for s in sensors])
+        pts = np.concatenate([pts, pts * [1, 1, 0]])
+    else:
+        pts = np.zeros((1, 3))
     lo, hi = np.percentile(pts, 2, axis=0), np.percentile(pts, 98, axis=0)
     extent = float(max(np.linalg.norm(hi - lo), 0.2))
     return ViewerData(capture.root.name, capture, scene, tuple(cameras), (lo + hi) / 2, extent, sensors, modes, freq,
@@ -580,7 +585,7 @@ def _line(img: np.ndarray, a, b, colour, thickness: int = 1) -> None:
 def _draw_floor(img: np.ndarray, data: ViewerData, cam) -> None:
     """A grid on z = 0 under the sensors (the accelerometer-only view has nothing else to stand on)."""
     c = data.target_m
-    half = data.extent_m
+    half = 0.6 * data.extent_m
     for v in np.linspace(-half, half, 9):
         for a, b in (((c[0] + v, c[1] - half, 0), (c[0] + v, c[1] + half, 0)),
                      ((c[0] - half, c[1] + v, 0), (c[0] + half, c[1] + v, 0))):
@@ -631,6 +636,10 @@ def _draw_sensors(img: np.ndarray, data: ViewerData, state: ViewState, cam) -> N
         if not ok.all():
             continue
         p0, p1, p2 = uv
+        if data.scene is None:      # nothing else shows their height: a drop line to the floor
+            foot, ok_foot = _project(cam, (s.position_m * [1, 1, 0])[None])
+            if ok_foot.all():
+                _line(img, p0, foot[0], (190, 190, 190))
         cv2.circle(img, (int(p0[0]), int(p0[1])), 3, (160, 160, 160), -1, cv2.LINE_AA)
         tip = tuple(int(v) for v in p2)
         if max(abs(v) for v in tip) < 1e6:
