@@ -57,7 +57,8 @@ def _qimage(img: np.ndarray):
 
 def _view_widget():
     """A QLabel that shows the render and turns mouse drags into orbit (left), pan (right or middle) and wheel
-    into zoom, through the callbacks the window sets."""
+    into zoom, through the callbacks the window sets. The moves a render would fall behind are summed and applied
+    at once when Qt is next idle; on_drag(True/False) says when a drag starts and ends."""
     from PySide6 import QtCore, QtWidgets
 
     class View3D(QtWidgets.QLabel):
@@ -65,27 +66,44 @@ def _view_widget():
             super().__init__()
             self.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
             self.setMinimumSize(320, 240)
+            self.setMouseTracking(True)       # moves arrive however the press came (the tests' too)
             self._last = None
             self._button = None
+            self._pending = [0.0, 0.0]
+            self._timer = QtCore.QTimer(self)
+            self._timer.setSingleShot(True)
+            self._timer.setInterval(0)
+            self._timer.timeout.connect(self._flush)
             self.on_orbit = lambda dx, dy: None
             self.on_pan = lambda dx, dy: None
             self.on_zoom = lambda factor: None
+            self.on_drag = lambda dragging: None
 
         def mousePressEvent(self, e):
             self._last, self._button = e.position(), e.button()
+            self.on_drag(True)
 
         def mouseMoveEvent(self, e):
             if self._last is None:
                 return
             d = e.position() - self._last
             self._last = e.position()
+            self._pending[0] += d.x()
+            self._pending[1] += d.y()
+            self._timer.start()
+
+        def _flush(self):
+            dx, dy = self._pending
+            self._pending = [0.0, 0.0]
             if self._button == QtCore.Qt.MouseButton.LeftButton:
-                self.on_orbit(-0.4 * d.x(), 0.4 * d.y())
+                self.on_orbit(-0.4 * dx, 0.4 * dy)
             else:
-                self.on_pan(-d.x() / max(self.width(), 1), -d.y() / max(self.width(), 1))
+                self.on_pan(-dx / max(self.width(), 1), -dy / max(self.width(), 1))
 
         def mouseReleaseEvent(self, e):
+            self._flush()
             self._last = None
+            self.on_drag(False)
 
         def wheelEvent(self, e):
             self.on_zoom(0.9 ** (e.angleDelta().y() / 120))
@@ -122,6 +140,8 @@ class ViewerWindow:
         self.view.on_orbit = lambda dx, dy: self.set_state(orbit=self.state.orbit.rotated(dx, dy), snap=None)
         self.view.on_pan = lambda dx, dy: self.set_state(orbit=self.state.orbit.panned(dx, dy), snap=None)
         self.view.on_zoom = lambda f: self.set_state(orbit=self.state.orbit.zoomed(f))
+        self.view.on_drag = self._on_drag
+        self._dragging = False
         views.addWidget(self.view, 1)
         self.real = QtWidgets.QLabel()
         self.real.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
@@ -287,15 +307,27 @@ class ViewerWindow:
     def set_time(self, time_s: float) -> None:
         self.set_state(time_s=float(time_s))
 
+    def _on_drag(self, dragging: bool) -> None:
+        """While the mouse drags the camera the view is drawn at half size (a quarter of the pixels), then again
+        in full when it lets go."""
+        self._dragging = dragging
+        if not dragging:
+            self.refresh()
+
     def refresh(self) -> None:
         from PySide6 import QtCore, QtGui
 
         t0 = time.perf_counter()
-        self.image = render_view(self.data, self.state)
+        full = (self.state.width_px, self.state.height_px)
+        if self._dragging:
+            draft = replace(self.state, width_px=max(full[0] // 2, 8), height_px=max(full[1] // 2, 8))
+            image = render_view(self.data, draft)
+        else:
+            image = self.image = render_view(self.data, self.state)
         self.render_s = time.perf_counter() - t0
-        pix = QtGui.QPixmap.fromImage(_qimage(self.image))
-        size = self.view.size()
-        if size.width() < pix.width() or size.height() < pix.height():   # fitted, never enlarged
+        pix = QtGui.QPixmap.fromImage(_qimage(image))
+        size = self.view.size().boundedTo(QtCore.QSize(*full))          # fitted, never beyond the full size
+        if pix.width() != size.width() or pix.height() != size.height():
             pix = pix.scaled(size, QtCore.Qt.AspectRatioMode.KeepAspectRatio,
                              QtCore.Qt.TransformationMode.SmoothTransformation)
         self.view.setPixmap(pix)

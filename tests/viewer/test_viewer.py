@@ -239,3 +239,21 @@ def test_default_state_without_reconstruction_selects_a_mode(captures):
     acc = load_viewer(captures[2])
     img = render_view(acc, default_state(acc))
     assert img.shape == (480, 640, 3) and (img < 250).any()
+
+
+def test_dragging_the_view_orbits_the_camera(data, window):
+    from PySide6 import QtCore
+    from PySide6.QtTest import QTest
+
+    window.set_state(snap=None, mode=None, structure_only=False)
+    before, azimuth = window.image.copy(), window.state.orbit.azimuth_deg
+    centre = window.view.rect().center()
+    left, none = QtCore.Qt.MouseButton.LeftButton, QtCore.Qt.KeyboardModifier.NoModifier
+    QTest.mousePress(window.view, left, none, centre)
+    for k in range(1, 6):
+        QTest.mouseMove(window.view, centre + QtCore.QPoint(10 * k, 0))
+        window.app.processEvents()
+    QTest.mouseRelease(window.view, left, none, centre + QtCore.QPoint(50, 0))
+    window.app.processEvents()
+    assert window.state.orbit.azimuth_deg == pytest.approx((azimuth - 0.4 * 50) % 360)
+    assert window.image.shape == before.shape and np.abs(window.image.astype(int) - before).mean() > 1
