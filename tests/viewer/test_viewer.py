@@ -97,6 +97,7 @@ def test_scrubbing_time_moves_the_structure_and_not_the_floor(data, window, capt
     window.time_slider.setValue(round(1000 * (t - t0) / (t1 - t0)))
     assert window.state.time_s == pytest.approx(t, abs=(t1 - t0) / 1000)
     moved = window.image.copy()
+    assert window.time_cursor.value() == pytest.approx(1e3 * window.state.time_s)     # the plots' cursor follows
     # where the structure is (its own render) the image changes; on the floor's own pixels it does not
     only = render_view(data, replace(window.state, structure_only=True, time_s=t0), overlays=False)
     bg = render_view(data, replace(window.state, box_m=((9, 9, 9), (10, 10, 10))), overlays=False)
@@ -257,3 +258,46 @@ def test_dragging_the_view_orbits_the_camera(data, window):
     window.app.processEvents()
     assert window.state.orbit.azimuth_deg == pytest.approx((azimuth - 0.4 * 50) % 360)
     assert window.image.shape == before.shape and np.abs(window.image.astype(int) - before).mean() > 1
+
+
+def test_playback_runs_at_the_speed_asked_and_loops(data, window):
+    window.set_state(mode=None, time_s=data.time_range_s[0])
+    window.speed_box.setValue(2.0)                       # 2 ms of test per second
+    window.advance(1.5)
+    assert window.state.time_s == pytest.approx(data.time_range_s[0] + 3e-3)
+    t0, t1 = data.time_range_s
+    window.set_time(t1 - 1e-3)
+    window.loop_box.setChecked(True)
+    window.advance(1.0)                                  # 1 ms past the end: back to 1 ms after the start
+    assert window.state.time_s == pytest.approx(t0 + 1e-3)
+    window.speed_box.setValue(1.0)
+
+
+def test_the_dragged_box_and_the_colour_scale(data, window):
+    from odsplat.viewer.model import colour_scale, visible
+
+    window.set_state(mode=None, structure_only=False, box_m=None)
+    sc = data.scene
+    lo, hi = sc.means_m[sc.structure].min(axis=0), sc.means_m[sc.structure].max(axis=0)
+    window.box_roi.setPos((float(lo[0]) - 0.01, float(lo[1]) - 0.01))
+    window.box_roi.setSize((float(hi[0] - lo[0]) + 0.02, float(hi[1] - lo[1]) + 0.02))
+    window.z_lo.setValue(0.02)
+    window.use_box.setChecked(True)
+    (bx0, by0, bz0), (bx1, by1, _) = window.state.box_m
+    assert bx0 == pytest.approx(lo[0] - 0.01, abs=1e-6) and by1 == pytest.approx(hi[1] + 0.01, abs=1e-6)
+    assert bz0 == pytest.approx(0.02)
+    keep = visible(data, window.state)
+    assert keep.sum() < sc.n and not keep[~sc.structure].any()     # the floor is below the box's z range
+    window.use_box.setChecked(False)
+    assert window.state.box_m is None
+    window.colour_combo.setCurrentIndex(1)
+    assert window.state.colour == "displacement"
+    top, unit = colour_scale(data, window.state)
+    assert unit == "m" and top == pytest.approx(np.percentile(np.linalg.norm(
+        sc.displacement_m[:, sc.structure], axis=2), 99.5))
+    window.select_mode(0)
+    assert colour_scale(data, window.state)[1] == "m/N"
+    bar = window.image[45:-45, -26:-18].astype(float)               # the colour bar: yellow top, dark blue foot
+    top_rgb, foot_rgb = bar[:5].mean(axis=(0, 1)), bar[-5:].mean(axis=(0, 1))
+    assert top_rgb[1] > 200 and top_rgb[2] < 100 and foot_rgb[2] > 100 and foot_rgb[1] < 50
+    window.colour_combo.setCurrentIndex(0)
