@@ -98,7 +98,8 @@ def _view_widget():
             if self._button == QtCore.Qt.MouseButton.LeftButton:
                 self.on_orbit(-0.4 * dx, 0.4 * dy)
             else:
-                self.on_pan(-dx / max(self.width(), 1), -dy / max(self.width(), 1))
+                # the scene follows the mouse: the target moves against it (image y grows downwards)
+                self.on_pan(-dx / max(self.width(), 1), dy / max(self.width(), 1))
 
         def mouseReleaseEvent(self, e):
             self._flush()
