@@ -516,12 +516,12 @@ def test_shapes_and_exports_are_the_structures_not_the_backgrounds(capture):
         from odsplat.analysis import write_report
         assert "points of the background (floor, base) are left out of the shapes" in write_report(capture).read_text()
         # A box the user gives keeps only what is inside it (the rule itself, on the same points).
-        from odsplat.analysis.analyze import _structure
+        from odsplat.analysis import structure_mask
 
         lo, hi = ModalStructure().geometry.boxes()["arm"]
         points = np.concatenate([_surface_points(), floor])
-        keep, rule = _structure(capture, points, None,
-                                AnalyzeSettings(structure_box_m=(tuple(lo - 1e-6), tuple(hi + 1e-6))))
+        keep, rule = structure_mask(capture, points,
+                                    AnalyzeSettings(structure_box_m=(tuple(lo - 1e-6), tuple(hi + 1e-6))))
         assert keep.any() and np.all((points[keep] >= lo - 1e-6) & (points[keep] <= hi + 1e-6))
         assert np.array_equal(keep, np.all((points >= lo - 1e-6) & (points <= hi + 1e-6), axis=1))
         assert rule.startswith("inside the box given")
