@@ -4,7 +4,7 @@ Gaussians, 2D tracking as a cross-check, correlation (MAC, CoMAC), exports (UFF,
 Public surface: two stage entries, `run(capture, AnalyzeSettings) -> AnalysisResult` (alias `analyze_capture`;
 saved to derived/analysis/) and `write_report(capture)` (derived/analysis/report.html), and the pieces they are
 made of for use on their own."""
-from .analyze import AnalyzeSettings, analyze_capture
+from .analyze import AnalyzeSettings, analyze_capture, structure_mask
 from .correlation import Correlation, comac, correlate, mac, modal_scale_factor
 from .ema import LSFDResult, ModalFit, StabilisationChart, fit_modes, lscf, lsfd, select_poles, stabilisation
 from .export import (
@@ -44,5 +44,5 @@ __all__ = ["AnalysisResult", "AnalyzeSettings", "CoherenceRecord", "Correlation"
            "VideoModes", "analyze_capture", "check_frf_hit", "comac", "correlate", "estimate_frf", "fit_decay",
            "fit_modes", "force_transform", "good_points", "lscf", "lsce_poles", "lsfd", "mac", "modal_scale_factor",
            "pencil_poles", "project_displacement", "read_analysis", "read_results_h5", "read_uff", "receptance", "run",
-           "select_poles", "split_hits", "stabilisation", "stable_poles", "track_points", "write_report",
-           "write_results_h5", "write_uff"]
+           "select_poles", "split_hits", "stabilisation", "stable_poles", "structure_mask", "track_points",
+           "write_report", "write_results_h5", "write_uff"]

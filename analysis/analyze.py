@@ -64,6 +64,7 @@ class AnalyzeSettings:
     crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
     crosscheck_points: int = 30
     image_poles: bool = True                         # poles from the synced takes' raw frames (imagepoles.py)
+    plots: bool = True                               # the figures and animations (plots/); the report inlines them
     image_ranks: tuple[int, ...] | None = None       # None: as video_ranks, from the frames after the impact
     image_pixel_fraction: float = 0.05               # the most textured pixels of each view
 
@@ -256,7 +257,7 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
                               k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []
     residues = fit.residues(F)
-    keep, rule = _structure(capture, motion.points_m, noise, s)
+    keep, rule = structure_mask(capture, motion.points_m, s, moving=noise.moving if noise is not None else None)
     disp = motion.displacement_m[:, ~keep]                                          # (T, N_bg, 3)
     background = float(np.median(np.sqrt(np.mean((disp - disp.mean(axis=0)) ** 2, axis=(0, 2))))) \
         if disp.shape[1] else float("nan")
@@ -267,11 +268,15 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
                       zeta, t, at_sensors, tuple(checks), shapes_from, noise, int((~keep).sum()), background, rule)
 
 
-def _structure(capture: Capture, points_m: np.ndarray, noise, s: AnalyzeSettings) -> tuple[np.ndarray, str]:
-    """Which surface points are the structure's: inside the box the user gave, above the floor (z = 0 in the
-    tag layout's frame) by floor_margin_m where the capture has floor tags, and, where neither rule applies (or
-    structure_motion says so), moving above their own noise (analysis/noise.py). The rest is background: fitted,
-    kept out of the shapes. The motion test alone would also drop the structure's quiet parts (a column's foot)."""
+def structure_mask(capture: Capture, points_m: np.ndarray, s: AnalyzeSettings | None = None, *,
+                   moving: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+    """Which points (N, 3), metres, are the structure's, and the rule in words: inside the box the user gave
+    (`structure_box_m`), above the floor (z = 0 in the tag layout's frame) by floor_margin_m where the capture has
+    floor tags, and, where neither rule applies (or structure_motion says so), `moving` (N,) bool: above their own
+    noise (the analysis: analysis/noise.py; the viewer: the Gaussians' motion). The rest is background: fitted,
+    kept out of the shapes. The motion test alone would also drop the structure's quiet parts (a column's foot).
+    The analysis's rule, public so that the viewer hides what the analysis leaves out."""
+    s = s or AnalyzeSettings()
     p = np.asarray(points_m, float)
     keep = np.ones(len(p), bool)
     rules = []
@@ -284,8 +289,8 @@ def _structure(capture: Capture, points_m: np.ndarray, noise, s: AnalyzeSettings
         keep &= p[:, 2] > s.floor_margin_m
         rules.append(f"more than {1e3 * s.floor_margin_m:g} mm above the floor")
     by_motion = s.structure_motion if s.structure_motion is not None else not rules
-    if by_motion and noise is not None and noise.moving is not None and (keep & noise.moving).any():
-        keep &= noise.moving
+    if by_motion and moving is not None and (keep & moving).any():
+        keep &= moving
         rules.append("moving above their noise")
     if not keep.any():
         log.warning("no surface point passes the structure rules (%s); the shapes keep every point",
@@ -374,7 +379,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
 
 def _write(capture: Capture, result: AnalysisResult, s: AnalyzeSettings) -> AnalysisResult:
     dest = capture.paths.ensure(capture.paths.analysis_dir)
-    files = write_outputs(dest, result)
+    files = write_outputs(dest, result, plots=s.plots)
     summary = {**describe(capture.id, KIND, SCHEMA, s).header(), "capture": capture.root.name,
                "created_utc": utc_now(), "settings": plain(s), **result.summary(), "files": files}
     # Last: a reader that finds it finds the files it lists.

@@ -1,8 +1,9 @@
 """Animated operational deflection shapes for the report: the structure deformed by one mode's (or ODS line's)
 shape through a cycle, over the undeformed structure, as a looping GIF that plays inline in the page.
 
-Drawn directly with Pillow (points projected orthographically from one oblique view), not through matplotlib:
-a dozen frames of a few thousand points take tens of milliseconds, so every analysis can afford one per mode.
+Drawn directly into the frames' pixels with numpy, one vectorised pass per frame (points projected orthographically
+from one oblique view), and encoded by Pillow, not through matplotlib: a dozen frames of ten thousand points take
+about 50 ms, so every analysis can afford one per mode.
 """
 from __future__ import annotations
 
@@ -55,17 +56,16 @@ def ods_gif(points_m: np.ndarray, shape: np.ndarray, *, title: str = "", n_frame
     colour = _plasma(amp / peak)
     depth = np.argsort(p @ np.cross(P[:, 0], P[:, 1]))     # far points first
     rest = to_px(xy0)
+    grey = np.full((h, w, 3), 255, np.uint8)
+    _stamp(grey, rest[depth], np.full((len(depth), 3), 200, np.uint8), radius_px=0)
     frames = []
     for j in range(n_frames):
         phase = np.exp(2j * np.pi * j / n_frames)
         q = to_px((p + scale * np.real(s * phase)) @ P)
-        im = Image.new("RGB", (w, h), "white")
+        rgb = grey.copy()
+        _stamp(rgb, q[depth], colour[depth], radius_px=1)
+        im = Image.fromarray(rgb)
         d = ImageDraw.Draw(im)
-        for x, y in rest[depth]:
-            d.point((float(x), float(y)), fill=(200, 200, 200))
-        for i in depth:
-            x, y = q[i]
-            d.rectangle((x - 1, y - 1, x + 1, y + 1), fill=tuple(colour[i]))
         if title:
             d.text((10, 8), title, fill=(0, 0, 0))
         d.text((10, 24), f"displacement x {scale:.3g} (largest = {100 * DEFORM:.0f} % of {size:.2f} m)",
@@ -75,6 +75,22 @@ def ods_gif(points_m: np.ndarray, shape: np.ndarray, *, title: str = "", n_frame
     frames[0].save(buf, format="GIF", save_all=True, append_images=frames[1:], duration=FRAME_MS, loop=0,
                    optimize=False, disposal=2)
     return buf.getvalue()
+
+
+def _stamp(rgb: np.ndarray, xy_px: np.ndarray, colour: np.ndarray, radius_px: int) -> None:
+    """Paint squares of (2 radius_px + 1) px at xy_px in the given order, a later point over an earlier one (the
+    painter's order: far to near), in one vectorised pass: for every pixel the last point that covers it wins."""
+    h, w = rgb.shape[:2]
+    centre = np.rint(xy_px).astype(int)
+    offsets = np.arange(-radius_px, radius_px + 1)
+    dx, dy = (a.ravel() for a in np.meshgrid(offsets, offsets))
+    x = (centre[:, 0, None] + dx[None]).ravel()
+    y = (centre[:, 1, None] + dy[None]).ravel()
+    who = np.repeat(np.arange(len(centre)), len(dx))
+    inside = (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    flat, who = (y * w + x)[inside], who[inside]
+    last = len(flat) - 1 - np.unique(flat[::-1], return_index=True)[1]     # each pixel's last writer
+    rgb.reshape(-1, 3)[flat[last]] = colour[who[last]]
 
 
 def _plasma(x: np.ndarray) -> np.ndarray:

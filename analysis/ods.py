@@ -190,8 +190,14 @@ def principal_components(x: np.ndarray, n: int) -> np.ndarray:
     """(T, n) the time histories of x's (T, M) n strongest principal components, its mean taken out: the same
     motion in few channels, scaled as it is, with the noise of the weak directions left out."""
     y = x - x.mean(axis=0)
-    u, s, _ = np.linalg.svd(y, full_matrices=False)
-    return u[:, :n] * s[:n]
+    if y.shape[1] <= y.shape[0]:
+        u, s, _ = np.linalg.svd(y, full_matrices=False)
+        return u[:, :n] * s[:n]
+    # Few timesteps, many channels (a reconstruction's points): the left singular vectors are the eigenvectors
+    # of the (T, T) Gram matrix, 20-40x faster than the SVD of the wide matrix and equal to rounding.
+    w, v = np.linalg.eigh(y @ y.T)
+    top = np.argsort(w)[::-1][:n]
+    return v[:, top] * np.sqrt(np.clip(w[top], 0.0, None))
 
 
 def _decay_channels(who: str, times_s, x, t_min_s: float, n_channels: int) -> tuple[np.ndarray, float]:

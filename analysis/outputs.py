@@ -179,12 +179,13 @@ def records(result: AnalysisResult) -> dict:
             "mac": _mac_record(result, s_ids), "stabilisation": stab}
 
 
-def write_outputs(dest: Path, result: AnalysisResult) -> dict[str, str]:
-    """results.h5, analysis.uff and the plots into dest; returns {what: file name}."""
+def write_outputs(dest: Path, result: AnalysisResult, *, plots: bool = True) -> dict[str, str]:
+    """results.h5, analysis.uff and (with `plots`) the figures into dest; returns {what: file name}."""
     recs = records(result)
     write_results_h5(dest / "results.h5", **recs, attrs={"capture_takes": list(result.takes)})
     write_uff(dest / "analysis.uff", geometry=recs["geometry"], frfs=recs["frfs"], coherence=recs["coherence"],
               shapes=recs["shapes"], description="odsplat analysis")
     files = {"results": "results.h5", "uff": "analysis.uff"}
-    files.update(write_plots(dest, result))
+    if plots:
+        files.update(write_plots(dest, result))
     return files

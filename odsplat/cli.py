@@ -602,12 +602,14 @@ def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | Non
 @click.option("--no-video", is_flag=True, help="Accelerometers only, even with a reconstruction.")
 @click.option("--image-poles/--no-image-poles", default=True, show_default=True,
               help="Also find poles in the synced takes' raw frames (needs a few hundred ms of frames for low modes).")
+@click.option("--plots/--no-plots", default=True, show_default=True,
+              help="Write the figures and each mode's animation (derived/analysis/plots/), which the report shows.")
 @click.option("--report/--no-report", "with_report", default=True, show_default=True,
               help="Also write derived/analysis/report.html.")
 def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, ...], all_takes: bool,
             fmin_hz: float | None, fmax_hz: float | None, max_order: int | None, approx_freq_hz: tuple[float, ...],
             ods_freq_hz: tuple[float, ...], exp_end: float, record_s: float | None, no_video: bool,
-            image_poles: bool, with_report: bool) -> None:
+            image_poles: bool, plots: bool, with_report: bool) -> None:
     """FRFs, modes, the video's 3D shapes and their correlation for CAPTURE_DIR, into derived/analysis/
     (docs/analysis.md)."""
     from .errors import InputError
@@ -619,7 +621,7 @@ def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, 
         all_takes=("takes", lambda v: "all" if v else "accepted"), fmin_hz="fmin_hz", fmax_hz="fmax_hz",
         max_order="max_order", approx_freq_hz="approx_freq_hz", ods_freq_hz="ods_freq_hz",
         exp_end=("frf.exponential_end", lambda v: v or None), record_s="record_s",
-        no_video=("video", lambda v: not v), image_poles="image_poles"))
+        no_video=("video", lambda v: not v), image_poles="image_poles", plots="plots"))
     click.echo(result.text())
     if with_report:
         _, path = _stage(capture_dir, "report", {})
@@ -651,6 +653,84 @@ def demo(out: Path, quick: bool, shared_data: Path | None) -> None:
     result = run_demo(out, quick=quick, shared_data=shared_data, echo=click.echo)
     click.echo("")
     click.echo(result.text())
+
+
+@main.command()
+@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
+@click.option("--export", "export_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Write the view as an .mp4 or .gif instead of opening the window.")
+@click.option("--screenshot", "screenshot_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Write the view as a PNG instead of opening the window.")
+@click.option("--frames", "n_frames", type=int, default=48, show_default=True, help="Frames of the export.")
+@click.option("--fps", type=float, default=24.0, show_default=True, help="Frame rate of the export.")
+@click.option("--alpha", type=float, default=100.0, show_default=True,
+              help="Magnification in 3D, 1 to 1000 (displacements and rotations from rest times alpha).")
+@click.option("--mode", "mode_number", type=int, default=None,
+              help="Animate mode K (1-based, the analysis's numbering) at its frequency; the export is one cycle.")
+@click.option("--motion", is_flag=True, help="The measured motion over the reconstruction's time (the default).")
+@click.option("--time", "time_s", type=float, default=None, help="Time in s after the impact (screenshot).")
+@click.option("--turntable", is_flag=True, help="The export's camera turns once around the structure.")
+@click.option("--camera", "camera_index", type=int, default=None, help="Look through capture camera N.")
+@click.option("--structure-only", is_flag=True, help="Hide what does not move (the floor, the background).")
+@click.option("--colour", type=click.Choice(["image", "displacement"]), default="image", show_default=True,
+              help="The Gaussians' own colours, or their displacement amplitude (with a scale bar).")
+@click.option("--size", "size_px", type=(int, int), default=(640, 480), show_default=True,
+              help="Image width and height in px.")
+def view(capture_dir: Path, export_path: Path | None, screenshot_path: Path | None, n_frames: int, fps: float,
+         alpha: float, mode_number: int | None, motion: bool, time_s: float | None, turntable: bool,
+         camera_index: int | None, structure_only: bool, colour: str, size_px: tuple[int, int]) -> None:
+    """Look at CAPTURE_DIR's result: the Gaussians magnified in 3D, the modes, the FRFs and the signals linked
+    (a window), or write the view as a video or a screenshot (--export, --screenshot)."""
+    from dataclasses import replace
+
+    from .errors import InputError
+    from .viewer import default_state, export_video, load_viewer, save_screenshot
+
+    if not 1 <= alpha <= 1000:
+        raise InputError("--alpha", f"expected a magnification from 1 to 1000, got {alpha}")
+    if n_frames < 1:
+        raise InputError("--frames", f"expected at least 1 frame, got {n_frames}")
+    if not 0 < fps < float("inf"):
+        raise InputError("--fps", f"expected a frame rate > 0, got {fps}")
+    if min(size_px) < 8 or max(size_px) > 8192:
+        raise InputError("--size", f"expected 8 to 8192 px each way, got {size_px[0]} x {size_px[1]}")
+    if motion and mode_number is not None:
+        raise InputError("--mode", "give --mode K or --motion, not both")
+    data = load_viewer(capture_dir)
+    state = default_state(data, alpha=alpha, structure_only=structure_only, colour=colour, width_px=size_px[0],
+                          height_px=size_px[1])
+    if mode_number is not None:
+        if not 1 <= mode_number <= len(data.modes):
+            raise InputError("--mode", f"expected a mode from 1 to {len(data.modes)}, got {mode_number}")
+        state = replace(state, mode=mode_number - 1, time_s=0.0)
+    elif motion:
+        if data.scene is None:
+            raise InputError("--motion", "no reconstruction: only the modes can be shown (--mode K)")
+        state = replace(state, mode=None, time_s=data.time_range_s[0])
+    if time_s is not None:
+        state = replace(state, time_s=time_s)
+    if camera_index is not None:
+        if not 0 <= camera_index < len(data.cameras):
+            raise InputError("--camera", f"expected a capture camera from 0 to {len(data.cameras) - 1}, got "
+                                         f"{camera_index}")
+        state = replace(state, snap=camera_index)
+    for note in data.notes:
+        click.echo(f"note: {note}", err=True)
+    if export_path is not None or screenshot_path is not None:
+        if screenshot_path is not None:
+            click.echo(f"screenshot -> {save_screenshot(data, state, screenshot_path)}")
+        if export_path is not None:
+            path = export_video(data, state, export_path, n_frames=n_frames, fps=fps, turntable=turntable)
+            click.echo(f"{n_frames} frames -> {path}")
+        return
+    from .acquisition import display_available
+
+    if not display_available():
+        raise InputError("display", "no display to open the window on (set DISPLAY, or use --export/--screenshot)")
+    from .viewer.app import ViewerWindow
+
+    window = ViewerWindow(data, state)
+    sys.exit(window.run())
 
 
 def _plan(settings):

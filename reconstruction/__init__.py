@@ -22,7 +22,7 @@ from .model import (
     train,
 )
 from .poses import PoseResult, PoseSettings, estimate_poses, run_poses
-from .raster import RasterOutput, gsplat_available, rasterize, rasterize_reference
+from .raster import RasterOutput, gsplat_available, rasterize, rasterize_image, rasterize_reference
 from .views import Camera, SceneFrame, TrainView, ViewSet, load_views
 
 run = reconstruct  # the reconstruct stage's entry
@@ -31,5 +31,5 @@ __all__ = ["Camera", "DynamicScene", "FitSettings", "Gaussians", "LinearSettings
            "PoseResult", "PoseSettings", "RasterOutput", "ReconstructResult", "ReconstructSettings", "SceneFrame",
            "Trajectory", "TrainView", "ViewSet", "camera_path", "check_camera_spec", "default_source", "estimate_poses",
            "fit_dynamic",
-           "fit_static", "gsplat_available", "load_ply", "load_views", "parse_times", "rasterize",
+           "fit_static", "gsplat_available", "load_ply", "load_views", "parse_times", "rasterize", "rasterize_image",
            "rasterize_reference", "reconstruct", "render_sequence", "run", "run_poses", "save_ply", "train"]

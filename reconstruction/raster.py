@@ -43,13 +43,14 @@ import logging
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch.utils.checkpoint import checkpoint
 
 from odsplat.errors import InputError
 
 from .quaternion import quat_to_matrix
-from .raster_cpu import composite_numba, project_numba
+from .raster_cpu import composite_numba, image_numba, project_numba
 
 log = logging.getLogger(__name__)
 
@@ -378,6 +379,38 @@ def rasterize(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, op
         image = image + t_final[..., None] * background
     extras_img = None if extras is None else feats[..., n_colors + 1:]
     return RasterOutput(image, 1.0 - t_final, feats[..., n_colors], extras_img, proj.means2d, proj.radii, proj.depths)
+
+
+def rasterize_image(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacities: np.ndarray,
+                    colors: np.ndarray, viewmat: np.ndarray, K: np.ndarray, width_px: int, height_px: int, *,
+                    background: np.ndarray | None = None, near: float = 0.01, tile_px: int = 8,
+                    backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Forward only, for viewing: the image (H, W, C) and alpha (H, W) of `rasterize`'s rules, numpy in and out
+    (float32 or float64), no gradients and nothing kept for a backward pass. backend: "numba" (CPU), "gsplat"
+    (CUDA), "auto" (gsplat where it is available, else numba). The arguments are `rasterize`'s as arrays."""
+    if backend not in ("auto", "numba", "gsplat"):
+        raise InputError("backend", f"expected auto, numba or gsplat, got {backend!r}")
+    means = np.asarray(means)
+    if means.dtype not in (np.float32, np.float64):
+        means = means.astype(np.float32)
+    dt = means.dtype
+    arrays = [np.asarray(a, dt) for a in (quats, scales, opacities, colors)]
+    if backend == "gsplat" or (backend == "auto" and gsplat_available()):
+        if not gsplat_available():
+            raise InputError("backend", "gsplat needs CUDA and the gsplat package, which this machine lacks")
+        cuda = lambda a: torch.as_tensor(np.asarray(a, np.float32), device="cuda")  # noqa: E731
+        bg = None if background is None else cuda(background)
+        with torch.no_grad():
+            out = _rasterize_gsplat(cuda(means), *(cuda(a) for a in arrays), cuda(viewmat), cuda(K), width_px,
+                                    height_px, bg, None, near, tile_px)
+        return out.image.cpu().numpy().astype(dt), out.alpha.cpu().numpy().astype(dt)
+    image, t_final = image_numba(means, *arrays, np.asarray(viewmat, np.float64), np.asarray(K, np.float64),
+                                 width_px, height_px, near=near, tile_px=tile_px, eps2d=EPS2D_PX2,
+                                 frustum_margin=FRUSTUM_MARGIN, alpha_min=ALPHA_MIN, alpha_max=ALPHA_MAX, q_max=Q_MAX,
+                                 t_min=T_MIN)
+    if background is not None:
+        image += t_final[..., None] * np.asarray(background, dt)
+    return image, 1.0 - t_final
 
 
 def rasterize_reference(means, quats, scales, opacities, colors, viewmat, K, width_px: int, height_px: int, *,

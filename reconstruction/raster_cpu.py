@@ -542,6 +542,101 @@ def _project_backward(means, quats, scales, view, cam, clip, near, eps2d, g_mean
                                g_depths, g_means, g_quats, g_scales, g_view_parts)
 
 
+@njit(cache=True, error_model="numpy")
+def _image_tile(t, tile_start, tile_gauss, box, table, floor, coords, tile_px, n_tx, width, height, alpha_max,
+                t_min, image, t_final):
+    """`_forward_tile` without what the backward pass needs (T in float64, the walked counts): the same per-pixel
+    test, alpha, order and stop; writes tile t's pixels of image and t_final."""
+    n_feat = table.shape[1] - _N_GEOM
+    px0, py0 = (t % n_tx) * tile_px, (t // n_tx) * tile_px
+    tw, th = min(tile_px, width - px0), min(tile_px, height - py0)
+    start, n_list = tile_start[t], tile_start[t + 1] - tile_start[t]
+    trans = np.ones(tw * th)
+    acc = np.zeros((tw * th, n_feat))
+    n_active = tw * th
+    for kk in range(n_list):
+        if n_active == 0:
+            break
+        g = tile_gauss[start + kk]
+        u, v, n0, n1, n2, opac = table[g, 0], table[g, 1], table[g, 2], table[g, 3], table[g, 4], table[g, 5]
+        fl = floor[g]
+        x_lo, x_hi = max(box[g, 0], px0), min(box[g, 1], px0 + tw - 1)
+        for py in range(max(box[g, 2], py0), min(box[g, 3], py0 + th - 1) + 1):
+            dy = coords[py] - v
+            row = (py - py0) * tw - px0
+            for px in range(x_lo, x_hi + 1):
+                p = row + px
+                tp = trans[p]
+                if tp < 0.0:  # stopped
+                    continue
+                dx = coords[px] - u
+                s = _neg_half_q(n0, n1, n2, dx, dy)
+                if not s >= fl:
+                    continue
+                a = np.float64(opac * np.exp(s))
+                if a > alpha_max:
+                    a = alpha_max
+                after = tp * (1.0 - a)
+                if after < t_min:
+                    trans[p] = -tp - 1.0  # stopped; T kept as -(T + 1)
+                    n_active -= 1
+                    continue
+                w = a * tp
+                for f in range(n_feat):
+                    acc[p, f] += w * table[g, _N_GEOM + f]
+                trans[p] = after
+    for j in range(th):
+        for i in range(tw):
+            p = j * tw + i
+            for f in range(n_feat):
+                image[py0 + j, px0 + i, f] = acc[p, f]
+            tp = trans[p]
+            t_final[py0 + j, px0 + i] = tp if tp >= 0.0 else -tp - 1.0
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _image(tiles, tile_start, tile_gauss, box, table, floor, coords, tile_px, n_tx, width, height, alpha_max, t_min,
+           image, t_final):
+    for i in prange(tiles.shape[0]):
+        _image_tile(tiles[i], tile_start, tile_gauss, box, table, floor, coords, tile_px, n_tx, width, height,
+                    alpha_max, t_min, image, t_final)
+
+
+def image_numba(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, opacities: np.ndarray, colors: np.ndarray,
+                viewmat: np.ndarray, K: np.ndarray, width_px: int, height_px: int, *, near: float, tile_px: int,
+                eps2d: float, frustum_margin: float, alpha_min: float, alpha_max: float, q_max: float,
+                t_min: float) -> tuple[np.ndarray, np.ndarray]:
+    """Forward only, for viewing: the image (H, W, C) and T_final (H, W) of `raster`'s rules over numpy arrays
+    (float32 or float64, the dtype of means), with no autograd and nothing kept for a backward pass. The same
+    kernels as `project_numba` and `composite_numba` up to the compositing, whose kernel drops the backward's
+    bookkeeping; equal to them to rounding."""
+    dtype = means.dtype
+    n = means.shape[0]
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    tan_x, tan_y = 0.5 * width_px / fx, 0.5 * height_px / fy
+    clip = np.array([-(cx + 0.5) / fx - frustum_margin * tan_x, (width_px - 0.5 - cx) / fx + frustum_margin * tan_x,
+                     -(cy + 0.5) / fy - frustum_margin * tan_y, (height_px - 0.5 - cy) / fy + frustum_margin * tan_y])
+    means2d, conics = np.empty((n, 2), dtype), np.empty((n, 3), dtype)
+    depths, radii = np.empty(n, dtype), np.empty(n, np.int32)
+    _use_torch_threads()
+    _project_forward(np.ascontiguousarray(means), np.ascontiguousarray(quats), np.ascontiguousarray(scales),
+                     np.ascontiguousarray(viewmat, np.float64), np.array([fx, fy, cx, cy]), clip, width_px, height_px,
+                     float(near), float(eps2d), means2d, conics, depths, radii)
+    table = np.empty((n, _N_GEOM + colors.shape[1]), dtype)
+    table[:, :2], table[:, 2:5], table[:, 5], table[:, _N_GEOM:] = means2d, conics, opacities, colors
+    # in torch, as composite_numba computes it, so that both round alike at the cutoff
+    floor = torch.log(alpha_min / torch.from_numpy(table[:, 5].copy())).clamp(min=-0.5 * q_max).numpy()
+    bins = _bin(table, floor, radii.astype(dtype), radii, depths, width_px, height_px, tile_px,
+                float(np.finfo(dtype).eps) / 2)
+    coords = np.arange(max(width_px, height_px), dtype=dtype)
+    image = np.empty((height_px, width_px, colors.shape[1]), dtype)
+    t_final = np.empty((height_px, width_px), dtype)
+    with numba.parallel_chunksize(1):
+        _image(bins.tiles, bins.tile_start, bins.tile_gauss, bins.box, table, floor, coords, tile_px, bins.n_tx,
+               width_px, height_px, alpha_max, t_min, image, t_final)
+    return image, t_final
+
+
 def _use_torch_threads() -> None:
     """Run the kernels on torch.get_num_threads() threads (at most numba.config.NUMBA_NUM_THREADS).
 

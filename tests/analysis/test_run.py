@@ -147,7 +147,7 @@ def _truth_shapes(tr: TakeTruth, points, dirs) -> np.ndarray:
 
 def test_accelerometer_modes_match_the_rig_and_the_video_shapes_match_the_accelerometers(capture):
     tr = _write_trajectories(capture)
-    res = analyze_capture(capture, AnalyzeSettings())
+    res = analyze_capture(capture, AnalyzeSettings(plots=False))
     # hits: the double hit was redone in the session; every accepted take is averaged
     assert res.frf.n_averages == len(res.takes) == 3
     # frequencies within 0.5 % of the rig's, damping within 25 % (after the exponential window's correction)
@@ -199,7 +199,7 @@ def test_wandering_gaussians_do_not_mislead_the_readouts(capture):
     motion must leave them where the exact motion puts them (the cross-check picking the points that move most
     would otherwise pick exactly those: gain near 0, no correlation)."""
     _write_trajectories(capture, wander_fraction=0.03)
-    res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=2))
+    res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=2))
     assert np.all(res.correlation.pair_mac > 0.95), res.correlation.pair_mac
     assert len(res.video.crosscheck) == 2
     for check in res.video.crosscheck:
@@ -226,12 +226,12 @@ def test_shapes_come_from_the_measured_motion_when_the_model_drops_a_mode(captur
         return float(mac(v.sensor_residues[k], _truth_shapes(tr, pos, dirs)[r_true])[0, 0]), float(abs(scale))
 
     try:
-        res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False))
+        res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False))
         assert res.video.shapes_from == "measured" and len(res.video.surface_points_m) == 7200 // 5
         (mac5, scale5), (mac1, scale1) = mode(res, 5), mode(res, 0)
         assert mac5 > 0.95 and abs(scale5 - 1) < 0.15 and mac1 > 0.95 and abs(scale1 - 1) < 0.1
         # Fitted to the model instead, the dropped mode's residue is only the other modes' leakage: far too small.
-        model = analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False,
+        model = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False,
                                                          measured_motion=False))
         assert model.video.shapes_from == "trajectories" and mode(model, 5)[1] < 0.3
         # A measured file from another run (other timesteps) is not paired with this model.
@@ -239,7 +239,7 @@ def test_shapes_come_from_the_measured_motion_when_the_model_drops_a_mode(captur
         with np.load(path) as z:
             stale = {k: z[k] for k in z.files}
         np.savez(path, **{**stale, "times_s": stale["times_s"] + 1e-3})
-        assert analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False)
+        assert analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False)
                                ).video.shapes_from == "trajectories"
     finally:
         _write_trajectories(capture)
@@ -247,7 +247,7 @@ def test_shapes_come_from_the_measured_motion_when_the_model_drops_a_mode(captur
 
 def test_outputs_read_back(capture):
     _write_trajectories(capture)
-    res = analyze_capture(capture, AnalyzeSettings(ods_freq_hz=(23.5, 86.0)))
+    res = analyze_capture(capture, AnalyzeSettings(plots=False, ods_freq_hz=(23.5, 86.0)))
     dest = capture.derived_dir / "analysis"
     summary = json.loads((dest / "analysis.json").read_text())
     assert summary["kind"] == "odsplat.analysis" and summary["capture_id"] == capture.id
@@ -335,12 +335,12 @@ def _check_h5(back, res) -> None:
 
 
 def test_accelerometers_only_and_bad_channels(capture):
-    res = analyze_capture(capture, AnalyzeSettings(video=False, response_channels=("acc_tip_z",)))
+    res = analyze_capture(capture, AnalyzeSettings(plots=False, video=False, response_channels=("acc_tip_z",)))
     assert res.video is None and res.correlation is None and len(res.sensors) == 1
     with pytest.raises(InputError, match="no response channel 'nope'"):
-        analyze_capture(capture, AnalyzeSettings(response_channels=("nope",)))
+        analyze_capture(capture, AnalyzeSettings(plots=False, response_channels=("nope",)))
     with pytest.raises(InputError, match="cam_ttl: a ttl channel; the responses must be acceleration"):
-        analyze_capture(capture, AnalyzeSettings(response_channels=("cam_ttl",)))
+        analyze_capture(capture, AnalyzeSettings(plots=False, response_channels=("cam_ttl",)))
     with pytest.raises(InputError, match="takes"):
         AnalyzeSettings(takes="some")
     with pytest.raises(InputError, match="outlier_factor"):
@@ -396,7 +396,7 @@ def test_noise_floor_reads_the_known_noise_and_flags_a_weak_mode(capture):
     sigma, weak = 5e-6, 2
     _write_trajectories(capture, noise_m=sigma, floor=True, pre_steps=4, mode_scale={weak: 1e-3})
     try:
-        res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False))
+        res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False))
         nf = res.video.noise
         # the median over 8400 points of 61 samples each: statistical error under 1 %; 10 % allowed
         assert nf.sigma_m == pytest.approx(sigma, rel=0.1)
@@ -435,14 +435,14 @@ def test_crosscheck_verdict(capture):
     """Exact 3D motion agrees with the 2D tracks; the same motion read 3x too large (a reconstruction that
     over-reads it) does not: its gain falls to a third."""
     _write_trajectories(capture)
-    res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=2, image_poles=False))
+    res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=2, image_poles=False))
     v = res.crosscheck_verdict
     assert v.status == "met", v.line
     assert all(0 < c.noise_px < 0.02 for c in res.video.crosscheck)      # the trackers' noise before the impact
     assert not res.video.noise.below.any() and res.mac_verdict.status == "met"
     try:
         _write_trajectories(capture, mode_scale={r: 3.0 for r in range(6)})
-        res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=2, image_poles=False))
+        res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=2, image_poles=False))
         assert res.crosscheck_verdict.status == "not met" and "gain" in res.crosscheck_verdict.line
         summary = json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text())
         assert summary["video"]["crosscheck_verdict"]["status"] == "not met"
@@ -456,8 +456,9 @@ def test_a_short_record_analyses_with_the_defaults(capture):
     tr = _write_trajectories(capture, n_steps=24)
     try:
         with pytest.raises(InputError, match="order 120 needs more than 60 lines"):
-            analyze_capture(capture, AnalyzeSettings(record_s=0.17, fmax_hz=300.0, max_order=120, video=False))
-        res = analyze_capture(capture, AnalyzeSettings(record_s=0.17, fmax_hz=300.0, crosscheck_views=0,
+            analyze_capture(capture, AnalyzeSettings(plots=False, record_s=0.17, fmax_hz=300.0, max_order=120,
+                                                     video=False))
+        res = analyze_capture(capture, AnalyzeSettings(plots=False, record_s=0.17, fmax_hz=300.0, crosscheck_views=0,
                                                        image_poles=False))
         f_true = np.asarray(tr.freqs_hz)
         # 23.5 and 31 Hz are 1.3 lines apart and the band starts at 3 lines (17.6 Hz): 31, 86, 142, 262 Hz
@@ -489,12 +490,12 @@ def test_shapes_and_exports_are_the_structures_not_the_backgrounds(capture):
     np.savez(path, **d)
     try:
         # By default the floor tags' frame decides: the floor goes, the still base stays (it is the structure's)
-        res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False))
+        res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False))
         p = res.video.surface_points_m
         assert res.video.n_background == 1500 and np.all(p[:, 2] > 0.01)
         assert "above the floor" in res.video.structure_rule and "moving" not in res.video.structure_rule
         # With the motion test as well, the base's static face goes too
-        res = analyze_capture(capture, AnalyzeSettings(crosscheck_views=0, image_poles=False,
+        res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False,
                                                        structure_motion=True))
         v = res.video
         structure = {tuple(p) for p in np.round(_surface_points(), 9)}
@@ -515,12 +516,12 @@ def test_shapes_and_exports_are_the_structures_not_the_backgrounds(capture):
         from odsplat.analysis import write_report
         assert "points of the background (floor, base) are left out of the shapes" in write_report(capture).read_text()
         # A box the user gives keeps only what is inside it (the rule itself, on the same points).
-        from odsplat.analysis.analyze import _structure
+        from odsplat.analysis import structure_mask
 
         lo, hi = ModalStructure().geometry.boxes()["arm"]
         points = np.concatenate([_surface_points(), floor])
-        keep, rule = _structure(capture, points, None,
-                                AnalyzeSettings(structure_box_m=(tuple(lo - 1e-6), tuple(hi + 1e-6))))
+        keep, rule = structure_mask(capture, points,
+                                    AnalyzeSettings(structure_box_m=(tuple(lo - 1e-6), tuple(hi + 1e-6))))
         assert keep.any() and np.all((points[keep] >= lo - 1e-6) & (points[keep] <= hi + 1e-6))
         assert np.array_equal(keep, np.all((points >= lo - 1e-6) & (points <= hi + 1e-6), axis=1))
         assert rule.startswith("inside the box given")

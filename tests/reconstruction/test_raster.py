@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from odsplat.errors import InputError
-from odsplat.reconstruction.raster import RasterOutput, rasterize, rasterize_reference
+from odsplat.reconstruction.raster import RasterOutput, rasterize, rasterize_image, rasterize_reference
 
 OUTPUTS = ("image", "alpha", "depth", "extras")
 TILED = ("torch", "numba")  # the back ends that bin into tiles; "reference" is what they are checked against
@@ -454,3 +454,20 @@ def test_bad_arguments_name_the_argument(change, source):
     assert "expected" in err.value.problem
     if source == "backend":
         assert all(b in err.value.problem for b in ("auto", "numba", "torch", "reference", "gsplat", "'cuda'"))
+
+
+@pytest.mark.parametrize("dense", [False, True])
+@pytest.mark.parametrize("dtype,tol", [(torch.float32, 1e-6), (torch.float64, 1e-12)])
+def test_the_forward_only_image_is_the_numba_paths(dtype, tol, dense):
+    """rasterize_image (numpy in and out, nothing kept for backward; the viewer's) gives rasterize's image and
+    alpha on the numba path."""
+    params, bg, _ = random_scene(300, 64, 48, dtype=dtype, dense=dense)
+    with torch.no_grad():
+        want = rasterize(**params, width_px=64, height_px=48, background=bg, backend="numba")
+    image, alpha = rasterize_image(*(params[k].numpy() for k in ("means", "quats", "scales", "opacities", "colors",
+                                                                 "viewmat", "K")), 64, 48, background=bg.numpy(),
+                                   backend="numba")
+    assert image.dtype == want.image.numpy().dtype
+    assert np.abs(image - want.image.numpy()).max() <= tol
+    assert np.abs(alpha - want.alpha.numpy()).max() <= tol
+    assert (alpha > 0.5).mean() > (0.3 if dense else 0.02)

@@ -1,0 +1,110 @@
+"""One small capture for the viewer's tests, built once: two views on the simulated rig, synced, the true cameras as
+poses, a reconstruction file holding hil_sim's exact motion on Gaussians over the column, the arm and a still floor,
+and the real analysis of it; and a copy analysed before the reconstruction existed (accelerometers only)."""
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from odsplat.analysis import AnalyzeSettings, analyze_capture
+from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
+from odsplat.hil_sim.rig import TakeTruth, truth_path
+from odsplat.hil_sim.structure import ModalStructure
+from odsplat.reconstruction import DynamicScene, Gaussians, PoseResult, SceneFrame
+from odsplat.reconstruction.poses import ViewPose
+from odsplat.store import Capture
+from odsplat.sync import SyncSettings, load_sync, sync_capture
+
+SETTINGS = AnalyzeSettings(image_poles=False, crosscheck_views=0)
+FLOOR_HALF_M = 0.5
+
+
+def _truth(cap: Capture, name: str) -> TakeTruth:
+    return TakeTruth.load(truth_path(cap.takes_dir / f"{name}.h5"))
+
+
+def structure_points(n_per_face: int = 120, seed: int = 0) -> np.ndarray:
+    """Points over the faces of the column and the arm."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for part in ("column", "arm"):
+        lo, hi = ModalStructure().geometry.boxes()[part]
+        for axis in range(3):
+            for side in (lo, hi):
+                p = rng.uniform(lo, hi, (n_per_face, 3))
+                p[:, axis] = side[axis]
+                out.append(p)
+    return np.concatenate(out)
+
+
+def floor_points(n_side: int = 40) -> np.ndarray:
+    """A still floor at z = 0 around the structure (the capture has floor tags: the analysis's floor rule)."""
+    g = np.linspace(-FLOOR_HALF_M, FLOOR_HALF_M, n_side)
+    x, y = np.meshgrid(g, g)
+    return np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+
+
+def write_scene(cap: Capture, n_steps: int = 24) -> tuple[np.ndarray, np.ndarray]:
+    """derived/reconstruction/trajectories.npz as a perfect reconstruction would leave it (DynamicScene.save): the
+    structure's Gaussians moving with hil_sim's exact modal motion (mean over the synced takes, impact-locked
+    timeline), the floor's still. Returns (the means at rest, which are the floor's)."""
+    grid = load_sync(cap).times_s
+    k0 = int(np.searchsorted(grid, 0.0)) - 1
+    times = grid[k0:k0 + n_steps]
+    qs = []
+    for take in load_sync(cap).ok:
+        tr = _truth(cap, take.name)
+        x = float(np.ravel(tr.impact_daq_sample)[0]) + times * tr.daq_rate_hz
+        n = tr.modal_q_daq.shape[1]
+        qs.append(np.stack([np.interp(x, np.arange(n), row) for row in tr.modal_q_daq]))
+    q = np.mean(qs, axis=0)
+    struct, floor = structure_points(), floor_points()
+    points = np.concatenate([struct, floor])
+    disp = np.zeros((len(times), len(points), 3))
+    disp[:, :len(struct)] = np.einsum("prc,rt->tpc", ModalStructure().mode_shapes(struct), q)
+    n = len(points)
+    frame = SceneFrame(np.array([0.0, 0.0, 0.3]), 1.0)
+    rng = np.random.default_rng(5)
+    t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    scale = np.where(np.arange(n) < len(struct), 0.008, 0.012)
+    rest = Gaussians(means=t(frame.to_scene(points)), quats=t(np.tile([1.0, 0, 0, 0], (n, 1))),
+                     log_scales=t(np.log(np.repeat(scale[:, None], 3, axis=1))),
+                     opacity_logits=t(np.full(n, 3.0)), color_logits=t(rng.normal(0, 1.5, (n, 1))))
+    quats = np.tile(np.array([1.0, 0, 0, 0], np.float32), (len(times), n, 1))
+    scene = DynamicScene(np.asarray(times, float), np.arange(k0, k0 + len(times)), points, disp, quats, rest, frame, 8,
+                         np.array([0.0]), 1.0)
+    dest = cap.paths.reconstruction_dir
+    scene.save(dest)
+    return points, np.arange(n) >= len(struct)
+
+
+@pytest.fixture(scope="session")
+def captures(tmp_path_factory):
+    """(the reconstructed and analysed capture, its floor mask, the accelerometer-only copy)."""
+    root = tmp_path_factory.mktemp("viewer")
+    out = root / "cap"
+    report = simulate_capture(out, n_views=2, n_frames=30, pretrigger_frames=4, record_s=0.3,
+                              settings=SimBenchSettings(seed=11))
+    assert report.complete
+    cap = Capture.open(out)
+    sync_capture(cap, SyncSettings())
+    views = []
+    for take in load_sync(cap).ok:
+        tr = _truth(cap, take.name)
+        with cap.open_take(take.name) as r:
+            h, w = r.frame_shape[:2]
+        views.append(ViewPose(take.name, "take", int(take.view), "tags", tr.camera_K, tr.camera_R, tr.camera_t, w, h,
+                              None, None, None))
+    PoseResult(views, np.zeros((0, 3)), np.zeros((0, 1)), np.zeros(0), "tags", None, None, None, None, len(views),
+               len(views), []).write(cap)
+    with pytest.MonkeyPatch.context() as mp:
+        # the viewer reads none of the analysis's figures, which are most of its time here
+        mp.setattr("odsplat.analysis.outputs.write_plots", lambda dest, result: {})
+        analyze_capture(cap, SETTINGS)                   # accelerometers only: no reconstruction yet
+        shutil.copytree(out, root / "accel_only")
+        _, floor = write_scene(cap, n_steps=24)
+        analyze_capture(cap, SETTINGS)
+    return cap, floor, Capture.open(root / "accel_only")
