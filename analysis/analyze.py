@@ -36,6 +36,17 @@ SCHEMA = 2
 VIDEO_BAND = 0.45     # the camera's poles are sought below this fraction of its frame rate
 
 
+MIN_CYCLES = 0.5    # below this share of a mode's period in the video's window its shape cannot be read
+
+
+def _length(x_m: float) -> str:
+    """A length in the unit that reads best: 3 significant digits in nm, µm, mm or m."""
+    for unit, scale in (("nm", 1e-9), ("µm", 1e-6), ("mm", 1e-3)):
+        if abs(x_m) < 1000 * scale:
+            return f"{x_m / scale:.3g} {unit}"
+    return f"{x_m:.3g} m"
+
+
 @dataclass(frozen=True)
 class AnalyzeSettings:
     force_channel: str | None = None                 # None: the capture's one force channel
@@ -361,10 +372,20 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
                          paired=True)      # each video residue was fitted with that accelerometer pole
         ods_video = receptance(video.sensor_residues, video.poles_rad_s, ods_f)
         below = video.noise.below if video.noise is not None else np.zeros(len(f_acc), bool)
+        window_s = float(np.ptp(video.times_s)) if len(video.times_s) > 1 else 0.0
         for r in np.flatnonzero(below):
+            cycles = window_s * f_acc[r]
+            if cycles < MIN_CYCLES:
+                # Then the fit's amplitude and its floor are both ill-conditioned (metres for micrometres): the
+                # cause, not the numbers, is what the engineer can act on.
+                notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): the video's window "
+                             f"({1e3 * window_s:.1f} ms) holds {cycles:.2f} of its cycles, too few to read its shape "
+                             f"apart from the other modes (MAC and scale not judged); reconstruct at least "
+                             f"{1e3 * MIN_CYCLES / f_acc[r]:.0f} ms ([reconstruct] n_timesteps)")
+                continue
             notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): below the video's noise floor "
-                         f"({1e6 * video.noise.mode_amplitude_m[r]:.3g} µm against "
-                         f"{1e6 * video.noise.mode_floor_m[r]:.3g} µm at the sensors); its video shape is noise "
+                         f"({_length(video.noise.mode_amplitude_m[r])} against "
+                         f"{_length(video.noise.mode_floor_m[r])} at the sensors); its video shape is noise "
                          "(MAC and scale not judged)")
         verdict = mac_verdict(f_acc[[j for _, j in corr.pairs]], corr.pair_mac, below[[j for _, j in corr.pairs]])
         xverdict = crosscheck_verdict(video.crosscheck)

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from odsplat.checks import COUNT, POSITIVE, check_fields, maybe
+from odsplat.checks import COUNT, POSITIVE, Range, check_fields, maybe
 from odsplat.contract import check, describe
 from odsplat.errors import InputError, OdsplatError
 from odsplat.framefile import (
@@ -65,6 +65,7 @@ class MagnifySettings:
     chunk_frames: int = 16
     workers: int | None = None                   # default: one per core, at most one per take
     takes: tuple[str, ...] = ()                  # default: every take sync kept, else every accepted take
+    views: tuple[int, ...] = ()                  # only these viewpoints' takes (of those above); default: every view
     options: tuple[tuple[str, Any], ...] = ()    # the method's own keyword arguments, e.g. (("n_orientations", 8),)
     video: bool = True                           # an 8-bit mp4 to watch beside each magnified take
     video_fps: float = 30.0                      # its playback rate (slow motion; the recorded rate is in its comment)
@@ -81,7 +82,7 @@ class MagnifySettings:
         if self.source not in ("auto", "aligned", "raw"):
             raise InputError("--source", f"expected auto, aligned or raw, got {self.source!r}")
         check_fields(self, {"band_hz": maybe(POSITIVE), "chunk_frames": COUNT, "workers": maybe(COUNT),
-                            "video_fps": POSITIVE})
+                            "video_fps": POSITIVE, "views": Range(at_least=0, integer=True)})
         if self.band_hz is not None and not self.band_hz[0] < self.band_hz[1]:
             raise InputError("MagnifySettings.band_hz", f"expected LOW < HIGH in Hz, got {list(self.band_hz)}")
         check_options(self.method, self.options)
@@ -381,13 +382,25 @@ def _inputs(capture: Capture, s: MagnifySettings) -> tuple[list[tuple[str, str |
         missing = [n for n in names if n not in synced]
         if missing:
             raise InputError(sync_json, f"takes {missing} are not on sync's grid (excluded or not synced)")
-        return [(n, synced[n]) for n in names], sync.generation
+        return [(n, synced[n]) for n in _of_views(capture, names, s.views)], sync.generation
     names = list(s.takes) or [t.name for t in capture.select_takes("accepted") if t.n_frames > 0]
     known = set(capture.take_names())
     missing = [n for n in names if n not in known]
     if missing:
         raise InputError(capture.root, f"no takes named {missing}")
-    return [(n, None) for n in names], None
+    return [(n, None) for n in _of_views(capture, names, s.views)], None
+
+
+def _of_views(capture: Capture, names: list[str], views: tuple[int, ...]) -> list[str]:
+    """The takes of `names` filmed from one of `views` (all of them without views); none is an error."""
+    if not views:
+        return names
+    view_of = {t.name: t.view for t in capture.manifest.takes}
+    kept = [n for n in names if view_of.get(n) in set(views)]
+    if not kept:
+        raise InputError("magnify.views", f"no take to magnify from views {list(views)} "
+                         f"(the takes' views: {sorted({v for v in view_of.values() if v is not None})})")
+    return kept
 
 
 def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bool = True,

@@ -197,8 +197,9 @@ def test_sync_and_magnify_killed_at_random_points_then_rerun_leave_one_consisten
             assert not index.exists(), f"a killed {stage} left an index"
             with pytest.raises(InputError, match="no sync result|no phase magnification"):
                 load_sync(cap) if stage == "sync" else MagnifyResult.read(cap, "phase")
-    text = _cli(["run", cap.root])
-    assert _statuses(text)["sync"] == "ran" and _statuses(text)["report"] == "ran"
+    # The stages after magnify are stale but unchanged on disk; the test above reruns them after a kill.
+    text = _cli(["run", cap.root, "--to", "magnify"])
+    assert _statuses(text) == {"qc": "current", "sync": "ran", "magnify": "ran"}, text
     assert not [p for p in cap.paths.root.rglob("*.tmp")]
     assert _derived_files(cap) == files_before
     for name, frames in before.items():

@@ -65,6 +65,15 @@ def test_raw_source_and_bad_settings(synced, tmp_path):
     res = magnify_capture(synced, MagnifySettings(method="linear", alpha=4.0, source="raw", takes=("v00_000",)),
                           progress=False)
     assert [t.source for t in res.takes] == ["raw"]
+    # views: the takes of those viewpoints only (sync's kept takes: one per view, the redone ones replaced)
+    res = magnify_capture(synced, MagnifySettings(method="linear", alpha=4.0, views=(2,), workers=1, video=False),
+                          progress=False)
+    view_of = {t.name: t.view for t in synced.manifest.takes}
+    assert [view_of[t.name] for t in res.takes] == [2]
+    with pytest.raises(InputError, match=r"magnify.views: no take to magnify from views \[7\]"):
+        magnify_capture(synced, MagnifySettings(views=(7,)), progress=False)
+    with pytest.raises(InputError, match="views"):
+        MagnifySettings(views=(-1,))
     with pytest.raises(InputError, match="the magnification must be positive and finite, got 0"):
         MagnifySettings(alpha=0.0)
     with pytest.raises(InputError, match="fps/2 = 1000 Hz; got 50 to 1500 Hz"):

@@ -103,8 +103,9 @@ def test_side_by_side_shows_the_input_left(synced):
 
 @pytest.mark.parametrize("source", ["raw", "sync", "magnified/linear"])
 def test_export_video_from_each_source(synced, source, tmp_path):
-    magnify_capture(synced, MagnifySettings(method="linear", alpha=4.0, takes=(TAKE,), workers=1, video=False),
-                    progress=False)
+    if source.startswith("magnified/"):
+        magnify_capture(synced, MagnifySettings(method="linear", alpha=4.0, takes=(TAKE,), workers=1, video=False),
+                        progress=False)
     out = tmp_path / "x.mp4"
     run = subprocess.run([sys.executable, "-m", "odsplat.cli", "export-video", str(synced.root), "--take", TAKE,
                           "--source", source, "-o", str(out), "--fps", "25"],
