@@ -55,11 +55,12 @@ class DemoScale:
 
 
 # 256 frames: 128 ms at 2000 fps, three cycles of the rig's lowest mode (23.5 Hz), for the sync and the image poles;
-# the reconstruction trains on the first 64 timesteps after the impact (demo.toml). 300 frames did not fit the
-# demo's 15 minutes (installation included) on two shared cores: the capture, sync and magnify grow with the frames.
+# the reconstruction trains on the first 64 timesteps after the impact (demo.toml). From a fresh clone, installation
+# included, 7.5 min on two idle cores with magnify on three views (demo.toml); 15.5-17 min on two shared cores with
+# all 27 magnified, and 300 frames did not fit 15 min there: the capture, sync and magnify grow with the frames.
 FULL = DemoScale("full", n_views=27, n_frames=256, pretrigger_frames=10, faults=FAULTS, settings={},
                  orbit="orbit:16:30", n_render=16)
-# The same steps at a size the test suite can afford (about a minute and a half on two cores): fewer views and
+# The same steps at a size the test suite can afford (43 s on two idle cores): fewer views and
 # frames, a coarser and shorter reconstruction, no 2D videos.
 QUICK = DemoScale("quick", n_views=8, n_frames=40, pretrigger_frames=8, faults="3:double_hit,5:dropped_packet",
                   settings={"magnify": {"video": False},

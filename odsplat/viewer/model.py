@@ -170,7 +170,7 @@ class ViewState:
 
 def default_state(data: ViewerData, **kw) -> ViewState:
     """A view of the whole structure from an oblique angle, the first mode selected where there is no motion."""
-    orbit = Orbit(tuple(float(v) for v in data.target_m), distance_m=2.2 * data.extent_m)
+    orbit = Orbit(tuple(float(v) for v in data.target_m), distance_m=1.6 * data.extent_m)
     mode = 0 if data.scene is None and data.modes else None
     return ViewState(orbit, mode=mode, time_s=data.time_range_s[0] if mode is None else 0.0, **kw)
 
