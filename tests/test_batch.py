@@ -33,6 +33,8 @@ iters_t0 = 150
 [analyze]
 max_order = 30
 image_poles = false
+crosscheck_views = 0
+plots = false
 """
 # Above the 2000 fps camera's Nyquist: every view's magnifier refuses it, inside magnify's per-view tasks.
 BROKEN = CONFIG + "[magnify]\nband_hz = [20, 1500]\n"
