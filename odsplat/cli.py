@@ -667,6 +667,8 @@ def demo(out: Path, quick: bool, shared_data: Path | None) -> None:
               help="Magnification in 3D, 1 to 1000 (displacements and rotations from rest times alpha).")
 @click.option("--mode", "mode_number", type=int, default=None,
               help="Animate mode K (1-based, the analysis's numbering) at its frequency; the export is one cycle.")
+@click.option("--ods", "ods_number", type=int, default=None,
+              help="Animate ODS line K (1-based, the analysis's lines) at its frequency, per newton of harmonic force.")
 @click.option("--motion", is_flag=True, help="The measured motion over the reconstruction's time (the default).")
 @click.option("--time", "time_s", type=float, default=None, help="Time in s after the impact (screenshot).")
 @click.option("--turntable", is_flag=True, help="The export's camera turns once around the structure.")
@@ -677,8 +679,9 @@ def demo(out: Path, quick: bool, shared_data: Path | None) -> None:
 @click.option("--size", "size_px", type=(int, int), default=(640, 480), show_default=True,
               help="Image width and height in px.")
 def view(capture_dir: Path, export_path: Path | None, screenshot_path: Path | None, n_frames: int, fps: float,
-         alpha: float, mode_number: int | None, motion: bool, time_s: float | None, turntable: bool,
-         camera_index: int | None, structure_only: bool, colour: str, size_px: tuple[int, int]) -> None:
+         alpha: float, mode_number: int | None, ods_number: int | None, motion: bool, time_s: float | None,
+         turntable: bool, camera_index: int | None, structure_only: bool, colour: str,
+         size_px: tuple[int, int]) -> None:
     """Look at CAPTURE_DIR's result: the Gaussians magnified in 3D, the modes, the FRFs and the signals linked
     (a window), or write the view as a video or a screenshot (--export, --screenshot)."""
     from dataclasses import replace
@@ -694,15 +697,18 @@ def view(capture_dir: Path, export_path: Path | None, screenshot_path: Path | No
         raise InputError("--fps", f"expected a frame rate > 0, got {fps}")
     if min(size_px) < 8 or max(size_px) > 8192:
         raise InputError("--size", f"expected 8 to 8192 px each way, got {size_px[0]} x {size_px[1]}")
-    if motion and mode_number is not None:
-        raise InputError("--mode", "give --mode K or --motion, not both")
+    if sum(x is not None and x is not False for x in (mode_number, ods_number, motion or None)) > 1:
+        raise InputError("--mode", "give one of --mode K, --ods K or --motion")
     data = load_viewer(capture_dir)
     state = default_state(data, alpha=alpha, structure_only=structure_only, colour=colour, width_px=size_px[0],
                           height_px=size_px[1])
-    if mode_number is not None:
-        if not 1 <= mode_number <= len(data.modes):
-            raise InputError("--mode", f"expected a mode from 1 to {len(data.modes)}, got {mode_number}")
-        state = replace(state, mode=mode_number - 1, time_s=0.0)
+    if mode_number is not None or ods_number is not None:
+        kind, option, number = ("mode", "--mode", mode_number) if ods_number is None else ("ods", "--ods", ods_number)
+        index = [k for k, m in enumerate(data.modes) if m.kind == kind]
+        if not 1 <= number <= len(index):
+            raise InputError(option, f"expected {'a mode' if kind == 'mode' else 'an ODS line'} from 1 to "
+                                     f"{len(index)}, got {number}")
+        state = replace(state, mode=index[number - 1], time_s=0.0)
     elif motion:
         if data.scene is None:
             raise InputError("--motion", "no reconstruction: only the modes can be shown (--mode K)")

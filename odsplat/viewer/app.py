@@ -510,7 +510,7 @@ class ViewerWindow:
         if m.sensors_video is not None:
             vid = _real_shape(m.sensors_video, ref=m.sensors_accel)
             self.shape_plot.addItem(pg.BarGraphItem(x=x + 0.18, height=vid, width=0.34, brush="c", name="video"))
-        self.shape_plot.setTitle(f"mode {m.number} at the sensors (m/N): accelerometers (yellow), video (cyan)")
+        self.shape_plot.setTitle(f"{m.title()} at the sensors (m/N): accelerometers (yellow), video (cyan)")
 
     def _fill_box_plot(self) -> None:
         import pyqtgraph as pg

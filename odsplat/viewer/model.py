@@ -42,17 +42,29 @@ class Mode:
     """One accelerometer mode, and its shapes: at the sensors (accelerometers and, where the video has it, the
     video read at the same points) and on every Gaussian (m/N, None without a video shape)."""
 
-    number: int                      # 1-based, as the analysis numbers them
+    number: int                      # 1-based, as the analysis numbers them (modes and ODS lines apart)
     freq_hz: float
     damping: float
     mac: float = float("nan")        # video against accelerometers
     sensors_accel: np.ndarray | None = None   # (S,) complex m/N along each sensor's direction
     sensors_video: np.ndarray | None = None   # (S,) complex m/N, the video's shape at the sensors
     gaussians: np.ndarray | None = None       # (N, 3) complex m/N
+    kind: str = "mode"               # or "ods": an ODS line, the receptance at freq_hz (m/N) of every point
+
+    def title(self) -> str:
+        return f"mode {self.number}" if self.kind == "mode" else f"ODS line {self.number} ({self.freq_hz:.2f} Hz)"
 
     def label(self) -> str:
         mac = "" if not math.isfinite(self.mac) else f", MAC {self.mac:.3f}"
+        if self.kind == "ods":
+            return f"ODS line {self.number}: {self.freq_hz:.2f} Hz (1 N harmonic){mac}"
         return f"mode {self.number}: {self.freq_hz:.2f} Hz, {100 * self.damping:.2f} %{mac}"
+
+    def shape_names(self) -> tuple[str, str]:
+        """Its shapes' names in results.h5: (accelerometers', video's)."""
+        if self.kind == "ods":
+            return f"accelerometer ODS {self.freq_hz:.2f} Hz", f"video ODS {self.freq_hz:.2f} Hz"
+        return f"accelerometer mode {self.number}", f"video mode {self.number}"
 
 
 @dataclass(frozen=True)
@@ -108,10 +120,11 @@ class ViewerData:
         return 0.0, 0.1
 
     def mode_nearest(self, freq_hz: float) -> int | None:
-        """Index of the mode nearest freq_hz (None without modes)."""
-        if not self.modes:
+        """Index of the mode nearest freq_hz (None without modes; the ODS lines are not modes)."""
+        modes = [k for k, m in enumerate(self.modes) if m.kind == "mode"]
+        if not modes:
             return None
-        return int(np.argmin([abs(m.freq_hz - freq_hz) for m in self.modes]))
+        return min(modes, key=lambda k: abs(self.modes[k].freq_hz - freq_hz))
 
 
 # ---------------------------------------------------------------------------------------------- the view
@@ -380,20 +393,26 @@ def _modes(doc: dict | None, results, sensors: tuple[SensorInfo, ...], notes: li
     shapes = {} if results is None else {s.name: s for s in results.shapes}
     node = {} if results is None or results.geometry is None else \
         {int(i): k for k, i in enumerate(results.geometry.node_ids)}
-    out = []
-    for k, m in enumerate(doc.get("modes", [])):
-        acc = shapes.get(f"accelerometer mode {k + 1}")
+    def at_sensors(mode: Mode) -> Mode:
+        acc_name, vid_name = mode.shape_names()
+        acc, vid = shapes.get(acc_name), shapes.get(vid_name)
         at = None
         if acc is not None and len(sensors) and len(acc.node_ids) == len(sensors):
             at = np.array([np.dot(acc.values[i], s.direction) for i, s in enumerate(sensors)])
-        vid = shapes.get(f"video mode {k + 1}")
         at_video = None
         if vid is not None and node and len(sensors):
             pts = results.geometry.coords_m[[node[int(i)] for i in vid.node_ids]]
             at_video = np.array([np.dot(v, s.direction) for v, s in
                                  zip(_interpolate(pts, vid.values, np.array([s.position_m for s in sensors]), 16),
                                      sensors)])
-        out.append(Mode(k + 1, float(m["freq_hz"]), float(m["damping"]), macs.get(k, float("nan")), at, at_video))
+        return replace(mode, sensors_accel=at, sensors_video=at_video)
+
+    out = [at_sensors(Mode(k + 1, float(m["freq_hz"]), float(m["damping"]), macs.get(k, float("nan"))))
+           for k, m in enumerate(doc.get("modes", []))]
+    # the ODS lines (the modal frequencies by default, or those asked for with `odsplat analyze --ods F`)
+    for k, line in enumerate(doc.get("ods") or []):
+        out.append(at_sensors(Mode(k + 1, float(line["freq_hz"]), 0.0, float(line.get("mac", float("nan"))),
+                                   kind="ods")))
     if out and results is None:
         notes.append("no results.h5: mode shapes unavailable")
     return tuple(out)
@@ -424,7 +443,7 @@ def _mode_shapes_on(results, modes: tuple[Mode, ...], scene: Scene) -> list[np.n
     node = {int(i): k for k, i in enumerate(results.geometry.node_ids)}
     out: list[np.ndarray | None] = []
     for m in modes:
-        vid = shapes.get(f"video mode {m.number}")
+        vid = shapes.get(m.shape_names()[1])
         if vid is None:
             out.append(None)
             continue
@@ -457,9 +476,11 @@ def motion_at(data: ViewerData, state: ViewState) -> tuple[np.ndarray, np.ndarra
         if m.gaussians is None:
             return np.zeros_like(sc.means_m), np.zeros_like(sc.means_m)
         phase = np.exp(2j * np.pi * m.freq_hz * state.time_s)
-        # the mode's free decay right after this test's hit, at its start: 2 |A| J along its shape (A in m/N as
-        # the analysis gives it, J the hit's impulse); its rotation is not known and left at rest
-        return (2 * data.impulse_n_s * np.real(m.gaussians * phase)).astype(np.float32), np.zeros_like(sc.means_m)
+        # a mode: its free decay right after this test's hit, at its start: 2 |A| J along its shape (A in m/N as
+        # the analysis gives it, J the hit's impulse); an ODS line: the steady response to a harmonic force of 1 N
+        # at its frequency (its receptance, m/N). The rotation is not known and left at rest.
+        gain = 2 * data.impulse_n_s if m.kind == "mode" else 1.0
+        return (gain * np.real(m.gaussians * phase)).astype(np.float32), np.zeros_like(sc.means_m)
     ts = sc.times_s
     t = float(np.clip(state.time_s, ts[0], ts[-1]))
     k = int(np.clip(np.searchsorted(ts, t, side="right") - 1, 0, max(len(ts) - 2, 0)))

@@ -18,7 +18,7 @@ from odsplat.reconstruction.poses import ViewPose
 from odsplat.store import Capture
 from odsplat.sync import SyncSettings, load_sync, sync_capture
 
-SETTINGS = AnalyzeSettings(image_poles=False, crosscheck_views=0)
+SETTINGS = AnalyzeSettings(image_poles=False, crosscheck_views=0, ods_freq_hz=(23.5, 60.0))   # a line off the modes
 FLOOR_HALF_M = 0.5
 
 

@@ -199,12 +199,18 @@ def test_the_command_line_exports_and_refuses_bad_input(captures, tmp_path):
                                     "--size", "160", "120"])
     assert res.exit_code == 0, res.output
     assert Image.open(gif).n_frames == 4
+    res = CliRunner().invoke(main, ["view", str(cap.root), "--export", str(gif), "--frames", "3", "--ods", "2",
+                                    "--size", "160", "120"])
+    assert res.exit_code == 0 and Image.open(gif).n_frames == 3, res.output
     png = tmp_path / "v.png"
     res = CliRunner().invoke(main, ["view", str(cap.root), "--screenshot", str(png), "--structure-only"])
     assert res.exit_code == 0, res.output
     assert Image.open(png).size == (640, 480)
     for args, text in (([str(tmp_path / "nothing")], "no such capture"),
                        ([str(cap.root), "--mode", "9", "--screenshot", str(png)], "--mode"),
+                       ([str(cap.root), "--ods", "3", "--screenshot", str(png)],
+                        "--ods: expected an ODS line from 1 to 2"),
+                       ([str(cap.root), "--ods", "1", "--mode", "1", "--screenshot", str(png)], "give one of"),
                        ([str(cap.root), "--alpha", "0", "--screenshot", str(png)], "--alpha"),
                        ([str(cap.root), "--export", str(tmp_path / "v.avi")], ".mp4 or .gif")):
         res = CliRunner().invoke(main, ["view", *args])
@@ -301,3 +307,34 @@ def test_the_dragged_box_and_the_colour_scale(data, window):
     top_rgb, foot_rgb = bar[:5].mean(axis=(0, 1)), bar[-5:].mean(axis=(0, 1))
     assert top_rgb[1] > 200 and top_rgb[2] < 100 and foot_rgb[2] > 100 and foot_rgb[1] < 50
     window.colour_combo.setCurrentIndex(0)
+
+
+def test_an_ods_line_is_listed_animated_at_its_frequency_and_read_per_newton(data, window):
+    """The analysis's ODS lines (here 23.5 Hz and 60 Hz, between two modes) follow the modes in the list; one turns
+    at its own frequency, as the response to 1 N of harmonic force; its shapes are the analysis's; an FRF click
+    still picks a mode."""
+    lines = [m for m in data.modes if m.kind == "ods"]
+    assert [round(m.freq_hz, 2) for m in lines] == [23.5, 60.0]
+    n_modes = len(data.modes) - len(lines)
+    line = lines[1]
+    assert line.label().startswith("ODS line 2: 60.00 Hz (1 N harmonic)")
+    # the accelerometers' ODS at the sensors, read along their directions, is the analysis's (results.h5)
+    from odsplat.analysis import read_results_h5
+
+    back = read_results_h5(data.capture.paths.analysis_dir / "results.h5")
+    rec = {sh.name: sh for sh in back.shapes}["accelerometer ODS 60.00 Hz"]
+    dirs = np.array([sn.direction for sn in data.sensors])
+    np.testing.assert_allclose(line.sensors_accel, np.einsum("sc,sc->s", rec.values, dirs), rtol=1e-12)
+    assert line.sensors_video is not None and line.gaussians is not None
+    window.set_state(structure_only=True, alpha=1000.0, show_cameras=False, show_sensors=False)
+    window.mode_list.setCurrentRow(n_modes + 2)
+    assert window.state.mode == n_modes + 1 and "60.00 Hz" in window.mode_label.text()
+    period = 1.0 / 60.0
+    frames = []
+    for phase in (0.1, 0.6, 1.1):
+        window.set_time(phase * period)
+        frames.append(window.image.astype(int))
+    d_half, d_period = np.abs(frames[1] - frames[0]).mean(), np.abs(frames[2] - frames[0]).mean()
+    assert d_half > 0.05 and d_period < 0.02 * d_half
+    assert data.mode_nearest(60.0) < n_modes                  # a click on the FRF selects modes only
+    window.mode_list.setCurrentRow(0)
