@@ -18,26 +18,14 @@ from odsplat.reconstruction.poses import ViewPose
 from odsplat.store import Capture
 from odsplat.sync import SyncSettings, load_sync, sync_capture
 
+from ..analysis.test_run import _surface_points as surface_points
+
 SETTINGS = AnalyzeSettings(image_poles=False, crosscheck_views=0, ods_freq_hz=(23.5, 60.0))   # a line off the modes
 FLOOR_HALF_M = 0.5
 
 
 def _truth(cap: Capture, name: str) -> TakeTruth:
     return TakeTruth.load(truth_path(cap.takes_dir / f"{name}.h5"))
-
-
-def structure_points(n_per_face: int = 120, seed: int = 0) -> np.ndarray:
-    """Points over the faces of the column and the arm."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for part in ("column", "arm"):
-        lo, hi = ModalStructure().geometry.boxes()[part]
-        for axis in range(3):
-            for side in (lo, hi):
-                p = rng.uniform(lo, hi, (n_per_face, 3))
-                p[:, axis] = side[axis]
-                out.append(p)
-    return np.concatenate(out)
 
 
 def floor_points(n_side: int = 40) -> np.ndarray:
@@ -61,7 +49,7 @@ def write_scene(cap: Capture, n_steps: int = 24) -> tuple[np.ndarray, np.ndarray
         n = tr.modal_q_daq.shape[1]
         qs.append(np.stack([np.interp(x, np.arange(n), row) for row in tr.modal_q_daq]))
     q = np.mean(qs, axis=0)
-    struct, floor = structure_points(), floor_points()
+    struct, floor = surface_points(120), floor_points()   # points over the column's and the arm's faces
     points = np.concatenate([struct, floor])
     disp = np.zeros((len(times), len(points), 3))
     disp[:, :len(struct)] = np.einsum("prc,rt->tpc", ModalStructure().mode_shapes(struct), q)
