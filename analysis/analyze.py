@@ -387,6 +387,16 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
                          f"({_length(video.noise.mode_amplitude_m[r])} against "
                          f"{_length(video.noise.mode_floor_m[r])} at the sensors); its video shape is noise "
                          "(MAC and scale not judged)")
+        if below.any() and len(ods_f):
+            # An ODS line is the sum of every mode's term: where the terms of modes below the floor carry most of
+            # it at the sensors, the video's ODS there is their noise too.
+            noisy = receptance(video.sensor_residues[below], video.poles_rad_s[below], ods_f)
+            share = np.linalg.norm(noisy.reshape(len(ods_f), -1), axis=1) / np.maximum(
+                np.linalg.norm(ods_video.reshape(len(ods_f), -1), axis=1), 1e-300)
+            for li in np.flatnonzero(share > 0.5):
+                notes.append(f"ODS line {li + 1} ({ods_f[li]:.1f} Hz): the video's ODS there is carried by modes below "
+                             f"its noise floor (their terms sum to {min(share[li], 99.0):.2g} x its size at the "
+                             "sensors); read it from the accelerometers")
         verdict = mac_verdict(f_acc[[j for _, j in corr.pairs]], corr.pair_mac, below[[j for _, j in corr.pairs]])
         xverdict = crosscheck_verdict(video.crosscheck)
         ods_surface = receptance(video.surface_residues, video.poles_rad_s, ods_f)             # (L, N, 3)
