@@ -45,7 +45,26 @@ def pytest_addoption(parser):
     parser.addoption("--hardware", action="store_true", help="run tests that need a real device attached")
 
 
+# The files that take longest (a minute or more on two cores), longest first: run first, so that pytest-xdist's
+# workers (a file each, in collection order) fill the rest of their time with the short ones instead of ending on
+# one long file while the other worker idles.
+LONG_FILES = ("test_pipeline.py", "test_batch.py", "reconstruction/test_modal.py", "analysis/test_imagepoles.py",
+              "test_demo.py", "reconstruction/test_run.py", "reconstruction/test_dynamic.py", "analysis/test_run.py",
+              "acquisition/test_session.py", "sync/test_sync.py", "processing/test_run.py", "processing/test_video.py",
+              "test_fidelity.py")
+
+
+_missing = [f for f in LONG_FILES if not (REPO / "tests" / f).is_file()]
+assert not _missing, f"tests/conftest.py: LONG_FILES names files that are gone: {_missing}"
+
+
+def _long_first(item) -> int:
+    path = item.path.relative_to(REPO / "tests").as_posix()
+    return LONG_FILES.index(path) if path in LONG_FILES else len(LONG_FILES)
+
+
 def pytest_collection_modifyitems(config, items):
+    items.sort(key=_long_first)      # stable: each file's tests keep their order
     if config.getoption("--hardware"):
         return
     skip = pytest.mark.skip(reason="needs real hardware; run with --hardware")
