@@ -39,6 +39,12 @@ def capture(tmp_path_factory) -> Capture:
     assert report.complete
     cap = Capture.open(out)
     sync_capture(cap, SyncSettings())
+    write_true_poses(cap)
+    return cap
+
+
+def write_true_poses(cap: Capture) -> None:
+    """derived/poses.json with each synced take's true camera (its truth file), as the pose stage saves its result."""
     views = []
     for take in load_sync(cap).ok:
         tr = _truth(cap, take.name)
@@ -47,8 +53,7 @@ def capture(tmp_path_factory) -> Capture:
         views.append(ViewPose(take.name, "take", int(take.view), "tags", tr.camera_K, tr.camera_R, tr.camera_t, w, h,
                               None, None, None))
     PoseResult(views, np.zeros((0, 3)), np.zeros((0, 1)), np.zeros(0), "tags", None, None, None, None, len(views),
-               len(views), []).write(cap)   # the true cameras, saved as the pose stage saves its result
-    return cap
+               len(views), []).write(cap)
 
 
 def _truth(cap: Capture, name: str | None = None) -> TakeTruth:

@@ -11,21 +11,17 @@ import torch
 
 from odsplat.analysis import AnalyzeSettings, analyze_capture
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
-from odsplat.hil_sim.rig import TakeTruth, truth_path
 from odsplat.hil_sim.structure import ModalStructure
-from odsplat.reconstruction import DynamicScene, Gaussians, PoseResult, SceneFrame
-from odsplat.reconstruction.poses import ViewPose
+from odsplat.reconstruction import DynamicScene, Gaussians, SceneFrame
 from odsplat.store import Capture
 from odsplat.sync import SyncSettings, load_sync, sync_capture
 
 from ..analysis.test_run import _surface_points as surface_points
+from ..analysis.test_run import _truth, write_true_poses
 
-SETTINGS = AnalyzeSettings(image_poles=False, crosscheck_views=0, ods_freq_hz=(23.5, 60.0))   # a line off the modes
+# the viewer reads none of the analysis's figures (most of its time here); an ODS line off the modes
+SETTINGS = AnalyzeSettings(image_poles=False, crosscheck_views=0, ods_freq_hz=(23.5, 60.0), plots=False)
 FLOOR_HALF_M = 0.5
-
-
-def _truth(cap: Capture, name: str) -> TakeTruth:
-    return TakeTruth.load(truth_path(cap.takes_dir / f"{name}.h5"))
 
 
 def floor_points(n_side: int = 40) -> np.ndarray:
@@ -79,20 +75,9 @@ def captures(tmp_path_factory):
     assert report.complete
     cap = Capture.open(out)
     sync_capture(cap, SyncSettings())
-    views = []
-    for take in load_sync(cap).ok:
-        tr = _truth(cap, take.name)
-        with cap.open_take(take.name) as r:
-            h, w = r.frame_shape[:2]
-        views.append(ViewPose(take.name, "take", int(take.view), "tags", tr.camera_K, tr.camera_R, tr.camera_t, w, h,
-                              None, None, None))
-    PoseResult(views, np.zeros((0, 3)), np.zeros((0, 1)), np.zeros(0), "tags", None, None, None, None, len(views),
-               len(views), []).write(cap)
-    with pytest.MonkeyPatch.context() as mp:
-        # the viewer reads none of the analysis's figures, which are most of its time here
-        mp.setattr("odsplat.analysis.outputs.write_plots", lambda dest, result: {})
-        analyze_capture(cap, SETTINGS)                   # accelerometers only: no reconstruction yet
-        shutil.copytree(out, root / "accel_only")
-        _, floor = write_scene(cap, n_steps=24)
-        analyze_capture(cap, SETTINGS)
+    write_true_poses(cap)
+    analyze_capture(cap, SETTINGS)                   # accelerometers only: no reconstruction yet
+    shutil.copytree(out, root / "accel_only")
+    _, floor = write_scene(cap, n_steps=24)
+    analyze_capture(cap, SETTINGS)
     return cap, floor, Capture.open(root / "accel_only")
