@@ -396,7 +396,8 @@ def _of_views(capture: Capture, names: list[str], views: tuple[int, ...]) -> lis
     if not views:
         return names
     view_of = {t.name: t.view for t in capture.manifest.takes}
-    kept = [n for n in names if view_of.get(n) in set(views)]
+    wanted = set(views)
+    kept = [n for n in names if view_of.get(n) in wanted]
     if not kept:
         raise InputError("magnify.views", f"no take to magnify from views {list(views)} "
                          f"(the takes' views: {sorted({v for v in view_of.values() if v is not None})})")
