@@ -511,7 +511,9 @@ def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, 
               help="Frames to fit: 'sync' (unmagnified, on the common grid) or 'magnified/METHOD'. Default: "
                    "sync, or magnified/phase for --motion timestep.")
 @click.option("--width", "width_px", type=int, default=128, show_default=True, help="Training image width in px.")
-@click.option("--timesteps", "n_timesteps", type=int, default=32, show_default=True)
+@click.option("--timesteps", "n_timesteps", type=int, default=None,
+              help="Timesteps to fit from the rest frame on (default: the whole record, at most 512, for the linear "
+                   "and modal models; 32 for timestep).")
 @click.option("--step", type=int, default=1, show_default=True, help="Grid frames between timesteps.")
 @click.option("--start", type=int, default=None, help="First grid frame (default: the last before the impact).")
 @click.option("--holdout", multiple=True, help="A take never used in training (repeatable).")
@@ -528,9 +530,9 @@ def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, 
               help="Iterations per timestep (timestep).")
 @click.option("--threads", type=int, default=None, help="Torch threads (default: torch's).")
 @click.option("--seed", type=int, default=0, show_default=True)
-def reconstruct(capture_dir: Path, source: str | None, width_px: int, n_timesteps: int, step: int, start: int | None,
-                holdout: tuple[str, ...], no_static: bool, motion: str, iters_t0: int, iters_modal: int,
-                components: int, iters_per_step: int, threads: int | None, seed: int) -> None:
+def reconstruct(capture_dir: Path, source: str | None, width_px: int, n_timesteps: int | None, step: int,
+                start: int | None, holdout: tuple[str, ...], no_static: bool, motion: str, iters_t0: int,
+                iters_modal: int, components: int, iters_per_step: int, threads: int | None, seed: int) -> None:
     """Train dynamic 3D Gaussians on CAPTURE_DIR's posed views into derived/reconstruction/ (docs/reconstruction.md)."""
     _, result = _stage(capture_dir, "reconstruct", _given(
         source="source", width_px="width_px", n_timesteps="n_timesteps", step="step", start="start",

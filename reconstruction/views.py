@@ -154,12 +154,20 @@ class ViewSet:
         return int(self.views[0].images.shape[-1])
 
 
-def select_frames(times_s: np.ndarray, n_timesteps: int, step: int = 1, start: int | None = None) -> np.ndarray:
-    """Grid frames start, start+step, ...; start defaults to the last frame before the impact (the rest state)."""
+def select_frames(times_s: np.ndarray, n_timesteps: int | None, step: int = 1, start: int | None = None,
+                  max_timesteps: int | None = None) -> np.ndarray:
+    """Grid frames start, start+step, ...; start defaults to the last frame before the impact (the rest state).
+    n_timesteps None: to the grid's end (the record), at most max_timesteps."""
     times_s = np.asarray(times_s, float)
     if start is None:
         before = np.flatnonzero(times_s < 0)
         start = int(before[-1]) if len(before) else 0
+    if n_timesteps is None:
+        n_timesteps = max((len(times_s) - 1 - start) // max(step, 1) + 1, 1)
+        if max_timesteps is not None and n_timesteps > max_timesteps:
+            log.info("the record holds %d timesteps from frame %d; the first %d are fitted (n_timesteps sets it)",
+                     n_timesteps, start, max_timesteps)
+            n_timesteps = max_timesteps
     if step < 1 or n_timesteps < 1:
         raise InputError("timesteps", f"expected n_timesteps >= 1 and step >= 1, got {n_timesteps} and {step}")
     idx = start + step * np.arange(n_timesteps)
@@ -174,12 +182,13 @@ def _resize(image: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
     return out[..., None] if out.ndim == 2 else out
 
 
-def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timesteps: int, step: int = 1,
-               start: int | None = None, holdout: tuple[str, ...] = (), use_static: bool = True,
-               dtype: torch.dtype = torch.float32) -> ViewSet:
+def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timesteps: int | None, step: int = 1,
+               start: int | None = None, max_timesteps: int | None = None, holdout: tuple[str, ...] = (),
+               use_static: bool = True, dtype: torch.dtype = torch.float32) -> ViewSet:
     """The posed takes' frames (and static photos) at the selected grid frames, resampled to width_px.
 
-    `poses` is the pose stage's result (views with name, kind, K, R, t, width_px, height_px).
+    `poses` is the pose stage's result (views with name, kind, K, R, t, width_px, height_px); n_timesteps None:
+    the record (`select_frames`).
     """
     take_poses = [v for v in poses.views if v.kind == "take" and v.name not in holdout]
     if not take_poses:
@@ -196,7 +205,7 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
             times = ff.times_s
             if grid is None:
                 grid, bit_depth = times, int(ff.attrs["bit_depth"])
-                frames = select_frames(grid, n_timesteps, step, start)
+                frames = select_frames(grid, n_timesteps, step, start, max_timesteps)
             elif len(times) != len(grid) or not np.allclose(times, grid, atol=1e-9):
                 raise InputError(path, "times_s differ from the other takes' (not on one sync grid)")
             data = np.stack([ff.read_frames(int(k), int(k) + 1)[0] for k in frames])

@@ -18,7 +18,7 @@ from odsplat.cli import main
 from odsplat.errors import InputError
 from odsplat.hil_sim.bench import SimBench, SimBenchSettings
 from odsplat.reconstruction.gaussians import load_ply
-from odsplat.reconstruction.model import DynamicScene, parse_times
+from odsplat.reconstruction.model import DynamicScene, ReconstructSettings, parse_times
 from odsplat.reconstruction.views import select_frames
 from odsplat.store import Capture
 
@@ -174,3 +174,11 @@ def test_parse_times_and_frame_selection():
     assert list(select_frames(times, 3, step=2, start=1)) == [1, 3, 5]
     with pytest.raises(InputError, match="run past"):
         select_frames(times, 8, step=2)
+    # By default the record: every frame from the rest frame to the grid's end (the linear and modal models fit
+    # them at once), at most max_timesteps; the per-timestep fits keep 32.
+    assert list(select_frames(times, None)) == list(range(2, 10))
+    assert list(select_frames(times, None, step=3)) == [2, 5, 8]
+    assert list(select_frames(times, None, max_timesteps=4)) == [2, 3, 4, 5]
+    assert ReconstructSettings().timesteps is None and ReconstructSettings(motion="modal").timesteps is None
+    assert ReconstructSettings(motion="timestep").timesteps == 32
+    assert ReconstructSettings(n_timesteps=5, motion="timestep").timesteps == 5
