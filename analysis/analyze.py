@@ -24,7 +24,15 @@ from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_frf_hit, estimate_frf
 from .imagepoles import image_poles
 from .noise import noise_floor
-from .ods import SurfaceMotion, default_ranks, fit_decay, force_transform, receptance, stable_poles
+from .ods import (
+    POLE_MIN_SIGNIFICANCE,
+    SurfaceMotion,
+    fit_decay,
+    force_transform,
+    receptance,
+    record_ranks,
+    stable_poles,
+)
 from .outputs import write_outputs
 from .result import AnalysisResult, Sensor, VideoModes
 from .verdict import crosscheck_verdict, mac_verdict
@@ -70,8 +78,9 @@ class AnalyzeSettings:
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
     outlier_factor: float | None = 2.0               # drop those whose motion strays this far (SurfaceMotion.at_points)
-    video_ranks: tuple[int, ...] | None = None       # the matrix pencil's, for the video's own poles; None: 16/20/24,
-    #                                                  lowered where the timesteps cannot hold them (ods.default_ranks)
+    video_ranks: tuple[int, ...] | None = None       # the matrix pencil's, for the video's own poles; None:
+    #                                                  ods.record_ranks (24/32/40 where the record holds them, else
+    #                                                  16/20/24, lowered where the timesteps cannot hold them)
     crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
     crosscheck_points: int = 30
     image_poles: bool = True                         # poles from the synced takes' raw frames (imagepoles.py)
@@ -260,15 +269,19 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     fit = fit_decay(t, np.concatenate([at_sensors, surface], axis=1), poles, t_min_s=t_min)  # one design matrix
     noise = noise_floor(t, at_sensors, surface, fit)
     F = _sync_force(capture, force, poles)
-    model_surface = model.displacement_m.reshape(len(t), -1)
-    ranks = s.video_ranks or default_ranks(int((t >= t_min).sum()))
-    f_hz, zeta = stable_poles(t[t >= t_min], model_surface[t >= t_min], ranks, nyq * 0.8) if ranks \
-        else (np.zeros(0), np.zeros(0))
+    keep, rule = structure_mask(capture, motion.points_m, s, moving=noise.moving if noise is not None else None)
+    # The video's own poles: the structure's motion (the background's only adds noise), unfiltered where the
+    # linear model left it (its basis keeps the components above 4x the noise, and a pencil on those finds stable
+    # poles of the noise they carry: 47 Hz on the demo); a pole counts where it explains 4x what the noise would.
+    after = t >= t_min
+    ranks = s.video_ranks or record_ranks(int(after.sum()))
+    f_hz, zeta = stable_poles(t[after], motion.displacement_m[after][:, keep].reshape(int(after.sum()), -1), ranks,
+                              nyq * 0.8, min_significance=POLE_MIN_SIGNIFICANCE) \
+        if ranks else (np.zeros(0), np.zeros(0))
     checks = crosscheck_views(capture, model, max_views=s.crosscheck_views, n_points=s.crosscheck_points,
                               k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []
     residues = fit.residues(F)
-    keep, rule = structure_mask(capture, motion.points_m, s, moving=noise.moving if noise is not None else None)
     disp = motion.displacement_m[:, ~keep]                                          # (T, N_bg, 3)
     background = float(np.median(np.sqrt(np.mean((disp - disp.mean(axis=0)) ** 2, axis=(0, 2))))) \
         if disp.shape[1] else float("nan")

@@ -264,15 +264,35 @@ def default_ranks(n_samples: int) -> tuple[int, ...]:
     return tuple(r - shift for r in PENCIL_RANKS if r - shift >= 2)
 
 
+RECORD_RANKS = (24, 32, 40)  # a long record holds more: on the demo's 247 timesteps 16/20/24 find 5 of its 6 modes
+#                               in the video, these 6, neither a pole of the noise (docs/analysis.md)
+# A weak pole of the video's motion is kept when it explains this share of it beyond the other poles, and this many
+# times what a pole of white noise would (`stable_poles`): a video's weak modes stand above its noise long before
+# they carry a thousandth of its energy (the demo's 142 Hz: 1e-4 and 6x).
+POLE_WEAK_SHARE = 1e-5
+POLE_MIN_SIGNIFICANCE = 4.0
+
+
+def record_ranks(n_samples: int) -> tuple[int, ...]:
+    """The pencil's ranks for a record of n_samples: RECORD_RANKS where the Hankel matrix holds them (rank + 1 rows
+    of half the samples), else `default_ranks`."""
+    return RECORD_RANKS if n_samples // 2 - 1 >= RECORD_RANKS[-1] else default_ranks(n_samples)
+
+
 POLE_METHODS = {"pencil": pencil_poles, "lsce": lsce_poles}
 
 
-def stable_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3, method: str = "pencil"
+def stable_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3, method: str = "pencil", *,
+                 min_significance: float | None = None, weak_share: float = POLE_WEAK_SHARE
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Poles of a multi-channel free decay: found by `method` (the matrix pencil, or LSCE) at every order (the
     pencil's rank) within 1 % in frequency, damped less than 20 %, and explaining at least `min_share` of the
     motion's energy beyond the other poles (`explained_share`; drops the stable but empty poles a high order
-    fits to the noise). Returns (freq_hz, damping)."""
+    fits to the noise). With `min_significance`, a weaker pole is kept too where it explains at least weak_share
+    and that many times what a pole of white noise would (`pole_evidence`): a weak mode that stands above the
+    noise (on the demo's video, 142 Hz at 1e-4 of the energy and 6x the noise's share; the noise's own poles 1x).
+    Where a mode is missing from the fit (too short a window to separate it) its motion counts as noise, and only
+    the share decides. Returns (freq_hz, damping)."""
     if method not in POLE_METHODS:
         raise InputError("stable_poles: method", f"expected one of {sorted(POLE_METHODS)}; got {method!r}")
     find = POLE_METHODS[method]
@@ -289,7 +309,11 @@ def stable_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3, me
             if all(len(o) and np.min(np.abs(np.abs(o) - abs(lam))) < 0.01 * abs(lam) for o in sets[:-1])]
     lam = np.array(sorted(keep, key=abs), complex)
     if len(lam):
-        lam = lam[explained_share(times_s, x, lam) >= min_share]
+        share, significance = pole_evidence(times_s, x, lam)
+        ok = share >= min_share
+        if min_significance is not None:
+            ok |= (share >= weak_share) & (significance >= min_significance)
+        lam = lam[ok]
     return pole_freq_hz(lam), pole_damping(lam)
 
 
@@ -297,6 +321,15 @@ def explained_share(times_s, x, poles_rad_s, n_channels: int = 8) -> np.ndarray:
     """(R,) the share of the motion's energy (less its mean, in its n_channels principal components) that each
     pole explains beyond all the others: what a decay fit loses without it. An amplitude would not do: two
     close poles, one of them spurious, can take large amplitudes that cancel."""
+    return pole_evidence(times_s, x, poles_rad_s, n_channels)[0]
+
+
+def pole_evidence(times_s, x, poles_rad_s, n_channels: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Per pole, (share, significance): the energy a decay fit loses without it (in the motion's n_channels
+    principal components) as a share of the motion's (`explained_share`), and as a multiple of what a pole
+    would explain in white noise of the fit's residual variance (2 unknowns per channel, so about 1 for a pole
+    of the noise's, chi-square with 2 x n_channels degrees of freedom over its mean: 4 is 8 standard
+    deviations above at 8 channels)."""
     t = np.asarray(times_s, float).reshape(-1)
     y = principal_components(np.asarray(x, float).reshape(len(t), -1), n_channels)
     total = float(np.sum(y ** 2))
@@ -307,5 +340,8 @@ def explained_share(times_s, x, poles_rad_s, n_channels: int = 8) -> np.ndarray:
 
     every = np.ones(len(lam), bool)
     base = residual(every)
-    return np.array([(residual(every & (np.arange(len(lam)) != r)) - base) / max(total, 1e-300)
-                     for r in range(len(lam))])
+    loss = np.array([residual(every & (np.arange(len(lam)) != r)) - base for r in range(len(lam))])
+    n_c = y.shape[1]
+    dof = max(y.size - (2 * len(lam) + 1) * n_c, 1)
+    noise = 2 * n_c * max(base, 1e-300 * max(total, 1e-300)) / dof
+    return loss / max(total, 1e-300), loss / noise
