@@ -271,6 +271,11 @@ RECORD_RANKS = (24, 32, 40)  # a long record holds more: on the demo's 247 times
 # they carry a thousandth of its energy (the demo's 142 Hz: 1e-4 and 6x).
 POLE_WEAK_SHARE = 1e-5
 POLE_MIN_SIGNIFICANCE = 4.0
+# ... unless it lies within this fraction of the frequency of a pole that explains this many times more: the takes
+# that make up one motion differ a little (force, timing), which leaves sidebands beside a strong mode that a weak
+# pole there would fit (the demo's 242 Hz beside 262 Hz: 160x less, 4.2x the noise).
+SIDEBAND_FRACTION = 0.1
+SIDEBAND_RATIO = 30.0
 
 
 def record_ranks(n_samples: int) -> tuple[int, ...]:
@@ -290,7 +295,8 @@ def stable_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3, me
     motion's energy beyond the other poles (`explained_share`; drops the stable but empty poles a high order
     fits to the noise). With `min_significance`, a weaker pole is kept too where it explains at least weak_share
     and that many times what a pole of white noise would (`pole_evidence`): a weak mode that stands above the
-    noise (on the demo's video, 142 Hz at 1e-4 of the energy and 6x the noise's share; the noise's own poles 1x).
+    noise (on the demo's video, 142 Hz at 1e-4 of the energy and 6x the noise's share; the noise's own poles 1x),
+    and not within SIDEBAND_FRACTION of a pole explaining SIDEBAND_RATIO times more (a strong mode's sideband).
     Where a mode is missing from the fit (too short a window to separate it) its motion counts as noise, and only
     the share decides. Returns (freq_hz, damping)."""
     if method not in POLE_METHODS:
@@ -312,7 +318,10 @@ def stable_poles(times_s, x, orders, fmax_hz: float, min_share: float = 1e-3, me
         share, significance = pole_evidence(times_s, x, lam)
         ok = share >= min_share
         if min_significance is not None:
-            ok |= (share >= weak_share) & (significance >= min_significance)
+            f = pole_freq_hz(lam)
+            beside = np.array([np.any((np.abs(f - fr) < SIDEBAND_FRACTION * fr) & (share >= SIDEBAND_RATIO * sr))
+                               for fr, sr in zip(f, share)])
+            ok |= (share >= weak_share) & (significance >= min_significance) & ~beside
         lam = lam[ok]
     return pole_freq_hz(lam), pole_damping(lam)
 

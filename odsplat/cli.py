@@ -645,14 +645,16 @@ def report(capture_dir: Path) -> None:
 @click.option("--shared-data", type=click.Path(path_type=Path), default=None,
               help="The folder of real recordings (default: $ODSPLAT_SHARED_DATA, else ../shared/data when it "
                    "exists; without it that part is skipped).")
-def demo(out: Path, quick: bool, shared_data: Path | None) -> None:
+@click.option("--seed", type=int, default=None,
+              help="The simulated capture's noise and hammer scatter (default 0): the same demo on another draw.")
+def demo(out: Path, quick: bool, shared_data: Path | None, seed: int | None) -> None:
     """Run the demo into OUT (default demo-out): a guided 27-view capture on the simulated rig with faults that QC
     catches, the whole pipeline, a magnified orbit render and the report (OUT/sim-rig, made anew on each run), then
     the real LADISK recordings imported and analysed (OUT/ladisk-beam). Prints each capture's modes and MAC, the
     reports and the viewer command."""
     from .demo import run_demo
 
-    result = run_demo(out, quick=quick, shared_data=shared_data, echo=click.echo)
+    result = run_demo(out, quick=quick, shared_data=shared_data, echo=click.echo, seed=seed)
     click.echo("")
     click.echo(result.text())
 

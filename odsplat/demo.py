@@ -235,13 +235,14 @@ def demo_settings(scale: DemoScale) -> str:
 
 # ------------------------------------------------------------------------------------------ the steps
 
-def simulated_capture(root: Path, scale: DemoScale, echo: Callable[[str], None]) -> None:
+def simulated_capture(root: Path, scale: DemoScale, echo: Callable[[str], None], seed: int | None = None) -> None:
     """The guided capture of `odsplat capture --sim --auto` (its defaults, `CAPTURE_DEFAULTS`) with the scale's
-    views, frames and faults; each take's verdict through `echo`."""
+    views, frames and faults; each take's verdict through `echo`. seed: the rig's and the camera's noise, the
+    hammer's scatter (None: the capture's default, 0)."""
     from .acquisition import QCLimits, TextFeedback, choose_hammer
     from .hil_sim import SceneSettings, SimBenchSettings, SimCameraConfig, make_rig, parse_faults, simulate_capture
 
-    d = CAPTURE_DEFAULTS
+    d = dict(CAPTURE_DEFAULTS, **({} if seed is None else {"seed": seed}))
 
     class TakeLines(TextFeedback):
         """Each take's verdict; the instructions for placing the camera are for a person."""
@@ -278,9 +279,10 @@ def render_orbit(capture: Capture, scale: DemoScale) -> Path:
 
 
 def run_demo(out: Path, *, quick: bool = False, shared_data: Path | None = None,
-             echo: Callable[[str], None] | None = None) -> DemoResult:
+             echo: Callable[[str], None] | None = None, seed: int | None = None) -> DemoResult:
     """Run the demo into `out`: OUT/sim-rig (made anew each time) and, when the real recordings are found
-    (`shared_data_folder`), OUT/ladisk-beam. `echo` gets a line per step and per stage."""
+    (`shared_data_folder`), OUT/ladisk-beam. `echo` gets a line per step and per stage. seed: the simulated
+    capture's (`simulated_capture`): the same demo on another draw of its noise."""
     say = echo or (lambda line: log.info("%s", line))
     scale = QUICK if quick else FULL
     started = time.perf_counter()
@@ -305,7 +307,7 @@ def run_demo(out: Path, *, quick: bool = False, shared_data: Path | None = None,
     _replace(sim_root)
     sim_root.mkdir()
     _mark(sim_root, scale.name)
-    simulated_capture(sim_root, scale, say)
+    simulated_capture(sim_root, scale, say, seed)
 
     step(2, "pipeline", f"the pipeline on {sim_root} (its odsplat.toml: odsplat/examples/demo.toml"
                         + (", quick scale)" if scale.settings else ")"))
