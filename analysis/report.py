@@ -176,9 +176,10 @@ def _video(doc: dict) -> str:
     if r2:
         out.append("<p>Share of each sensor point's video motion that these modes explain (r&sup2;):</p>")
         out.append(_sensor_table(sensors, "r&sup2;", r2))
+    pairs = (doc.get("correlation") or {}).get("pairs", []) if isinstance(doc.get("correlation"), dict) else []
     out.append(_poles_table(modes, v.get("freq_hz", []), v.get("damping", []),
                             "Poles found in the reconstruction's motion alone (matrix pencil, stable over ranks)",
-                            "No pole was found stable in the reconstruction's motion alone."))
+                            "No pole was found stable in the reconstruction's motion alone.", pairs))
     im = doc.get("image_poles")
     if isinstance(im, dict):
         window = im.get("window_s") or [None, None]
@@ -186,7 +187,7 @@ def _video(doc: dict) -> str:
                                 f"Poles found in the raw frames alone ({int(im.get('n_views', 0))} views, "
                                 f"{int(im.get('n_pixels', 0))} pixels, {_num(window[0], '.1f', 1e3)} to "
                                 f"{_num(window[-1], '.1f', 1e3)} ms; matrix pencil)",
-                                "No pole was found stable in the raw frames alone."))
+                                "No pole was found stable in the raw frames alone.", pairs))
     out.append(_noise(v))
     checks = v.get("crosscheck") or []
     if checks:
@@ -228,19 +229,44 @@ def _noise(v: dict) -> str:
             "sensors (an expected MAC of 0.9) to be judged; the correlation table gives each mode's.</p>")
 
 
-def _poles_table(modes: list[dict], fv, zv, title: str, none: str) -> str:
-    """The camera's own poles against the nearest accelerometer mode."""
+def _products(modes: list[dict], pairs: list[dict]) -> list[tuple[float, str]]:
+    """The second-order products of the video's two strongest modes (by their video amplitude): twice each, their
+    sum and their difference, with names. A camera's intensity is not quite linear in the motion, so the strongest
+    motion leaves a little energy there, and a pole finder can find it."""
+    amps = {int(p["a"]): float(p["video_amplitude_um"]) for p in pairs
+            if isinstance(p, dict) and isinstance(p.get("video_amplitude_um"), (int, float)) and "a" in p}
+    top = sorted((k for k in amps if 0 <= k < len(modes)), key=lambda k: -amps[k])[:2]
+    f = {k: float(modes[k]["freq_hz"]) for k in top}
+    out = [(2 * f[k], f"2 x mode {k + 1}") for k in top]
+    if len(top) == 2:
+        a, b = top
+        out += [(f[a] + f[b], f"mode {a + 1} + mode {b + 1}"), (abs(f[a] - f[b]), f"mode {a + 1} - mode {b + 1}")]
+    return out
+
+
+def _poles_table(modes: list[dict], fv, zv, title: str, none: str, pairs: list[dict] | None = None) -> str:
+    """The camera's own poles against the nearest accelerometer mode; one more than 1 % from every mode is said to
+    be no mode of theirs, and named where it lies near a product of the strongest motion (`_products`)."""
     if not fv:
         return f"<p>{none}</p>"
     fa = np.array([m["freq_hz"] for m in modes], float)
+    products = _products(modes, pairs or [])
     rows = []
     for i, f in enumerate(fv):
-        near = int(np.argmin(np.abs(fa - float(f)))) if len(fa) else None
+        f = float(f)
+        near = int(np.argmin(np.abs(fa - f))) if len(fa) else None
+        diff = (f - fa[near]) / fa[near] if near is not None else None
+        note = ""
+        if diff is None or abs(diff) > 0.01:
+            note = "no accelerometer mode within 1 %"
+            close = [(abs(f - fp) / fp, fp, name) for fp, name in products if fp > 0 and abs(f - fp) < 0.05 * fp]
+            if close:
+                _, fp, name = min(close)
+                note += f"; near {name} ({fp:.1f} Hz), where the strongest motion's image is not quite linear"
         rows.append([str(i + 1), _num(f, ".2f"), _num(zv[i] if i < len(zv) else None, ".2f", 100),
-                     _mode_name(modes, near) if near is not None else "&ndash;",
-                     _num((float(f) - fa[near]) / fa[near] if near is not None else None, "+.2f", 100)])
+                     _mode_name(modes, near) if near is not None else "&ndash;", _num(diff, "+.2f", 100), note])
     return (f"<p>{title}, against the nearest accelerometer mode:</p>"
-            + _table(["#", "frequency (Hz)", "damping (%)", "nearest mode", "difference (%)"], rows, 1))
+            + _table(["#", "frequency (Hz)", "damping (%)", "nearest mode", "difference (%)", "note"], rows, 1))
 
 
 def _sensor_table(sensors: list[str], header: str, values) -> str:

@@ -209,3 +209,18 @@ def test_the_render_plays_inline_when_there_is_one(tmp_path):
     data = re.search(r'<img src="data:image/webp;base64,([^"]+)"', html).group(1)
     im = Image.open(io.BytesIO(base64.b64decode(data)))
     assert im.format == "WEBP" and im.n_frames == 5 and im.size == (400, 300)
+
+
+def test_a_camera_pole_off_every_mode_is_said_to_be_none_and_named_near_the_strongest_motions_products():
+    """A video pole 4 % from twice the strongest mode (the demo's 48.9 Hz beside 2 x 23.5 Hz) is no accelerometer
+    mode, and lies where the image's slight nonlinearity in the strongest motion puts energy; a pole on a mode is
+    neither."""
+    from odsplat.analysis.report import _poles_table
+
+    modes = [{"freq_hz": f, "damping": 0.01} for f in (23.5, 31.0, 86.0, 142.0)]
+    pairs = [{"a": k, "b": k, "video_amplitude_um": a} for k, a in enumerate((120.0, 80.0, 30.0, 4.0))]
+    html = _poles_table(modes, [23.49, 48.9, 141.4, 300.0], [0.01] * 4, "Poles", "none", pairs)
+    rows = re.findall(r"<tr>(.*?)</tr>", html)[1:]
+    assert "no accelerometer mode" not in rows[0] and "no accelerometer mode" not in rows[2]
+    assert "no accelerometer mode within 1 %; near 2 x mode 1 (47.0 Hz)" in rows[1], rows[1]
+    assert "no accelerometer mode within 1 %" in rows[3] and "; near" not in rows[3]
