@@ -223,3 +223,21 @@ def test_a_weak_mode_above_the_noise_is_kept_and_the_noises_poles_are_not():
     assert np.min(np.abs(f_old - 142.0)) > 1.0, f_old
     # and none of the noise's: the pencil's ranks (24-40) hold many more poles than the three modes
     assert len(f_new) == 3 and np.allclose(f_new, [23.5, 142.0, 262.0], rtol=0.01), f_new
+
+
+def test_a_mode_split_in_two_by_the_pencil_is_kept_once():
+    """Two candidate poles within 1 % of each other (the pencil split one mode) each explain nothing beyond the other;
+    the cluster keeps the member that fits best, so the mode is not lost."""
+    from odsplat.analysis.ods import _one_per_cluster
+
+    rng = np.random.default_rng(5)
+    t = np.arange(246) / 2000.0
+    true = np.array([-1.5 + 2j * np.pi * 23.5, -58.0 + 2j * np.pi * 371.0])
+    x = 2 * np.real(np.exp(np.outer(t, true)) @ (rng.normal(size=(2, 30)) * np.array([[1.0], [0.1]])))
+    x = x + rng.normal(0, 1e-3, x.shape)
+    split = np.array([true[0], -50.0 + 2j * np.pi * 370.5, -70.0 + 2j * np.pi * 371.6])
+    share = explained_share(t, x, split)
+    assert share[1] < 1e-4 and share[2] < 1e-4, share                  # each twin explains ~nothing beyond the other
+    kept = _one_per_cluster(t, x, split)
+    assert len(kept) == 2 and abs(kept[1].imag / (2 * np.pi) - 371.0) < 1.0, kept
+    assert explained_share(t, x, kept)[1] > 1e-3
