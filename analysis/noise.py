@@ -50,6 +50,15 @@ class NoiseFloor:
     moving: np.ndarray | None = None  # (N,) bool: the points whose modal amplitudes stand above their noise
 
     @property
+    def expected_mac(self) -> np.ndarray:
+        """(R,) the MAC the noise alone allows each mode's video shape against the exact one: x^2 / (x^2 + n^2), x
+        its amplitude and n its noise (the floor over FLOOR_SIGMAS); 0.9 at the floor. A measured MAC near it is
+        as good as the video's noise lets it be."""
+        x2 = self.mode_amplitude_m ** 2
+        n2 = (self.mode_floor_m / FLOOR_SIGMAS) ** 2
+        return x2 / np.maximum(x2 + n2, 1e-300)
+
+    @property
     def below(self) -> np.ndarray:
         """(R,) bool: modes whose video amplitude does not stand above the floor."""
         return self.mode_amplitude_m < self.mode_floor_m

@@ -291,14 +291,15 @@ def _correlation(doc: dict) -> str:
                      + (' <span class="bad">below the noise floor: not judged</span>' if below else ""))
             rows.append([_mode_name(modes, ma), _mode_name(modes, mb),
                          (f'<span class="bad">{_num(p.get("mac"), ".3f")}</span>' if below
-                          else _num(p.get("mac"), ".3f")), floor,
+                          else _num(p.get("mac"), ".3f")), _num(p.get("expected_mac"), ".3f"), floor,
                          _num(p.get("scale_factor_abs"), ".3g"), _num(p.get("scale_factor_phase_deg"), "+.1f"),
                          _num(p.get("freq_a_hz"), ".2f"), _num(p.get("freq_b_hz"), ".2f"),
                          _num(p.get("freq_diff_rel"), "+.2f", 100)])
         out.append("<h2>Correlation: accelerometers (a) vs video (b)</h2>")
         out.append(_verdict(c.get("verdict")))
-        out.append(_table(["mode a", "mode b", "MAC", "video amplitude / noise floor (&micro;m)", "|scale a/b|",
-                           "scale phase (deg)", "f a (Hz)", "f b (Hz)", "&Delta;f (%)"], rows, 2)
+        out.append(_table(["mode a", "mode b", "MAC", "MAC the noise allows",
+                           "video amplitude / noise floor (&micro;m)", "|scale a/b|", "scale phase (deg)", "f a (Hz)",
+                           "f b (Hz)", "&Delta;f (%)"], rows, 2)
                    if rows else "<p>No pairs.</p>")
         sensors = [str(s) for s in doc.get("sensors", [])]
         comac = c.get("comac", [])

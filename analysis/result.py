@@ -120,7 +120,8 @@ class AnalysisResult:
                 for p in pairs:      # paired as fitted: b indexes the video's modes
                     b = p["b"]
                     p.update(video_amplitude_um=float(1e6 * nf.mode_amplitude_m[b]),
-                             noise_floor_um=float(1e6 * nf.mode_floor_m[b]), below_noise_floor=bool(nf.below[b]))
+                             noise_floor_um=float(1e6 * nf.mode_floor_m[b]), below_noise_floor=bool(nf.below[b]),
+                             expected_mac=float(nf.expected_mac[b]))
             out["correlation"] = {"pairs": pairs, "comac": self.correlation.comac.tolist()}
             if self.mac_verdict is not None:
                 out["correlation"]["verdict"] = self.mac_verdict.summary()

@@ -425,6 +425,14 @@ def test_noise_floor_reads_the_known_noise_and_flags_a_weak_mode(capture):
         summary = json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text())
         pairs = summary["correlation"]["pairs"]
         assert [p["below_noise_floor"] for p in pairs] == [rows[p["b"]] == weak for p in pairs]
+        # the MAC the noise allows (0.9 at the floor): under 0.9 for the weak mode; the strong ones reach theirs
+        for p in pairs:
+            x, n = p["video_amplitude_um"], p["noise_floor_um"] / 3
+            assert p["expected_mac"] == pytest.approx(x**2 / (x**2 + n**2), rel=1e-9)
+            if rows[p["b"]] == weak:
+                assert p["expected_mac"] < 0.9
+            else:
+                assert p["expected_mac"] > 0.95 and p["mac"] > p["expected_mac"] - 0.05, p
         assert summary["correlation"]["verdict"]["status"] == "met"
         assert summary["video"]["noise_floor"]["sigma_um"] == pytest.approx(5, rel=0.1)
         assert any(n.startswith(f"mode {weak + 1} ({f_weak:.1f} Hz): below the video's noise floor (")
@@ -432,6 +440,7 @@ def test_noise_floor_reads_the_known_noise_and_flags_a_weak_mode(capture):
         from odsplat.analysis import write_report
         html = write_report(capture).read_text()
         assert "below the video&#x27;s noise floor" in html and html.count("below the noise floor: not judged") == 1
+        assert "MAC the noise allows" in html
     finally:
         _write_trajectories(capture)
 
