@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from odsplat.checks import COUNT, FRACTION, NON_NEGATIVE, POSITIVE, Range, check_fields, maybe
 from odsplat.contract import describe, plain
@@ -45,6 +46,11 @@ VIDEO_BAND = 0.45     # the camera's poles are sought below this fraction of its
 
 
 MIN_CYCLES = 0.5    # below this share of a mode's period in the video's window its shape cannot be read
+# A point the structure rules keep is left out as isolated when its ISOLATED_K-th nearest kept neighbour lies further
+# than ISOLATED_FACTOR times the median such distance: the rules above keep whatever stands above the floor, and on
+# the demo two nodes on the floor's tag boards (2-3 cm up, half a metre from the structure) floated in the figures.
+ISOLATED_K = 3
+ISOLATED_FACTOR = 5.0
 
 
 def _length(x_m: float) -> str:
@@ -297,7 +303,8 @@ def structure_mask(capture: Capture, points_m: np.ndarray, s: AnalyzeSettings | 
     """Which points (N, 3), metres, are the structure's, and the rule in words: inside the box the user gave
     (`structure_box_m`), above the floor (z = 0 in the tag layout's frame) by floor_margin_m where the capture has
     floor tags, and, where neither rule applies (or structure_motion says so), `moving` (N,) bool: above their own
-    noise (the analysis: analysis/noise.py; the viewer: the Gaussians' motion). The rest is background: fitted,
+    noise (the analysis: analysis/noise.py; the viewer: the Gaussians' motion); and not isolated from the other
+    points kept (ISOLATED_FACTOR x their median spacing). The rest is background: fitted,
     kept out of the shapes. The motion test alone would also drop the structure's quiet parts (a column's foot).
     The analysis's rule, public so that the viewer hides what the analysis leaves out."""
     s = s or AnalyzeSettings()
@@ -320,6 +327,13 @@ def structure_mask(capture: Capture, points_m: np.ndarray, s: AnalyzeSettings | 
         log.warning("no surface point passes the structure rules (%s); the shapes keep every point",
                     ", ".join(rules))
         return np.ones(len(p), bool), "every point (the structure rules left none)"
+    if keep.sum() > 4 * ISOLATED_K:
+        idx = np.flatnonzero(keep)
+        d = cKDTree(p[idx]).query(p[idx], k=ISOLATED_K + 1)[0][:, -1]
+        isolated = d > ISOLATED_FACTOR * max(float(np.median(d)), 1e-12)
+        if isolated.any():
+            keep[idx[isolated]] = False
+            rules.append(f"not isolated ({int(isolated.sum())} left out)")
     return keep, ", ".join(rules) or "every point"
 
 
