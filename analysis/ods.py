@@ -113,10 +113,18 @@ class SurfaceMotion:
             r = self.points_m[idx[s]] - pts[s]                                 # (k, 3)
             dist = np.linalg.norm(r, axis=1)
             h = max(float(np.median(dist[use[s]])), 1e-12)
-            sw = np.sqrt(np.exp(-0.5 * (dist / h) ** 2) * use[s])              # (k,)
-            A = np.column_stack([np.ones(len(r)), r / h]) * sw[:, None]
-            y = disp[:, s].transpose(1, 0, 2).reshape(len(r), -1) * sw[:, None]  # (k, T*3)
-            coef = np.linalg.lstsq(A, y, rcond=1e-6)[0]
+            wt = np.exp(-0.5 * (dist / h) ** 2) * use[s]                        # (k,)
+            y = disp[:, s].transpose(1, 0, 2).reshape(len(r), -1)             # (k, T*3)
+            # The gradient only along the directions the neighbours spread in (on one face: in its plane), so the
+            # plane is never extrapolated across a direction it has no data in; too few for a plane: their mean.
+            centred = (r - (wt @ r) / wt.sum()) * np.sqrt(wt)[:, None] / h
+            _, sv, vt = np.linalg.svd(centred, full_matrices=False)
+            axes = vt[sv > 0.1 * max(sv[0], 1e-12)]
+            if int(use[s].sum()) < len(axes) + 2:
+                out[:, s] = ((wt @ y) / wt.sum()).reshape(disp.shape[0], 3)
+                continue
+            A = np.column_stack([np.ones(len(r)), r @ axes.T / h]) * np.sqrt(wt)[:, None]
+            coef = np.linalg.lstsq(A, y * np.sqrt(wt)[:, None], rcond=None)[0]
             out[:, s] = coef[0].reshape(disp.shape[0], 3)
         return out
 

@@ -147,9 +147,10 @@ def test_surface_motion_reads_a_trajectories_file_and_divides_out_the_magnificat
     m = SurfaceMotion.read(path)
     assert m.n_points == len(pts) - 1
     assert np.allclose(m.displacement_m, disp[:, 1:], rtol=1e-5, atol=1e-12)
-    # a point exactly on a Gaussian takes its motion; a direction projects it
+    # a point on a Gaussian reads the local plane through it and its neighbours (since 2026-11-26; their weighted
+    # mean before): on this smooth motion within 2 % of its own (measured 1 %); a direction projects it
     d = m.at_points(pts[[3]], [[0, 0, 1.0]], k=4)
-    assert np.allclose(d[:, 0], disp[:, 3, 2], rtol=1e-4, atol=1e-12)
+    assert np.linalg.norm(d[:, 0] - disp[:, 3, 2]) < 0.02 * np.linalg.norm(disp[:, 3, 2])
     with pytest.raises(InputError, match="directions"):
         m.at_points(pts[[3, 4]], [[0, 0, 1.0]])
     np.savez(tmp_path / "bad.npz", times_s=t)
@@ -261,3 +262,21 @@ def test_a_sensor_at_a_free_end_reads_its_motion_not_its_neighbours_mean():
     idx, w, _ = m.nearest(tip, k=16)
     mean_gain = float(np.einsum("tk,k->t", disp[:, idx[0], 2], w[0]) @ truth / (truth @ truth))
     assert abs(gain - 1) < 0.005 and mean_gain < 0.98, (gain, mean_gain)       # measured 1.0000 and 0.966
+
+
+def test_a_sensor_off_a_face_reads_the_face_beneath_it():
+    """Neighbours on one face (coplanar) and a sensor 5 mm off it: the plane is fitted in the face only, so the
+    reading is the face's motion under the sensor, not an extrapolation across it; one neighbour gives its own."""
+    rng = np.random.default_rng(7)
+    pts = np.column_stack([rng.uniform(-0.05, 0.05, 400), rng.uniform(-0.05, 0.05, 400), np.zeros(400)])
+    t = np.arange(10) / 2000.0
+    field = 1e-4 * (1 + 3 * pts[:, 0] + 2 * pts[:, 1])                       # linear over the face
+    disp = np.zeros((len(t), len(pts), 3))
+    disp[:, :, 2] = np.cos(2 * np.pi * 50 * t)[:, None] * field[None]
+    m = SurfaceMotion(t, pts, disp, np.ones(len(pts)), 1.0)
+    sensor = np.array([[0.01, -0.02, 0.005]])
+    want = np.cos(2 * np.pi * 50 * t) * 1e-4 * (1 + 3 * 0.01 - 2 * 0.02)
+    assert np.allclose(m.at_points(sensor, [[0, 0, 1.0]])[:, 0], want, rtol=1e-6, atol=1e-12)
+    one = m.at_points(sensor, [[0, 0, 1.0]], k=1)[:, 0]
+    j = m.nearest(sensor, k=1)[0][0, 0]
+    assert np.allclose(one, disp[:, j, 2], rtol=1e-9, atol=1e-15)
