@@ -92,15 +92,14 @@ class SurfaceMotion:
             parts = [self.at_points(pts[i:i + READ_CHUNK], None if dirs is None else dirs[i:i + READ_CHUNK], k=k,
                                     outlier_factor=outlier_factor) for i in range(0, len(pts), READ_CHUNK)]
             return np.concatenate(parts, axis=1)
-        idx, w, _ = self.nearest(pts, k)
+        idx = self.nearest(pts, k)[0]
         disp = self.displacement_m[:, idx]                                    # (T, S, k, 3)
+        keep = np.ones(idx.shape, bool)
         if outlier_factor is not None and idx.shape[1] > 2:
             med = np.median(disp, axis=2, keepdims=True)
             dev = np.sqrt(((disp - med) ** 2).sum(axis=(0, 3)))               # (S, k)
             keep = dev <= outlier_factor * np.median(dev, axis=1, keepdims=True) * (1 + 1e-9) + 1e-30
-            w = w * keep
-            w = w / w.sum(axis=1, keepdims=True)
-        d = self._local_linear(pts, idx, disp, w > 0)
+        d = self._local_linear(pts, idx, disp, keep)
         return d if dirs is None else np.einsum("tsc,sc->ts", d, dirs)
 
     def _local_linear(self, pts: np.ndarray, idx: np.ndarray, disp: np.ndarray, use: np.ndarray) -> np.ndarray:
