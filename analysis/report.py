@@ -176,7 +176,8 @@ def _video(doc: dict) -> str:
     if r2:
         out.append("<p>Share of each sensor point's video motion that these modes explain (r&sup2;):</p>")
         out.append(_sensor_table(sensors, "r&sup2;", r2))
-    pairs = (doc.get("correlation") or {}).get("pairs", []) if isinstance(doc.get("correlation"), dict) else []
+    corr = doc.get("correlation")
+    pairs = corr.get("pairs", []) if isinstance(corr, dict) else []
     out.append(_poles_table(modes, v.get("freq_hz", []), v.get("damping", []),
                             "Poles found in the reconstruction's motion alone (matrix pencil, stable over ranks)",
                             "No pole was found stable in the reconstruction's motion alone.", pairs))
