@@ -412,8 +412,8 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
                 continue
             notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): below the video's noise floor "
                          f"({_length(video.noise.mode_amplitude_m[r])} against "
-                         f"{_length(video.noise.mode_floor_m[r])} at the sensors); its video shape is noise "
-                         "(MAC and scale not judged)")
+                         f"{_length(video.noise.mode_floor_m[r])} at the sensors): the noise alone allows its shape "
+                         f"a MAC of {video.noise.expected_mac[r]:.2f}, too little to judge (MAC and scale not judged)")
         if below.any() and len(ods_f):
             # An ODS line is the sum of every mode's term: where the terms of modes below the floor carry most of
             # it at the sensors, the video's ODS there is their noise too.

@@ -225,9 +225,11 @@ def _noise(v: dict) -> str:
     if nf.get("pre_impact_sigma_um") is not None:
         parts.append(f"{int(nf.get('n_pre_impact', 0))} timesteps before the impact: "
                      f"{_num(nf.get('pre_impact_sigma_um'), '.3g')} &micro;m")
+    k = nf.get("floor_sigmas")
     return ("<p>The video's noise floor, measured where nothing moves: " + "; ".join(parts)
-            + f". A mode needs {_num(nf.get('floor_sigmas'), 'g')} noise standard deviations of amplitude at the "
-            "sensors (an expected MAC of 0.9) to be judged; the correlation table gives each mode's.</p>")
+            + f". A mode needs {_num(k, '.3g')} noise standard deviations of amplitude at the sensors (the noise then "
+            f"allows its shape a MAC of {_num(k * k / (k * k + 1) if isinstance(k, (int, float)) else None, '.2f')}) "
+            "to be judged; the correlation table gives each mode's.</p>")
 
 
 def _products(modes: list[dict], pairs: list[dict]) -> list[tuple[float, str]]:
