@@ -13,7 +13,8 @@ The floor is where that is FLOOR_MAC = 0.95: FLOOR_SIGMAS = sqrt(0.95 / 0.05) = 
 It is set by the MAC verdict (verdict.MIN_MAC = 0.9), which must not fail on noise alone: at 3 sigma (expected MAC
 0.9, the floor until 2026-11-26) noise alone put the MAC of an exact shape under 0.9 in 25 % of draws at 4 sensors
 and 30 % at 6 (simulated, 20000 draws each), so a perfect video of a mode just above the floor was judged "not met"
-one time in four; at 4.36 sigma, 1 %. Below the floor the MAC says nothing about the video.
+one time in four; at 4.36 sigma, 1 % (0.25 % through the decay fit at the demo's record and poles,
+tests/analysis/test_noise.py). Below the floor the MAC says nothing about the video.
 """
 from __future__ import annotations
 

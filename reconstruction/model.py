@@ -403,13 +403,13 @@ class DynamicScene:
         sc = vs.scene
         means = traj.means.double().numpy()
         rest = g0.detached()
-        extra = {}
-        disp, quats = (means - means[:1]) * sc.radius, traj.quats.double().numpy()
-        if modal is not None:   # the motion as the file keeps it: the basis times the shapes, in double precision
+        if modal is None:
+            extra, disp, quats = {}, (means - means[:1]) * sc.radius, traj.quats.double().numpy()
+        else:                   # the motion as the file keeps it: the basis times the shapes, in double precision
             extra = dict(basis=modal.basis.double().numpy(), shapes_m=modal.shapes.double().numpy() * sc.radius,
                          rot_shapes_rad=modal.rot_shapes.double().numpy())
             disp = modal_displacement("model", extra["basis"], extra["shapes_m"], len(means), means.shape[1])
-            quats = modal_quats(extra["basis"], extra["rot_shapes_rad"], quats[0])
+            quats = modal_quats(extra["basis"], extra["rot_shapes_rad"], traj.quats[0].double().numpy())
         return cls(np.asarray(vs.times_s, float), np.asarray(vs.frame_index), sc.to_world(means[0]), disp, quats,
                    rest, sc, vs.bit_depth, background.double().numpy(), float(vs.source_alpha), **extra)
 
