@@ -309,7 +309,9 @@ def _scene(capture: Capture, sc, doc: dict | None) -> Scene:
     q0 = np.asarray(sc.quats[0], np.float64)
     q0 = q0 / np.linalg.norm(q0, axis=1, keepdims=True)
     disp = (sc.displacement_m / sc.source_alpha).astype(np.float32)
-    rot = _rotvec_from_rest(np.asarray(sc.quats, np.float64), q0) / sc.source_alpha
+    # a modal model's turns from rest are its basis times its rotation shapes; the per-timestep model's, from quats
+    rot = (_rotvec_from_rest(np.asarray(sc.quats, np.float64), q0) if sc.basis is None else
+           np.einsum("tk,nkc->tnc", sc.basis, sc.rot_shapes_rad)) / sc.source_alpha
     rms = np.sqrt(np.mean(np.sum(disp.astype(np.float64) ** 2, axis=2), axis=0))
     quiet = np.median(np.sort(rms)[: max(1, len(rms) // 4)])
     moving = rms > MOVING_FACTOR * max(quiet, 1e-12)

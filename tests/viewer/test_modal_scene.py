@@ -1,0 +1,35 @@
+"""The viewer on a modal model's file (the linear model's default): its turns from rest come from the basis and the
+rotation shapes the file holds, and equal what the orientations multiplied out from them give."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from odsplat.reconstruction import DynamicScene, Gaussians, SceneFrame
+from odsplat.reconstruction.model import modal_quats
+from odsplat.viewer.model import _rotvec_from_rest, _scene
+
+
+def test_a_modal_models_motion_and_turns_reach_the_viewer(captures, tmp_path):
+    cap = captures[0]
+    rng = np.random.default_rng(3)
+    n, t, k = 300, 12, 3
+    points = np.column_stack([rng.uniform(-0.04, 0.04, n), rng.uniform(-0.04, 0.04, n), rng.uniform(0.1, 0.6, n)])
+    basis = np.vstack([np.zeros((1, k)), rng.normal(size=(t - 1, k))])         # timestep 0 is the rest state
+    shapes = rng.normal(0, 20e-6, (n, k, 3))
+    rot = rng.normal(0, 1e-3, (n, k, 3))
+    q_rest = rng.normal(size=(n, 4))
+    q_rest /= np.linalg.norm(q_rest, axis=1, keepdims=True)
+    frame = SceneFrame(np.array([0.0, 0.0, 0.3]), 1.0)
+    f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
+    rest = Gaussians(means=f32(frame.to_scene(points)), quats=f32(q_rest), log_scales=f32(np.full((n, 3), -5.0)),
+                     opacity_logits=f32(np.full(n, 3.0)), color_logits=f32(rng.normal(size=(n, 1))))
+    alpha = 2.0
+    scene = DynamicScene(np.arange(t) / 2000.0, np.arange(t), points, np.einsum("tk,nkc->tnc", basis, shapes),
+                         modal_quats(basis, rot, q_rest), rest, frame, 8, np.array([0.0]), alpha, basis, shapes, rot)
+    scene.save(tmp_path)
+    back = DynamicScene.read(tmp_path / "trajectories.npz")
+    view = _scene(cap, back, None)
+    assert np.allclose(view.rotvec_rad, np.einsum("tk,nkc->tnc", basis, rot) / alpha, atol=1e-7)
+    assert np.allclose(view.rotvec_rad, _rotvec_from_rest(back.quats, q_rest) / alpha, atol=1e-7)
+    assert np.allclose(view.displacement_m, np.einsum("tk,nkc->tnc", basis, shapes) / alpha, atol=1e-10)
