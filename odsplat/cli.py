@@ -384,13 +384,15 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
               help="The camera's latency from the trigger edge to latching it.")
 @click.option("--max-memory-mb", type=float, default=256.0, show_default=True, help="Working memory per take.")
 @click.option("--plot/--no-plot", default=True, show_default=True, help="Write derived/sync.png.")
+@click.option("--workers", type=int, default=None, help="Processes aligning the takes' frames (default: one per "
+              "core).")
 def sync(capture_dir: Path, method: str, all_takes: bool, normalize_impulse: bool, frames: bool, image_check: bool,
-         trigger_delay_s: float, max_memory_mb: float, plot: bool) -> None:
+         trigger_delay_s: float, max_memory_mb: float, plot: bool, workers: int | None) -> None:
     """Put the takes of CAPTURE_DIR on one impact-locked timeline: derived/sync.json and the aligned frames."""
     _, result = _stage(capture_dir, "sync", _given(
         method="method", all_takes=("takes", lambda v: "all" if v else "accepted"),
         normalize_impulse="normalize_impulse", frames="write_frames", image_check="check_with_image",
-        trigger_delay_s="camera_trigger_delay_s", max_memory_mb="max_memory_mb", plot="plot"))
+        trigger_delay_s="camera_trigger_delay_s", max_memory_mb="max_memory_mb", plot="plot", workers="workers"))
     click.echo(result.summary())
     if not result.ok:
         sys.exit(1)

@@ -85,7 +85,8 @@ GRAPH: tuple[Stage, ...] = (
     Stage("sync", _entry("sync", "run"), upstream=lambda c: ("qc",),
           outputs=lambda cap, s: [cap.paths.sync_json] + ([cap.paths.sync_png] if s.plot else [])
           + ([cap.paths.aligned_dir] if s.write_frames else []),
-          summary=lambda r: r.summary(), volatile=("max_memory_mb",), raw=True, needs_views=1, per_view=True),
+          summary=lambda r: r.summary(), volatile=("max_memory_mb", "workers"), raw=True, needs_views=1,
+          per_view=True),
     Stage("magnify", _entry("processing", "run"), upstream=_magnify_upstream,
           outputs=lambda cap, s: [cap.paths.magnified_dir(s.method)],
           summary=lambda r: r.summary(), volatile=("workers",), raw=True, needs_views=1, per_view=True),

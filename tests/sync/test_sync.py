@@ -104,11 +104,12 @@ def test_rejected_takes_are_excluded_with_their_reason_or_repaired(sim_capture):
 def test_band_by_band_alignment_matches_and_impulse_normalisation_scales_the_motion(sim_capture, tmp_path):
     cap = _copy(sim_capture, tmp_path / "cap")
     base = SyncSettings(camera_trigger_delay_s=TRIGGER_DELAY_S, check_with_image=False)
-    one = sync_capture(cap, base, progress=False)
+    one = sync_capture(cap, SyncSettings(**{**base.__dict__, "workers": 2}), progress=False)   # a process pool
     t = one.ok[1]
     with AlignedTake(cap.paths.root / t.aligned_file) as a:
         whole = a.read_frames()
-    banded = sync_capture(cap, SyncSettings(**{**base.__dict__, "max_memory_mb": 2.0}), progress=False)
+    # in bands of rows, one take after another in this process: the same frames
+    banded = sync_capture(cap, SyncSettings(**{**base.__dict__, "max_memory_mb": 2.0, "workers": 1}), progress=False)
     with AlignedTake(cap.paths.root / banded.ok[1].aligned_file) as a:
         assert a._file["frames"].chunks[1] < a.frame_shape[0]  # it really went in bands of rows
         np.testing.assert_array_equal(a.read_frames(), whole)
