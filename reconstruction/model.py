@@ -433,6 +433,14 @@ class DynamicScene:
         """(T, N, 3) displacement of every Gaussian in metres, the frames' magnification divided out."""
         return self.displacement_m / self.source_alpha
 
+    def turns_rad(self) -> np.ndarray:
+        """(T, N, 3) each Gaussian's rotation from rest as trained (x source_alpha), as a rotation vector: a modal
+        model's basis times its rotation shapes, the per-timestep model's from its orientations."""
+        if self.basis is not None:
+            return np.einsum("tk,nkc->tnc", self.basis, self.rot_shapes_rad)
+        q = quat_normalize(torch.as_tensor(self.quats, dtype=torch.float64))
+        return quat_to_rotvec(quat_multiply(q, quat_conjugate(q[:1]))).numpy()
+
     def state(self, time_s: float, alpha: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Scene-coordinate means and quaternions at time_s: linear between timesteps, clamped to the trained
         range. alpha: the magnification to show (None: as trained); displacements and rotation vectors from rest

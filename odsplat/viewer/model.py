@@ -309,9 +309,7 @@ def _scene(capture: Capture, sc, doc: dict | None) -> Scene:
     q0 = np.asarray(sc.quats[0], np.float64)
     q0 = q0 / np.linalg.norm(q0, axis=1, keepdims=True)
     disp = (sc.displacement_m / sc.source_alpha).astype(np.float32)
-    # a modal model's turns from rest are its basis times its rotation shapes; the per-timestep model's, from quats
-    rot = (_rotvec_from_rest(np.asarray(sc.quats, np.float64), q0) if sc.basis is None else
-           np.einsum("tk,nkc->tnc", sc.basis, sc.rot_shapes_rad)) / sc.source_alpha
+    rot = sc.turns_rad() / sc.source_alpha
     rms = np.sqrt(np.mean(np.sum(disp.astype(np.float64) ** 2, axis=2), axis=0))
     quiet = np.median(np.sort(rms)[: max(1, len(rms) // 4)])
     moving = rms > MOVING_FACTOR * max(quiet, 1e-12)
@@ -330,21 +328,6 @@ def _scene(capture: Capture, sc, doc: dict | None) -> Scene:
                  g.opacities.double().numpy().astype(np.float32), g.colors.double().numpy().astype(np.float32),
                  np.asarray(sc.background, np.float32), np.asarray(sc.times_s, float), disp, rot.astype(np.float32),
                  keep, rule, rms)
-
-
-def _rotvec_from_rest(q: np.ndarray, q0: np.ndarray) -> np.ndarray:
-    """(T, N, 3) rotation vectors of q q0^-1 (quaternions w, x, y, z)."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w0, v0 = q0[:, 0], -q0[:, 1:]                      # conjugate of q0
-    w, v = q[..., 0], q[..., 1:]
-    rw = w * w0 - np.sum(v * v0, axis=-1)
-    rv = w[..., None] * v0 + w0[:, None] * v + np.cross(v, v0)
-    sign = np.where(rw < 0, -1.0, 1.0)
-    rw, rv = rw * sign, rv * sign[..., None]
-    s = np.linalg.norm(rv, axis=-1)
-    angle = 2 * np.arctan2(s, rw)
-    k = np.where(s > 1e-12, angle / np.maximum(s, 1e-300), 2.0)
-    return rv * k[..., None]
 
 
 def _quat_from_rotvec(r: np.ndarray) -> np.ndarray:

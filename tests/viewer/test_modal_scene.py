@@ -1,5 +1,5 @@
 """The viewer on a modal model's file (the linear model's default): its turns from rest come from the basis and the
-rotation shapes the file holds, and equal what the orientations multiplied out from them give."""
+rotation shapes the file holds (DynamicScene.turns_rad), and equal what the orientations multiplied out give."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +7,7 @@ import torch
 
 from odsplat.reconstruction import DynamicScene, Gaussians, SceneFrame
 from odsplat.reconstruction.model import modal_quats
-from odsplat.viewer.model import _rotvec_from_rest, _scene
+from odsplat.viewer.model import _scene
 
 
 def test_a_modal_models_motion_and_turns_reach_the_viewer(captures, tmp_path):
@@ -31,5 +31,8 @@ def test_a_modal_models_motion_and_turns_reach_the_viewer(captures, tmp_path):
     back = DynamicScene.read(tmp_path / "trajectories.npz")
     view = _scene(cap, back, None)
     assert np.allclose(view.rotvec_rad, np.einsum("tk,nkc->tnc", basis, rot) / alpha, atol=1e-7)
-    assert np.allclose(view.rotvec_rad, _rotvec_from_rest(back.quats, q_rest) / alpha, atol=1e-7)
+    # the same turns as the orientations multiplied out give, read as the per-timestep model reads them
+    from_quats = DynamicScene(back.times_s, back.frame_index, points, back.displacement_m, back.quats, rest, frame, 8,
+                              np.array([0.0]), alpha)
+    assert np.allclose(view.rotvec_rad, from_quats.turns_rad() / alpha, atol=1e-7)
     assert np.allclose(view.displacement_m, np.einsum("tk,nkc->tnc", basis, shapes) / alpha, atol=1e-10)
