@@ -773,10 +773,17 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
     partial_path = Path(partial_path)
     name = partial_path.name[: -len(PARTIAL_SUFFIX)]
     final_path = partial_path.with_name(name + ".h5")
+    crashed_path = partial_path.with_name(name + CRASHED_SUFFIX)
+    tmp_final = final_path.with_name(name + ".recovering.h5")
     try:
         src = h5py.File(partial_path, "r", swmr=True)
+    except BlockingIOError as exc:  # HDF5's file lock: a writer still has it open
+        return RecoveryReport(name, False, 0, 0, f"{partial_path}: in use by another process (a capture still "
+                              f"recording?), left in place ({exc})")
     except OSError as exc:
-        return RecoveryReport(name, False, 0, 0, f"{partial_path}: unreadable, left in place ({exc})")
+        return _set_aside(partial_path, crashed_path, f"unreadable as HDF5 ({exc}); a writer killed while creating "
+                          "the file leaves it so, before any frame or sample is written")
+    writer = None
     with src:
         try:
             check_schema(src.attrs.get("odsplat_schema", "missing"), where=str(partial_path))
@@ -795,7 +802,6 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
                     channels += [ChannelInfo(**json.loads(g[n].attrs["info"])) for n in node_names]
                     can[node] = (node_names, min(g[n].shape[0] for n in ["times_s", *node_names]))
             attrs = {k: v for k, v in src.attrs.items() if k not in ("odsplat_schema", "kind", "complete", "recovered")}
-            tmp_final = final_path.with_name(name + ".recovering.h5")
             for leftover in (tmp_final, tmp_final.with_name(name + ".recovering" + PARTIAL_SUFFIX)):
                 leftover.unlink(missing_ok=True)
             writer = TakeWriter(
@@ -819,16 +825,32 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
                     g = src["can"][node]
                     writer.append_can_samples(node, g["times_s"][:m], {n: g[n][:m] for n in node_names})
         except (OSError, KeyError, ValueError) as exc:
-            return RecoveryReport(name, False, 0, 0, f"{partial_path}: could not be recovered, left in place ({exc})")
+            if writer is not None:
+                writer.close_unfinished()
+            for leftover in (tmp_final, tmp_final.with_name(name + ".recovering" + PARTIAL_SUFFIX)):
+                leftover.unlink(missing_ok=True)  # our own half-made copy, not recorded data
+            src.close()
+            what = ("its writer stopped while creating it, before any frame or sample was written"
+                    if isinstance(exc, KeyError) else "could not be copied")
+            return _set_aside(partial_path, crashed_path, f"{what} ({type(exc).__name__}: {exc})")
     message = (f"recovered after a crash: {n_frames} frames and {n_samples} samples were flushed before the writer "
                "stopped")
     writer.set_qc(QCInfo(status="unchecked", flags=("recovered",), notes=message))
     writer.finalize(recovered=True)
-    os.replace(partial_path, partial_path.with_name(name + CRASHED_SUFFIX))
+    os.replace(partial_path, crashed_path)
     os.replace(tmp_final, final_path)
     fsync_path(final_path.parent)
     log.warning("%s: %s", partial_path, message)
     return RecoveryReport(name, True, n_frames, n_samples, message, final_path)
+
+
+def _set_aside(partial_path: Path, crashed_path: Path, why: str) -> RecoveryReport:
+    """Keep an unfinished take that cannot be recovered as `<name>.h5.crashed`, so no resume trips over it again."""
+    os.replace(partial_path, crashed_path)
+    fsync_path(crashed_path.parent)
+    message = f"not recovered: {why}; the file is kept as {crashed_path.name}"
+    log.warning("%s: %s", partial_path, message)
+    return RecoveryReport(crashed_path.name[: -len(CRASHED_SUFFIX)], False, 0, 0, message, crashed_path)
 
 
 class Capture:

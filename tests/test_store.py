@@ -93,6 +93,36 @@ def test_raw_takes_are_written_once(tmp_path):
         cap.new_take("t", channels=[])
 
 
+
+def test_a_take_killed_while_being_created_is_set_aside_not_left_in_the_way(tmp_path):
+    """A SIGKILL before HDF5 wrote the header leaves an empty or headless `.partial`: nothing was recorded in it, but
+    resume must not trip over it, and it is kept. A file another process holds open is left alone."""
+    cap = Capture.create(tmp_path / "cap", _manifest())
+    cap.takes_dir.mkdir(exist_ok=True)
+    (cap.takes_dir / "empty.h5.partial").write_bytes(b"")
+    with h5py.File(cap.takes_dir / "headless.h5.partial", "w", libver="latest") as f:
+        f.attrs.update({"odsplat_schema": "1.0", "kind": "take"})  # killed before its groups were made
+    busy = cap.takes_dir / "busy.h5.partial"
+    holder = subprocess.Popen([sys.executable, "-c", "import h5py, sys, time; f = h5py.File(sys.argv[1], 'w'); "
+                               "print('open', flush=True); time.sleep(60)", str(busy)], stdout=subprocess.PIPE,
+                              text=True)
+    try:
+        assert holder.stdout.readline().strip() == "open"
+        reports = {r.name: r for r in cap.recover()}
+    finally:
+        holder.kill()
+        holder.wait()
+    assert set(reports) == {"busy", "empty", "headless"}
+    assert not any(r.recovered for r in reports.values())
+    assert "in use by another process" in reports["busy"].message and busy.exists()
+    assert "unreadable as HDF5" in reports["empty"].message
+    assert "before any frame or sample was written" in reports["headless"].message
+    for name in ("empty", "headless"):
+        assert (cap.takes_dir / f"{name}.h5.crashed").exists() and reports[name].path.name == f"{name}.h5.crashed"
+    assert cap.partial_takes() == [busy] and cap.take_names() == []
+    assert not list(cap.takes_dir.glob("*recovering*"))
+
+
 def test_reader_refuses_unknown_major_version(tmp_path):
     cap = Capture.create(tmp_path / "cap", _manifest())
     with cap.new_take("t", channels=[]) as w:
