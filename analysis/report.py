@@ -166,6 +166,13 @@ def _video(doc: dict) -> str:
             out.append(f" ({escape(str(v.get('structure_rule', '')))}); the {int(v['n_background_points'])} "
                        f"points of the background (floor, base) are left out of the shapes, and move "
                        f"{_num(v.get('background_rms_um'), '.3g')} &micro;m rms: the video's noise in the open")
+            if v.get("background_amplitude_ratio") is not None:
+                out.append(f". In the modes above the noise floor the background reads "
+                           f"{_num(v.get('background_amplitude_um'), '.3g')} &micro;m (median, the "
+                           f"{int(v.get('n_background_reference_points', 0))} points seen by as many views as the "
+                           f"structure), {_num(v['background_amplitude_ratio'], '.1f', 100)} % of the structure's "
+                           f"median amplitude ({_num(v.get('background_amplitude_ratio_all'), '.1f', 100)} % over "
+                           "the whole background): the shapes' noise against their motion")
     if "window_s" in v and len(v["window_s"]) == 2:
         out.append(f"; window {_num(v['window_s'][0], '.1f', 1e3)} to {_num(v['window_s'][1], '.1f', 1e3)} ms")
     if "condition" in v:

@@ -53,6 +53,17 @@ class VideoModes:
     n_background: int = 0
     background_rms_m: float = float("nan")
     structure_rule: str = ""
+    # the background's median modal amplitude (metres, the modes above the noise floor) where it is seen by as
+    # many views as the structure, that over the structure's, the same ratio over all of it, and how many points
+    # the first takes (analyze.background_ratio)
+    background_amplitude_m: float = float("nan")
+    background_ratio: float = float("nan")
+    background_ratio_all: float = float("nan")
+    n_background_reference: int = 0
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None   # JSON has no NaN
 
 
 @dataclass(frozen=True)
@@ -99,6 +110,10 @@ class AnalysisResult:
                             "n_background_points": v.n_background, "structure_rule": v.structure_rule,
                             "background_rms_um": float(1e6 * v.background_rms_m)
                             if np.isfinite(v.background_rms_m) else None,
+                            "background_amplitude_um": _finite(1e6 * v.background_amplitude_m),
+                            "background_amplitude_ratio": _finite(v.background_ratio),
+                            "background_amplitude_ratio_all": _finite(v.background_ratio_all),
+                            "n_background_reference_points": v.n_background_reference,
                             "crosscheck": [dataclasses.asdict(c) for c in v.crosscheck]}
             if v.noise is not None:
                 out["video"]["noise_floor"] = v.noise.summary(m.freq_hz[v.mode_index])

@@ -14,8 +14,10 @@ from click.testing import CliRunner
 
 from odsplat.analysis.analyze import AnalyzeSettings, analyze_capture
 from odsplat.analysis.correlation import mac, modal_scale_factor
+from odsplat.analysis.crosscheck import views_seeing
 from odsplat.analysis.export import read_results_h5
 from odsplat.analysis.noise import FLOOR_SIGMAS
+from odsplat.analysis.ods import decay_design
 from odsplat.analysis.outputs import FORCE_NODE, NO_NODE, records
 from odsplat.cli import main
 from odsplat.errors import InputError
@@ -509,6 +511,29 @@ def test_shapes_and_exports_are_the_structures_not_the_backgrounds(capture):
         p = res.video.surface_points_m
         assert res.video.n_background == 1500 and np.all(p[:, 2] > 0.01)
         assert "above the floor" in res.video.structure_rule and "moving" not in res.video.structure_rule
+        # The floor does not move: its modal amplitude is the fit's response to 5 um of white noise, whose size
+        # follows from the decay fit's design (sigma^2 (A^T A)^-1 per cosine and sine term, 3 axes, the modes above
+        # the noise floor; the analysis fits after t = 1.5 ms).
+        v = res.video
+        t = v.times_s[v.times_s >= 1.5e-3]
+        design = decay_design(t, v.poles_rad_s)
+        cov = np.diag(np.linalg.inv(design.T @ design))
+        R, above = len(v.poles_rad_s), ~v.noise.below
+        expected = sigma * np.sqrt(3 * np.sum((cov[:R] + cov[R:2 * R])[above]))
+        assert v.background_amplitude_m == pytest.approx(expected, rel=0.1), (v.background_amplitude_m, expected)
+        # The reference is the floor the cameras see as well as the structure: not all of a 1.2 m square. Its noise
+        # is the same everywhere here, so the ratio is the whole floor's.
+        seen = views_seeing(capture, np.concatenate([floor, p, [[10.0, 0.0, 0.0]]]))
+        assert seen[-1] == 0 and np.median(seen[1500:-1]) == len(load_sync(capture).ok)
+        assert v.n_background_reference == np.sum(seen[:1500] >= np.median(views_seeing(capture, p)))
+        assert 100 < v.n_background_reference < 1500
+        assert v.background_ratio == pytest.approx(v.background_ratio_all, rel=0.2)
+        assert v.background_ratio > 0   # (the still base is the structure's here: its median is low)
+        doc = json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text())["video"]
+        assert doc["background_amplitude_ratio"] == pytest.approx(v.background_ratio)
+        assert doc["background_amplitude_um"] == pytest.approx(1e6 * v.background_amplitude_m)
+        from odsplat.analysis import write_report
+        assert "the shapes' noise against their motion" in write_report(capture).read_text()
         # With the motion test as well, the base's static face goes too
         res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False,
                                                        structure_motion=True))
