@@ -307,7 +307,7 @@ def background_ratio(capture: Capture, points_m: np.ndarray, amplitudes: np.ndar
     median modal amplitude (metres, root sum of squares over those modes and the three axes) and that over the
     structure's, where it is seen by as many views as the median structure point (the floor under and around the
     structure, observed as well as it is); the same ratio over the whole background; and how many points the
-    first takes. On the demo the floor's edges are in a quarter fewer views and carry 2-4x the noise."""
+    first takes. On the demo the floor's far edges are in 28-48 % fewer views and carry 2-4x the noise."""
     if keep.all() or not keep.any():
         return float("nan"), float("nan"), float("nan"), 0
     a = np.asarray(amplitudes).reshape(len(below), -1, 3)[~np.asarray(below, bool)]

@@ -108,8 +108,7 @@ class AnalysisResult:
                             "window_s": [float(v.times_s[0]), float(v.times_s[-1])],
                             "n_surface_points": int(len(v.surface_points_m)), "shapes_from": v.shapes_from,
                             "n_background_points": v.n_background, "structure_rule": v.structure_rule,
-                            "background_rms_um": float(1e6 * v.background_rms_m)
-                            if np.isfinite(v.background_rms_m) else None,
+                            "background_rms_um": _finite(1e6 * v.background_rms_m),
                             "background_amplitude_um": _finite(1e6 * v.background_amplitude_m),
                             "background_amplitude_ratio": _finite(v.background_ratio),
                             "background_amplitude_ratio_all": _finite(v.background_ratio_all),

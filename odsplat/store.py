@@ -775,6 +775,7 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
     final_path = partial_path.with_name(name + ".h5")
     crashed_path = partial_path.with_name(name + CRASHED_SUFFIX)
     tmp_final = final_path.with_name(name + ".recovering.h5")
+    half_made = (tmp_final, tmp_final.with_name(name + ".recovering" + PARTIAL_SUFFIX))   # our copy, not data
     try:
         src = h5py.File(partial_path, "r", swmr=True)
     except BlockingIOError as exc:  # HDF5's file lock: a writer still has it open
@@ -802,7 +803,7 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
                     channels += [ChannelInfo(**json.loads(g[n].attrs["info"])) for n in node_names]
                     can[node] = (node_names, min(g[n].shape[0] for n in ["times_s", *node_names]))
             attrs = {k: v for k, v in src.attrs.items() if k not in ("odsplat_schema", "kind", "complete", "recovered")}
-            for leftover in (tmp_final, tmp_final.with_name(name + ".recovering" + PARTIAL_SUFFIX)):
+            for leftover in half_made:
                 leftover.unlink(missing_ok=True)
             writer = TakeWriter(
                 tmp_final,
@@ -827,8 +828,8 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
         except (OSError, KeyError, ValueError) as exc:
             if writer is not None:
                 writer.close_unfinished()
-            for leftover in (tmp_final, tmp_final.with_name(name + ".recovering" + PARTIAL_SUFFIX)):
-                leftover.unlink(missing_ok=True)  # our own half-made copy, not recorded data
+            for leftover in half_made:
+                leftover.unlink(missing_ok=True)
             src.close()
             what = ("its writer stopped while creating it, before any frame or sample was written"
                     if isinstance(exc, KeyError) else "could not be copied")
