@@ -60,11 +60,16 @@ def views_seeing(capture: Capture, points_m: np.ndarray) -> np.ndarray | None:
     for p in poses.values():
         K = np.asarray(p["K"], float)
         w, h = (cam.width_px, cam.height_px) if cam.width_px and cam.height_px else (2 * K[0, 2], 2 * K[1, 2])
-        pc = pts @ np.asarray(p["R"], float).T + np.asarray(p["t"], float).reshape(3)
-        z = np.where(pc[:, 2] > 0, pc[:, 2], 1.0)
-        u, v = K[0, 0] * pc[:, 0] / z + K[0, 2], K[1, 1] * pc[:, 1] / z + K[1, 2]
-        count += (pc[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        pc, uv = _to_pixels(pts, K, p["R"], p["t"])
+        count += (pc[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
     return count
+
+
+def _to_pixels(points_m: np.ndarray, K, R, t) -> tuple[np.ndarray, np.ndarray]:
+    """World points in a camera's frame (N, 3) and on its pixels (N, 2); those behind it get finite nonsense."""
+    cam = np.asarray(points_m, float) @ np.asarray(R, float).T + np.asarray(t, float).reshape(3)
+    z = cam[:, 2:3]
+    return cam, (cam @ np.asarray(K, float).T)[:, :2] / np.where(z > 0, z, 1.0)
 
 
 def _visible(points_cam: np.ndarray, uv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -103,8 +108,7 @@ def check_view(frames: np.ndarray, frame_times_s: np.ndarray, motion: SurfaceMot
     pick = np.array([int(np.argmin(np.abs(frame_times_s - ti))) for ti in motion.times_s])
     if np.max(np.abs(frame_times_s[pick] - motion.times_s)) > 1e-6 + 0.01 * np.median(np.diff(frame_times_s)):
         raise InputError(f"{take}: times_s", "the synced frames do not hold the reconstruction's timesteps")
-    cam = motion.points_m @ R.T + t
-    uv = (cam @ K.T)[:, :2] / cam[:, 2:3]
+    cam, uv = _to_pixels(motion.points_m, K, R, t)
     h, w = frames.shape[1:3]
     margin = window_px // 2 + 3
     ok = _visible(cam, uv, (h, w)) & (uv[:, 0] >= margin) & (uv[:, 0] < w - margin) & (uv[:, 1] >= margin) \

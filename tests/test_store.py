@@ -93,7 +93,6 @@ def test_raw_takes_are_written_once(tmp_path):
         cap.new_take("t", channels=[])
 
 
-
 def test_a_take_killed_while_being_created_is_set_aside_not_left_in_the_way(tmp_path):
     """A SIGKILL before HDF5 wrote the header leaves an empty or headless `.partial`: nothing was recorded in it, but
     resume must not trip over it, and it is kept. A file another process holds open is left alone."""
