@@ -24,7 +24,7 @@ from .crosscheck import crosscheck_views, views_seeing
 from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_frf_hit, estimate_frf
 from .imagepoles import image_poles
-from .noise import noise_floor
+from .noise import noise_floor, real_modes
 from .ods import (
     POLE_MIN_SIGNIFICANCE,
     SurfaceMotion,
@@ -81,6 +81,8 @@ class AnalyzeSettings:
     structure_motion: bool | None = None             # ... and moving above their noise; None: only where no box
                                                      # is given and the capture has no floor tags
     measured_motion: bool = True                     # fit the shapes to its unfiltered motion when it has one
+    real_modes: bool = True                          # each mode's shape on its common phase where what lies out
+    #                                                  of it is noise (noise.real_modes; complex modes stay)
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
     outlier_factor: float | None = 2.0               # drop those whose motion strays this far (SurfaceMotion.at_points)
@@ -287,6 +289,13 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     checks = crosscheck_views(capture, model, max_views=s.crosscheck_views, n_points=s.crosscheck_points,
                               k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []
+    # Real (normal) modes where the structure's shapes are real within the noise: half the noise power goes
+    shapes = None
+    if s.real_modes and noise is not None:
+        on = np.flatnonzero(keep) if keep.any() else np.arange(len(keep))
+        shapes = real_modes(fit, t, (n_s + 3 * on[:, None] + np.arange(3)).ravel(),
+                            np.repeat(noise.point_sigma_m[on], 3), noise.spectrum_gain)
+        fit = dataclasses.replace(fit, amplitudes=shapes.apply(fit.amplitudes))
     residues = fit.residues(F)
     disp = motion.displacement_m[:, ~keep]                                          # (T, N_bg, 3)
     background = float(np.median(np.sqrt(np.mean((disp - disp.mean(axis=0)) ** 2, axis=(0, 2))))) \
@@ -298,7 +307,7 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     return VideoModes(poles, np.flatnonzero(use), residues[:, :n_s], motion.points_m[keep],
                       residues[:, n_s:].reshape(len(poles), -1, 3)[:, keep], fit.r2[:n_s], fit.condition, f_hz,
                       zeta, t, at_sensors, tuple(checks), shapes_from, noise, int((~keep).sum()), background, rule,
-                      *ratio)
+                      *ratio, real_modes=shapes)
 
 
 def background_ratio(capture: Capture, points_m: np.ndarray, amplitudes: np.ndarray, keep: np.ndarray,
@@ -441,6 +450,12 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
                          f"({_length(video.noise.mode_amplitude_m[r])} against "
                          f"{_length(video.noise.mode_floor_m[r])} at the sensors): the noise alone allows its shape "
                          f"a MAC of {video.noise.expected_mac[r]:.2f}, too little to judge (MAC and scale not judged)")
+        rm = video.real_modes
+        for r in np.flatnonzero(~rm.real if rm is not None else np.zeros(0, bool)):
+            notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): a complex mode in the video "
+                         f"(MPC {rm.mpc[r]:.2f}; {100 * rm.lost[r]:.0f} % of its shape out of phase, "
+                         f"{rm.quadrature_ratio[r]:.1f} x what the noise puts there): its shape is left complex, with "
+                         "the noise's full power; a time shift between views or non-proportional damping does this")
         if below.any() and len(ods_f):
             # An ODS line is the sum of every mode's term: where the terms of modes below the floor carry most of
             # it at the sensors, the video's ODS there is their noise too.

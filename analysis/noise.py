@@ -15,6 +15,9 @@ It is set by the MAC verdict (verdict.MIN_MAC = 0.9), which must not fail on noi
 and 30 % at 6 (simulated, 20000 draws each), so a perfect video of a mode just above the floor was judged "not met"
 one time in four; at 4.36 sigma, 1 % (0.25 % through the decay fit at the demo's record and poles,
 tests/analysis/test_noise.py). Below the floor the MAC says nothing about the video.
+
+The same noise says which mode shapes are real within it (`real_modes`): their part out of their common phase is
+the noise's, and projecting it away halves the noise's power in them.
 """
 from __future__ import annotations
 
@@ -124,6 +127,75 @@ def design_gains(times_s: np.ndarray, poles_rad_s: np.ndarray, t_min_s: float, o
     R = len(np.atleast_1d(poles_rad_s))
     d = np.diag(cov)
     return np.sqrt(np.maximum(d[:R] + d[R:2 * R], 0.0))
+
+
+QUADRATURE_SIGNIFICANT = 1.5  # a mode's energy out of phase, over the noise's there, above which it may be complex
+MAX_LOST = 0.02               # the share of a mode's shape (above the noise) that one common phase may leave out
+
+
+@dataclass(frozen=True)
+class RealModes:
+    """The video's mode shapes as real (normal) modes: each one real vector times a common complex factor, where
+    what lies out of that phase is the noise's. A lightly and proportionally damped structure has real modes; the
+    decay fit gives every channel a free phase, so half its noise power lies out of phase, and the projection drops
+    it. A mode whose part out of phase stands above the noise (a complex mode: non-proportional damping, or a time
+    shift between views) keeps its complex shape."""
+
+    phase_rad: np.ndarray         # (R,) each mode's common phase: its shape's principal direction in the complex plane
+    mpc: np.ndarray               # (R,) modal phase collinearity of the complex shape: (|sum z^2| / sum |z|^2)^2
+    quadrature_ratio: np.ndarray  # (R,) its energy out of phase over what the noise alone puts there (about 1: noise)
+    lost: np.ndarray              # (R,) the share of its energy above the noise that lies out of phase
+    real: np.ndarray              # (R,) bool: projected onto its phase
+
+    def apply(self, amplitudes: np.ndarray) -> np.ndarray:
+        """(R, M) amplitudes with each real mode's on its common phase: e^(i phase) Re(e^(-i phase) C)."""
+        a = np.array(amplitudes, complex)
+        ph = np.exp(1j * self.phase_rad[self.real])[:, None]
+        a[self.real] = ph * np.real(a[self.real] / ph)
+        return a
+
+    def summary(self, freq_hz: np.ndarray) -> list[dict]:
+        return [{"freq_hz": float(f), "mpc": float(m), "quadrature_over_noise": float(q), "lost": float(x),
+                 "real": bool(r)} for f, m, q, x, r in zip(freq_hz, self.mpc, self.quadrature_ratio, self.lost,
+                                                           self.real)]
+
+
+def real_modes(fit: DecayFit, times_s, channels: np.ndarray, channel_sigma_m: np.ndarray,
+               spectrum_gain: np.ndarray | None = None) -> RealModes:
+    """Which of a decay fit's modes are real within the noise, and their common phases, judged on `channels` (K,)
+    (the structure's: the fit's column indices) with their noise per timestep channel_sigma_m (K,) (white-equivalent;
+    spectrum_gain (R,) its level at each mode over the mean, as NoiseFloor has it). The noise a channel's 2C gets
+    in phase and out of it is sigma^2 times the fit's (A^T A)^-1 for the mode's cosine and sine terms, turned by the
+    phase. A mode stays complex where its energy out of phase exceeds QUADRATURE_SIGNIFICANT x the noise's and the
+    excess is more than MAX_LOST of its energy above the noise."""
+    t = np.asarray(times_s, float).reshape(-1)
+    poles = fit.poles_rad_s
+    R = len(poles)
+    z = 2 * np.asarray(fit.amplitudes, complex)[:, np.asarray(channels)]          # (R, K)
+    sig2 = np.asarray(channel_sigma_m, float) ** 2
+    gain = np.ones(R) if spectrum_gain is None else np.asarray(spectrum_gain, float)
+    A = decay_design(t[t >= fit.t_min_s], poles)
+    cov = np.linalg.pinv(A.T @ A)
+    phase, mpc, ratio, lost = (np.zeros(R) for _ in range(4))
+    for r in range(R):
+        s2 = np.sum(z[r] ** 2)
+        energy = float(np.sum(np.abs(z[r]) ** 2))
+        phase[r] = 0.5 * np.angle(s2)
+        mpc[r] = (abs(s2) / energy) ** 2 if energy > 0 else 1.0
+        c, s = np.cos(phase[r]), np.sin(phase[r])
+        caa, cbb, cab = cov[r, r], cov[R + r, R + r], cov[r, R + r]
+        # 2C = a - ib, so e^(-i phase) 2C = (a c - b s) - i (a s + b c)
+        e_in = gain[r] * np.sum(sig2) * (c * c * caa + s * s * cbb - 2 * c * s * cab)
+        e_out = gain[r] * np.sum(sig2) * (s * s * caa + c * c * cbb + 2 * c * s * cab)
+        w = z[r] * np.exp(-1j * phase[r])
+        p_in, p_out = float(np.sum(w.real ** 2)), float(np.sum(w.imag ** 2))
+        ratio[r] = p_out / max(e_out, 1e-300)
+        signal = p_in - e_in + p_out - e_out
+        lost[r] = max(p_out - e_out, 0.0) / signal if signal > 0 else 0.0
+    real = ~((ratio > QUADRATURE_SIGNIFICANT) & (lost > MAX_LOST))
+    log.info("video mode shapes: MPC %s; out of phase / noise %s; real: %s", np.round(mpc, 3), np.round(ratio, 2),
+             real.astype(int))
+    return RealModes(phase, mpc, ratio, lost, real)
 
 
 MOVING_FALSE_ALARM = 1e-3   # the chance that a point of noise alone is taken for a moving one

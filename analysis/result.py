@@ -11,7 +11,7 @@ from .crosscheck import ViewCheck
 from .ema import ModalFit
 from .frf import FRFResult
 from .imagepoles import ImagePoles
-from .noise import NoiseFloor
+from .noise import NoiseFloor, RealModes
 from .verdict import Verdict
 
 
@@ -60,6 +60,7 @@ class VideoModes:
     background_ratio: float = float("nan")
     background_ratio_all: float = float("nan")
     n_background_reference: int = 0
+    real_modes: RealModes | None = None      # the shapes as real modes where the noise allows (noise.real_modes)
 
 
 def _finite(x: float) -> float | None:
@@ -116,6 +117,8 @@ class AnalysisResult:
                             "crosscheck": [dataclasses.asdict(c) for c in v.crosscheck]}
             if v.noise is not None:
                 out["video"]["noise_floor"] = v.noise.summary(m.freq_hz[v.mode_index])
+            if v.real_modes is not None:
+                out["video"]["real_modes"] = v.real_modes.summary(m.freq_hz[v.mode_index])
             if self.crosscheck_verdict is not None:
                 out["video"]["crosscheck_verdict"] = self.crosscheck_verdict.summary()
             if v.crosscheck:

@@ -16,7 +16,7 @@ from odsplat.analysis.analyze import AnalyzeSettings, analyze_capture
 from odsplat.analysis.correlation import mac, modal_scale_factor
 from odsplat.analysis.crosscheck import views_seeing
 from odsplat.analysis.export import read_results_h5
-from odsplat.analysis.noise import FLOOR_SIGMAS
+from odsplat.analysis.noise import FLOOR_SIGMAS, MAX_LOST
 from odsplat.analysis.ods import decay_design
 from odsplat.analysis.outputs import FORCE_NODE, NO_NODE, records
 from odsplat.cli import main
@@ -512,14 +512,20 @@ def test_shapes_and_exports_are_the_structures_not_the_backgrounds(capture):
         assert res.video.n_background == 1500 and np.all(p[:, 2] > 0.01)
         assert "above the floor" in res.video.structure_rule and "moving" not in res.video.structure_rule
         # The floor does not move: its modal amplitude is the fit's response to 5 um of white noise, whose size
-        # follows from the decay fit's design (sigma^2 (A^T A)^-1 per cosine and sine term, 3 axes, the modes above
-        # the noise floor; the analysis fits after t = 1.5 ms).
+        # follows from the decay fit's design (sigma^2 (A^T A)^-1 for the cosine and sine terms, 3 axes, the modes
+        # above the noise floor; the analysis fits after t = 1.5 ms), on each mode's common phase: the structure's
+        # modes are real, so the shapes keep the noise in phase only.
         v = res.video
+        assert v.real_modes.real.all(), v.real_modes
+        assert np.all(np.abs(v.real_modes.quadrature_ratio - 1) < 0.3), v.real_modes.quadrature_ratio
         t = v.times_s[v.times_s >= 1.5e-3]
         design = decay_design(t, v.poles_rad_s)
-        cov = np.diag(np.linalg.inv(design.T @ design))
+        cov = np.linalg.inv(design.T @ design)
         R, above = len(v.poles_rad_s), ~v.noise.below
-        expected = sigma * np.sqrt(3 * np.sum((cov[:R] + cov[R:2 * R])[above]))
+        c, s = np.cos(v.real_modes.phase_rad), np.sin(v.real_modes.phase_rad)
+        r = np.arange(R)
+        in_phase = c * c * cov[r, r] + s * s * cov[R + r, R + r] - 2 * c * s * cov[r, R + r]
+        expected = sigma * np.sqrt(3 * np.sum(in_phase[above]))
         assert v.background_amplitude_m == pytest.approx(expected, rel=0.1), (v.background_amplitude_m, expected)
         # The reference is the floor the cameras see as well as the structure: not all of a 1.2 m square. Its noise
         # is the same everywhere here, so the ratio is the whole floor's.
@@ -533,7 +539,10 @@ def test_shapes_and_exports_are_the_structures_not_the_backgrounds(capture):
         assert doc["background_amplitude_ratio"] == pytest.approx(v.background_ratio)
         assert doc["background_amplitude_um"] == pytest.approx(1e6 * v.background_amplitude_m)
         from odsplat.analysis import write_report
-        assert "the shapes' noise against their motion" in write_report(capture).read_text()
+        page = write_report(capture).read_text()
+        assert "the shapes' noise against their motion" in page
+        assert f"{R} of {R} mode shapes are real (normal) modes" in page
+        assert [m["real"] for m in doc["real_modes"]] == [True] * R
         # With the motion test as well, the base's static face goes too
         res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False,
                                                        structure_motion=True))
@@ -571,6 +580,29 @@ def test_shapes_and_exports_are_the_structures_not_the_backgrounds(capture):
         points = np.concatenate([_surface_points(), stray])
         keep, rule = structure_mask(capture, points, AnalyzeSettings())
         assert keep[:-2].all() and not keep[-2:].any() and rule.endswith("not isolated (2 left out)"), rule
+    finally:
+        _write_trajectories(capture)
+
+
+def test_a_time_shift_across_the_structure_reads_as_complex_modes_left_complex(capture):
+    """Half the structure's points (the arm's end) one timestep late, as if seen by views synced 0.5 ms apart: the
+    phase they lag grows with frequency (4 degrees at 23.5 Hz, 47 at 262 Hz). The low modes stay real within
+    their noise and are projected; the high ones are judged complex, kept as fitted, and noted."""
+    _write_trajectories(capture, noise_m=1e-6)
+    path = capture.derived_dir / "reconstruction" / "trajectories.npz"
+    d = dict(np.load(path))
+    late = d["means_rest_m"][:, 0] > np.median(d["means_rest_m"][:, 0])
+    u = d["displacement_m"]
+    u[1:, late] = u[:-1, late].copy()
+    np.savez(path, **d)
+    try:
+        res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False))
+        rm, f = res.video.real_modes, res.modes.freq_hz[res.video.mode_index]
+        assert rm.real[f < 40].all(), (f, rm)
+        assert not rm.real[(f > 200) & (f < 300)].any(), (f, rm)
+        assert np.all(rm.lost[~rm.real] > MAX_LOST) and np.all(rm.mpc[~rm.real] < 0.99)
+        noted = [n for n in res.notes if "a complex mode in the video" in n]
+        assert len(noted) == int((~rm.real).sum()) and any("262.0 Hz" in n for n in noted), res.notes
     finally:
         _write_trajectories(capture)
 
