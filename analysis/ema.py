@@ -390,10 +390,15 @@ class LSFDResult:
         """
         n = self.residues.shape[0]
         psi = self.residues.reshape(n, -1)
-        theta = 0.5 * np.angle(np.sum(psi**2, axis=1))
-        real = (psi * np.exp(-1j * theta)[:, None]).real
+        real = (psi * np.exp(-1j * mean_phase_rad(psi))[:, None]).real
         sign = np.sign(real[np.arange(n), np.argmax(np.abs(real), axis=1)])
         return (real * np.where(sign == 0, 1, sign)[:, None]).reshape(self.residues.shape)
+
+
+def mean_phase_rad(psi: np.ndarray) -> np.ndarray:
+    """(n,) the mean phase of each complex shape psi (n, M): half the angle of sum(psi^2), the direction of the
+    least-squares line through its points in the complex plane (components near 0 and 180 degrees both count)."""
+    return 0.5 * np.angle(np.sum(np.asarray(psi, complex) ** 2, axis=1))
 
 
 def _lsfd_basis(w: np.ndarray, poles: np.ndarray, power: int, residuals: bool) -> np.ndarray:

@@ -28,7 +28,7 @@ import numpy as np
 
 from odsplat.errors import InputError
 
-from .ema import pole_freq_hz
+from .ema import mean_phase_rad, pole_freq_hz
 from .ods import DecayFit, decay_design
 
 log = logging.getLogger(__name__)
@@ -176,12 +176,11 @@ def real_modes(fit: DecayFit, times_s, channels: np.ndarray, channel_sigma_m: np
     gain = np.ones(R) if spectrum_gain is None else np.asarray(spectrum_gain, float)
     A = decay_design(t[t >= fit.t_min_s], poles)
     cov = np.linalg.pinv(A.T @ A)
-    phase, mpc, ratio, lost = (np.zeros(R) for _ in range(4))
+    phase = mean_phase_rad(z)                                 # as ModalFit.normal_mode_shapes turns its shapes
+    mpc, ratio, lost = (np.zeros(R) for _ in range(3))
     for r in range(R):
-        s2 = np.sum(z[r] ** 2)
         energy = float(np.sum(np.abs(z[r]) ** 2))
-        phase[r] = 0.5 * np.angle(s2)
-        mpc[r] = (abs(s2) / energy) ** 2 if energy > 0 else 1.0
+        mpc[r] = (abs(np.sum(z[r] ** 2)) / energy) ** 2 if energy > 0 else 1.0
         c, s = np.cos(phase[r]), np.sin(phase[r])
         caa, cbb, cab = cov[r, r], cov[R + r, R + r], cov[r, R + r]
         # 2C = a - ib, so e^(-i phase) 2C = (a c - b s) - i (a s + b c)
