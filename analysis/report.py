@@ -173,20 +173,21 @@ def _video(doc: dict) -> str:
                            f"structure), {_num(v['background_amplitude_ratio'], '.1f', 100)} % of the structure's "
                            f"median amplitude ({_num(v.get('background_amplitude_ratio_all'), '.1f', 100)} % over "
                            "the whole background): the shapes' noise against their motion")
-    real = [m for m in v.get("real_modes") or [] if isinstance(m, dict)]
-    if real:
-        n_real = sum(bool(m.get("real")) for m in real)
-        ratios = [m.get("quadrature_over_noise") for m in real if m.get("real")]
-        out.append(f". {n_real} of {len(real)} mode shapes are real (normal) modes, each on its common phase: what "
-                   "lay out of phase was noise "
-                   + (f"({_num(min(ratios), '.2f')}-{_num(max(ratios), '.2f')} x the noise's energy there), "
-                      if ratios else "")
-                   + "so half the noise's power is gone from them"
-                   + ("; the others are complex and kept as fitted (notes)" if n_real < len(real) else ""))
     if "window_s" in v and len(v["window_s"]) == 2:
         out.append(f"; window {_num(v['window_s'][0], '.1f', 1e3)} to {_num(v['window_s'][1], '.1f', 1e3)} ms")
     if "condition" in v:
         out.append(f"; condition number {_num(v['condition'], '.3g')}")
+    real = [m for m in v.get("real_modes") or [] if isinstance(m, dict)]
+    if real:
+        n_real = sum(bool(m.get("real")) for m in real)
+        ratios = [m.get("quadrature_over_noise") for m in real if m.get("real")]
+        if n_real:
+            out.append(f". {n_real} of {len(real)} mode shapes are real (normal) modes, each on its common phase: "
+                       f"what lay out of phase was noise ({_num(min(ratios), '.2f')}-{_num(max(ratios), '.2f')} x "
+                       "the noise's energy there), so half the noise's power is gone from them"
+                       + ("; the others are complex and kept as fitted (notes)" if n_real < len(real) else ""))
+        else:
+            out.append(". No mode shape is real within the noise: all are kept complex, as fitted (notes)")
     out.append(".</p>")
     sensors = [str(s) for s in doc.get("sensors", [])]
     r2 = v.get("sensor_r2", [])

@@ -603,6 +603,8 @@ def test_a_time_shift_across_the_structure_reads_as_complex_modes_left_complex(c
         assert np.all(rm.lost[~rm.real] > MAX_LOST) and np.all(rm.mpc[~rm.real] < 0.99)
         noted = [n for n in res.notes if "a complex mode in the video" in n]
         assert len(noted) == int((~rm.real).sum()) and any("262.0 Hz" in n for n in noted), res.notes
+        from odsplat.analysis import write_report
+        assert "the others are complex and kept as fitted" in write_report(capture).read_text()
     finally:
         _write_trajectories(capture)
 
