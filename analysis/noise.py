@@ -81,7 +81,7 @@ class NoiseFloor:
                 "n_static_points": self.n_static, "pre_impact_sigma_um": fin(1e6 * self.pre_impact_sigma_m),
                 "n_pre_impact": self.n_pre_impact, "sensor_sigma_um": (1e6 * self.sensor_sigma_m).tolist(),
                 "point_sigma_um_p10_p90": [float(1e6 * np.percentile(self.point_sigma_m, q)) for q in (10, 90)],
-                "floor_sigmas": FLOOR_SIGMAS,
+                "floor_sigmas": FLOOR_SIGMAS, "floor_mac": FLOOR_MAC,
                 "modes": [{"freq_hz": float(f), "amplitude_um": float(1e6 * a), "floor_um": float(1e6 * fl),
                            "spectrum_gain": float(g), "below_floor": bool(a < fl)}
                           for f, a, fl, g in zip(freq_hz, self.mode_amplitude_m, self.mode_floor_m,

@@ -244,10 +244,12 @@ def _noise(v: dict) -> str:
         parts.append(f"{int(nf.get('n_pre_impact', 0))} timesteps before the impact: "
                      f"{_num(nf.get('pre_impact_sigma_um'), '.3g')} &micro;m")
     k = nf.get("floor_sigmas")
+    at_floor = nf.get("floor_mac", k * k / (k * k + 1) if isinstance(k, (int, float)) else None)  # older files
     return ("<p>The video's noise floor, measured where nothing moves: " + "; ".join(parts)
             + f". A mode needs {_num(k, '.3g')} noise standard deviations of amplitude at the sensors (the noise then "
-            f"allows its shape a MAC of {_num(k * k / (k * k + 1) if isinstance(k, (int, float)) else None, '.2f')}) "
-            "to be judged; the correlation table gives each mode's.</p>")
+            f"allows its complex shape a MAC of {_num(at_floor, '.2f')}; a real mode's shape keeps half the noise's "
+            "power, so it reads at or above what this allows) to be judged; the correlation table gives each "
+            "mode's.</p>")
 
 
 def _products(modes: list[dict], pairs: list[dict]) -> list[tuple[float, str]]:
