@@ -446,10 +446,13 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
                              f"apart from the other modes (MAC and scale not judged); reconstruct at least "
                              f"{1e3 * MIN_CYCLES / f_acc[r]:.0f} ms ([reconstruct] n_timesteps)")
                 continue
+            real = video.real_modes is not None and bool(video.real_modes.real[r])
             notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): below the video's noise floor "
                          f"({_length(video.noise.mode_amplitude_m[r])} against "
-                         f"{_length(video.noise.mode_floor_m[r])} at the sensors): the noise alone allows its shape "
-                         f"a MAC of {video.noise.expected_mac[r]:.2f}, too little to judge (MAC and scale not judged)")
+                         f"{_length(video.noise.mode_floor_m[r])} at the sensors): the noise alone allows its "
+                         f"{'complex ' if real else ''}shape a MAC of {video.noise.expected_mac[r]:.2f}"
+                         f"{' (its real mode keeps half that noise)' if real else ''}, too little to judge (MAC and "
+                         "scale not judged)")
         rm = video.real_modes
         for r in np.flatnonzero(~rm.real if rm is not None else np.zeros(0, bool)):
             notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): a complex mode in the video "
