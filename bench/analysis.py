@@ -22,7 +22,8 @@ analysis' over the baseline's (below 1: the analysis is better); analysis_s is a
 fits, exports and plots), against the baselines' own seconds on the analysis' FRFs and video motion.
 Targets: every true frequency within 1 % (accelerometers; video: over the modes it finds), MAC >= 0.9 at the
 sensors for every mode fitted to the video above its noise floor, as the analysis' own verdict judges (each mode's
-`below_noise_floor` and `expected_mac` are in `video.fitted`).
+`below_noise_floor`, `expected_mac` and `real_mode` are in `video.fitted`); `video.floor_over_structure` is the
+background's median modal amplitude over the structure's (the reference floor; `_all` over the whole background).
 
 `--seeds N` (default 3) records N captures (seeds seed..seed+N-1) and reports, beside each run's figures (`runs`),
 every figure's worst and median over them (`spread`: for errors and times the largest, for MAC, PSNR and counts found
@@ -357,7 +358,8 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float,
                          mac_dft_baseline=float(mac(dft[j], phi_s[r])[0, 0]),
                          scale_factor=float(abs(modal_scale_factor(v.sensor_residues[j], m.shapes[k])[0])),
                          below_noise_floor=bool(v.noise.below[j]) if v.noise is not None else False,
-                         expected_mac=float(v.noise.expected_mac[j]) if v.noise is not None else None))
+                         expected_mac=float(v.noise.expected_mac[j]) if v.noise is not None else None,
+                         real_mode=bool(v.real_modes.real[j]) if v.real_modes is not None else None))
     poles = [dict(true_hz=f_true[r], found=bool(iv[r] >= 0), freq_hz=v.freq_hz[iv[r]] if iv[r] >= 0 else None,
                   freq_err=rel(v.freq_hz[iv[r]], f_true[r]) if iv[r] >= 0 else None) for r in range(len(f_true))]
     found_err = [abs(x["freq_err"]) for x in poles if x["found"]]
@@ -377,7 +379,11 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float,
                          sensor_disp_rel_err=float(np.linalg.norm(got - parts.sum(0)) / np.linalg.norm(parts.sum(0))),
                          min_mac_sensors=float(macs.min()) if len(macs) else None,
                          min_mac_surface=float(min(x["mac_surface"] for x in rows)) if rows else None,
-                         min_mac_dft_baseline=float(dft_macs.min()) if len(dft_macs) else None)
+                         min_mac_dft_baseline=float(dft_macs.min()) if len(dft_macs) else None,
+                         # the background's median modal amplitude over the structure's (issue 31: below 5 %)
+                         floor_over_structure=float(v.background_ratio) if np.isfinite(v.background_ratio) else None,
+                         floor_over_structure_all=float(v.background_ratio_all)
+                         if np.isfinite(v.background_ratio_all) else None)
     figs["ratios"]["mac_err_vs_dft"] = ratio(float(np.mean(1 - macs)), float(np.mean(1 - dft_macs))) if rows else None
     figs["ratios"]["time_vs_dft"] = analysis_s / dft_s
     for x in poles:                    # the reconstruction's own poles, for modes the frames did not give

@@ -33,6 +33,7 @@ def test_bench_analysis_perfect_small(tmp_path, capsys, bench_script):
     for row in video["fitted"]:
         assert row["mac_sensors"] > 0.99 and row["mac_surface"] > 0.99, row
         assert abs(row["scale_factor"] - 1) < 0.1, row
+        assert row["real_mode"] is True, row         # hil_sim's modes are real, and so is the perfect motion
     # the pencil on a 32 ms window finds the modes from 86 Hz up, within 1 %; LSCE, the baseline, finds no more
     assert video["poles_found"] >= 4 and video["max_freq_err"] < 0.01
     assert video["lsce_baseline"]["n_found"] <= video["poles_found"]
