@@ -180,11 +180,14 @@ def _video(doc: dict) -> str:
     real = [m for m in v.get("real_modes") or [] if isinstance(m, dict)]
     if real:
         n_real = sum(bool(m.get("real")) for m in real)
-        ratios = [m.get("quadrature_over_noise") for m in real if m.get("real")]
+        ratios = [float(m["quadrature_over_noise"]) for m in real
+                  if m.get("real") and isinstance(m.get("quadrature_over_noise"), (int, float))]
         if n_real:
             out.append(f". {n_real} of {len(real)} mode shapes are real (normal) modes, each on its common phase: "
-                       f"what lay out of phase was noise ({_num(min(ratios), '.2f')}-{_num(max(ratios), '.2f')} x "
-                       "the noise's energy there), so half the noise's power is gone from them"
+                       "what lay out of phase was noise"
+                       + (f" ({_num(min(ratios), '.2f')}-{_num(max(ratios), '.2f')} x the noise's energy there)"
+                          if ratios else "")
+                       + ", so half the noise's power is gone from them"
                        + ("; the others are complex and kept as fitted (notes)" if n_real < len(real) else ""))
         else:
             out.append(". No mode shape is real within the noise: all are kept complex, as fitted (notes)")
