@@ -436,6 +436,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
         ods_video = receptance(video.sensor_residues, video.poles_rad_s, ods_f)
         below = video.noise.below if video.noise is not None else np.zeros(len(f_acc), bool)
         window_s = float(np.ptp(video.times_s)) if len(video.times_s) > 1 else 0.0
+        rm = video.real_modes
         for r in np.flatnonzero(below):
             cycles = window_s * f_acc[r]
             if cycles < MIN_CYCLES:
@@ -446,14 +447,13 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
                              f"apart from the other modes (MAC and scale not judged); reconstruct at least "
                              f"{1e3 * MIN_CYCLES / f_acc[r]:.0f} ms ([reconstruct] n_timesteps)")
                 continue
-            real = video.real_modes is not None and bool(video.real_modes.real[r])
+            real = rm is not None and bool(rm.real[r])
             notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): below the video's noise floor "
                          f"({_length(video.noise.mode_amplitude_m[r])} against "
                          f"{_length(video.noise.mode_floor_m[r])} at the sensors): the noise alone allows its "
                          f"{'complex ' if real else ''}shape a MAC of {video.noise.expected_mac[r]:.2f}"
                          f"{' (its real mode keeps half that noise)' if real else ''}, too little to judge (MAC and "
                          "scale not judged)")
-        rm = video.real_modes
         for r in np.flatnonzero(~rm.real if rm is not None else np.zeros(0, bool)):
             notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): a complex mode in the video "
                          f"(MPC {rm.mpc[r]:.2f}; {100 * rm.lost[r]:.0f} % of its shape out of phase, "

@@ -177,20 +177,18 @@ def real_modes(fit: DecayFit, times_s, channels: np.ndarray, channel_sigma_m: np
     A = decay_design(t[t >= fit.t_min_s], poles)
     cov = np.linalg.pinv(A.T @ A)
     phase = mean_phase_rad(z)                                 # as ModalFit.normal_mode_shapes turns its shapes
-    mpc, ratio, lost = (np.zeros(R) for _ in range(3))
-    for r in range(R):
-        energy = float(np.sum(np.abs(z[r]) ** 2))
-        mpc[r] = (abs(np.sum(z[r] ** 2)) / energy) ** 2 if energy > 0 else 1.0
-        c, s = np.cos(phase[r]), np.sin(phase[r])
-        caa, cbb, cab = cov[r, r], cov[R + r, R + r], cov[r, R + r]
-        # 2C = a - ib, so e^(-i phase) 2C = (a c - b s) - i (a s + b c)
-        e_in = gain[r] * np.sum(sig2) * (c * c * caa + s * s * cbb - 2 * c * s * cab)
-        e_out = gain[r] * np.sum(sig2) * (s * s * caa + c * c * cbb + 2 * c * s * cab)
-        w = z[r] * np.exp(-1j * phase[r])
-        p_in, p_out = float(np.sum(w.real ** 2)), float(np.sum(w.imag ** 2))
-        ratio[r] = p_out / max(e_out, 1e-300)
-        signal = p_in - e_in + p_out - e_out
-        lost[r] = max(p_out - e_out, 0.0) / signal if signal > 0 else 0.0
+    c, s, r = np.cos(phase), np.sin(phase), np.arange(R)
+    caa, cbb, cab = cov[r, r], cov[R + r, R + r], cov[r, R + r]
+    # 2C = a - ib, so e^(-i phase) 2C = (a c - b s) - i (a s + b c): the noise's energy in phase and out of it
+    e_in = gain * np.sum(sig2) * (c * c * caa + s * s * cbb - 2 * c * s * cab)
+    e_out = gain * np.sum(sig2) * (s * s * caa + c * c * cbb + 2 * c * s * cab)
+    w = z * np.exp(-1j * phase)[:, None]
+    p_in, p_out = np.sum(w.real ** 2, axis=1), np.sum(w.imag ** 2, axis=1)
+    energy = p_in + p_out
+    mpc = np.where(energy > 0, (np.abs(np.sum(z ** 2, axis=1)) / np.maximum(energy, 1e-300)) ** 2, 1.0)
+    ratio = p_out / np.maximum(e_out, 1e-300)
+    signal = energy - e_in - e_out
+    lost = np.where(signal > 0, np.maximum(p_out - e_out, 0.0) / np.maximum(signal, 1e-300), 0.0)
     real = ~((ratio > QUADRATURE_SIGNIFICANT) & (lost > MAX_LOST))
     log.info("video mode shapes: MPC %s; out of phase / noise %s; real: %s", np.round(mpc, 3), np.round(ratio, 2),
              real.astype(int))
