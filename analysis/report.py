@@ -1,15 +1,26 @@
 """A self-contained HTML report of an analysis (derived/analysis/analysis.json and its plots): one file, CSS and
-images inline, that can be mailed."""
+images inline, that can be mailed.
+
+analysis.json is data a user may edit by hand, so nothing in it reaches the page as HTML: this module turns it into
+plain text (numbers formatted, rows listed, flags for the CSS classes), and the Jinja2 templates in `templates/`
+lay that out with every value escaped. Images are inlined only from files the analysis itself wrote in its own
+folder (`_own_file`), read here and encoded here; a file name that leads anywhere else is shown, escaped, with why
+it was left out."""
 from __future__ import annotations
 
 import base64
+import html
 import io
 import json
 import logging
-from html import escape
-from pathlib import Path
+import math
+import os
+import stat
+from pathlib import Path, PurePosixPath, PureWindowsPath
 
+import jinja2
 import numpy as np
+from markupsafe import Markup
 
 from odsplat.contract import check
 from odsplat.errors import InputError
@@ -21,25 +32,18 @@ from .analyze import KIND, SCHEMA
 log = logging.getLogger(__name__)
 
 
-_PAGE = """<!DOCTYPE html>
-<html lang="en"><head><meta charset="utf-8">
-<title>odsplat analysis: {title}</title>
-<style>
-body {{ font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; padding: 0 1em; }}
-h1 {{ font-size: 1.6em; margin-bottom: 0.2em; }} h2 {{ border-bottom: 1px solid #ccc; margin-top: 1.6em; }}
-.meta {{ color: #666; }} .bad {{ color: #b00; }} .ok {{ color: #070; }}
-table {{ border-collapse: collapse; margin: 0.6em 0; font-size: 0.95em; }}
-th, td {{ border: 1px solid #ccc; padding: 0.25em 0.7em; text-align: right; }}
-th {{ background: #f2f2f2; }} td.t {{ text-align: left; }}
-figure {{ margin: 1em 0; }} figure img {{ max-width: 100%; border: 1px solid #ddd; }}
-figcaption {{ color: #555; font-size: 0.9em; }} pre {{ background: #f7f7f7; padding: 0.6em; overflow-x: auto; }}
-</style></head>
-<body>
-<h1>Analysis of {title}</h1>
-<p class="meta">created {created} &middot; {n_sensors} sensors &middot; {n_avg} hits averaged</p>
-{sections}
-</body></html>
-"""
+def _escaped(value) -> Markup:
+    """Every value a template prints, escaped as `html.escape` escapes it (&, <, >, " and ', the last as &#x27;,
+    as the report always wrote them); autoescape then leaves the result alone. Markup passes unchanged: only the
+    templates make it (a macro's output, a `set` block), from their own text and values escaped here."""
+    if isinstance(value, Markup):
+        return value
+    return Markup(html.escape(str(value)))
+
+
+_TEMPLATES = jinja2.Environment(loader=jinja2.FileSystemLoader(Path(__file__).with_name("templates")),
+                                autoescape=True, undefined=jinja2.StrictUndefined, finalize=_escaped,
+                                trim_blocks=True, lstrip_blocks=True, keep_trailing_newline=True)
 
 
 # ---------------------------------------------------------------------------------------------- reading
@@ -83,32 +87,71 @@ def read_analysis(capture: Capture) -> dict:
     return doc
 
 
-# ---------------------------------------------------------------------------------------------- formatting
+# ---------------------------------------------------------------------------------------------- plain values
+# read_analysis checks only what every section needs; the rest of the document is taken as it comes, so each
+# value is read through one of these and a field of the wrong kind shows as a dash or an empty table, never
+# as an error half-way through the page.
+
+DASH = "\u2013"    # where a number is missing or is no finite number
+
+
+def _obj(x) -> dict:
+    return x if isinstance(x, dict) else {}
+
+
+def _list(x) -> list:
+    return x if isinstance(x, list) else []
+
+
+def _dicts(x) -> list[dict]:
+    return [d for d in _list(x) if isinstance(d, dict)]
+
+
+def _float(x) -> float | None:
+    """x as a finite float, or None (missing, text, a flag, infinite, NaN)."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return None
+    try:
+        v = float(x)
+    except OverflowError:
+        return None
+    return v if math.isfinite(v) else None
+
+
+def _index(x, n: int) -> int | None:
+    """x as an index into a list of n, or None where it is no whole number in 0..n-1."""
+    v = _float(x)
+    return int(v) if v is not None and v == int(v) and 0 <= v < n else None
+
 
 def _num(x, fmt: str = ".3g", scale: float = 1.0) -> str:
+    """x times scale formatted with fmt; a dash where x is no finite number."""
     try:
         v = float(x) * scale
-    except (TypeError, ValueError):
-        return "&ndash;"
+    except (TypeError, ValueError, OverflowError):
+        return DASH
     if not np.isfinite(v):
-        return "&ndash;"
+        return DASH
     text = format(v, fmt)
     return format(0.0, fmt) if float(text) == 0 else text      # no "-0.0"
 
 
-def _table(head: list[str], rows: list[list[str]], text_cols: int = 1) -> str:
-    """Cells are HTML already (escape text with `escape` first); the first text_cols columns align left."""
-    h = "".join(f"<th>{c}</th>" for c in head)
-    body = "".join("<tr>" + "".join(f'<td class="t">{c}</td>' if i < text_cols else f"<td>{c}</td>"
-                                    for i, c in enumerate(r)) + "</tr>" for r in rows)
-    return f"<table>{f'<tr>{h}</tr>' if any(head) else ''}{body}</table>"
+def _count(x) -> str:
+    """A count (points, views, pixels, timesteps) as a whole number; a dash where x is no finite number."""
+    v = _float(x)
+    return DASH if v is None else str(int(v))
 
 
 def _mode_name(modes: list[dict], k) -> str:
-    try:
-        return f"{int(k) + 1} ({float(modes[int(k)]['freq_hz']):.2f} Hz)"
-    except (TypeError, ValueError, IndexError):
-        return escape(str(k))
+    """Mode k by number and frequency ("2 (31.00 Hz)"), or k as it stands where it names no mode."""
+    i = _index(k, len(modes))
+    return f"{i + 1} ({_num(modes[i]['freq_hz'], '.2f')} Hz)" if i is not None else str(k)
+
+
+def _fitted_mode(fitted: list, b):
+    """The accelerometer mode the video's b-th fitted mode is (modes_fitted[b]); b itself where b indexes none."""
+    i = _index(b, len(fitted))
+    return fitted[i] if i is not None else b
 
 
 # ---------------------------------------------------------------------------------------------- sections
@@ -117,151 +160,146 @@ def _reasons(r) -> list[str]:
     return [r] if isinstance(r, str) else [str(x) for x in r] if isinstance(r, list) else []
 
 
-def _hits(doc: dict) -> str:
-    takes = [str(t) for t in doc.get("takes", [])]
-    rejected = {str(r.get("take")): _reasons(r.get("reasons")) for r in doc["rejected_hits"] if isinstance(r, dict)}
-    used = [t for t in takes if t not in rejected]
-    out = [f"<h2>Hits</h2><p>{len(used)} of {len(takes)} hits used"
-           + (f" (averages: {escape(str(doc['n_averages']))})" if "n_averages" in doc else "") + "."]
-    if doc.get("exp_tau_s"):
-        out.append(f" Exponential window &tau; = {_num(doc['exp_tau_s'], '.3g', 1e3)} ms"
-                   " (its damping is taken out of the modes).")
-    out.append("</p>")
-    rows = [[escape(t), '<span class="ok">used</span>' if t not in rejected else '<span class="bad">rejected</span>',
-             escape("; ".join(rejected.get(t, [])))] for t in takes]
-    rows += [[escape(t), '<span class="bad">rejected</span>', escape("; ".join(r))]
-             for t, r in rejected.items() if t not in takes]
-    if rows:
-        out.append(_table(["take", "hit", "reasons"], rows, text_cols=3))
-    return "".join(out)
+def _summary(doc: dict, setup: dict) -> dict:
+    """The page's top: the setup, the modes with their MAC, and the verdict line."""
+    modes = doc["modes"]
+    fitted = _list(_obj(doc.get("video")).get("modes_fitted"))
+    c = _obj(doc.get("correlation"))
+    by_mode = {}
+    for p in _dicts(c.get("pairs")):
+        b = _index(p.get("b"), len(fitted))
+        k = _index(fitted[b], len(modes)) if b is not None else None
+        if k is not None:
+            by_mode[k] = p
+    rows = []
+    for k, m in enumerate(modes):
+        p = by_mode.get(k)
+        rows.append({"mode": str(k + 1), "freq": _num(m["freq_hz"], ".2f"), "damping": _num(m["damping"], ".2f", 100),
+                     "mac": DASH if p is None else _num(p.get("mac"), ".3f"),
+                     "below": p is not None and bool(p.get("below_noise_floor")),
+                     "scale": DASH if p is None else _num(p.get("scale_factor_abs"), ".2f")})
+    verdict = _obj(c.get("verdict"))
+    notes = _list(doc.get("notes"))
+    band = _list(doc.get("band_hz")) or [None]
+    setup_rows = [[str(k), str(v)] for k, v in setup.items()]
+    setup_rows += [["hits averaged", f"{doc.get('n_averages', '?')} of {len(_list(doc.get('takes')))}"],
+                   ["sensors", ", ".join(str(s) for s in _list(doc.get("sensors")))],
+                   ["fit band", f"{_num(band[0], '.0f')} to {_num(band[-1], '.0f')} Hz"]]
+    return {"verdict": str(verdict["line"]) if verdict.get("line") else None,
+            "css": "ok" if verdict.get("status") == "met" else ("bad" if notes or verdict.get("line") else ""),
+            "video": bool(doc.get("video")), "n_modes": len(modes), "n_notes": len(notes),
+            "setup": setup_rows, "modes": rows}
 
 
-def _modes(doc: dict) -> str:
-    rows = [[str(k + 1), _num(m["freq_hz"], ".2f"), _num(m["damping"], ".2f", 100)] for k, m in enumerate(doc["modes"])]
-    band = doc.get("band_hz")
-    where = (f"<p>Fitted in {float(band[0]):.0f} to {float(band[1]):.0f} Hz.</p>"
-             if isinstance(band, list) and len(band) == 2 else "")
-    return "<h2>Modes (accelerometers)</h2>" + where + _table(["mode", "frequency (Hz)", "damping (%)"], rows)
-
-
-def _notes(doc: dict) -> str:
+def _notes(doc: dict) -> list[str]:
     """What the numbers cannot show, at the top: peaks with no mode, a band that cuts a peak, missing geometry."""
-    notes = [str(n) for n in doc.get("notes") or []]
-    if not notes:
-        return ""
-    return "<h2>Notes</h2><ul>" + "".join(f'<li class="bad">{escape(n)}</li>' for n in notes) + "</ul>"
+    return [str(n) for n in _list(doc.get("notes"))]
 
 
-def _video(doc: dict) -> str:
+def _hits(doc: dict) -> dict:
+    takes = [str(t) for t in _list(doc.get("takes"))]
+    rejected = {str(r.get("take")): _reasons(r.get("reasons")) for r in _dicts(doc["rejected_hits"])}
+    rows = [{"take": t, "used": t not in rejected, "reasons": "; ".join(rejected.get(t, []))} for t in takes]
+    rows += [{"take": t, "used": False, "reasons": "; ".join(r)} for t, r in rejected.items() if t not in takes]
+    return {"n_used": len([t for t in takes if t not in rejected]), "n_takes": len(takes),
+            "averages": str(doc["n_averages"]) if "n_averages" in doc else None,
+            "tau_ms": _num(doc["exp_tau_s"], ".3g", 1e3) if doc.get("exp_tau_s") else None, "rows": rows}
+
+
+def _modes(doc: dict) -> dict:
+    band = doc.get("band_hz")
+    return {"band": ([_num(band[0], ".0f"), _num(band[1], ".0f")] if isinstance(band, list) and len(band) == 2
+                     else None),
+            "rows": [[str(k + 1), _num(m["freq_hz"], ".2f"), _num(m["damping"], ".2f", 100)]
+                     for k, m in enumerate(doc["modes"])]}
+
+
+def _video(doc: dict) -> dict | None:
+    """The video side: what was fitted to the reconstruction's motion, its noise, its own poles and the 2D
+    cross-check; None where the analysis has no video side."""
     v = doc.get("video")
     if not v:
-        return "<h2>Video</h2><p>No video side in this analysis.</p>"
+        return None
     modes = doc["modes"]
-    fitted = v.get("modes_fitted", [])
-    out = ["<h2>Video</h2><p>Modes fitted to the video's motion with the accelerometer poles: "
-           + (", ".join(_mode_name(modes, k) for k in fitted) or "none")]
+    out = {"fitted": ", ".join(_mode_name(modes, k) for k in _list(v.get("modes_fitted"))) or "none",
+           "surface": None, "window": None, "condition": None, "real": None, "r2": [], "poles": None,
+           "image_poles": None, "noise": None, "crosscheck": []}
     if "n_surface_points" in v:
-        out.append(f"; {int(v['n_surface_points'])} surface points on the structure")
+        background = None
         if v.get("n_background_points"):
-            out.append(f" ({escape(str(v.get('structure_rule', '')))}); the {int(v['n_background_points'])} "
-                       f"points of the background (floor, base) are left out of the shapes, and move "
-                       f"{_num(v.get('background_rms_um'), '.3g')} &micro;m rms: the video's noise in the open")
+            background = {"rule": str(v.get("structure_rule", "")), "n": _count(v["n_background_points"]),
+                          "rms": _num(v.get("background_rms_um"), ".3g"), "amplitude": None}
             if v.get("background_amplitude_ratio") is not None:
-                out.append(f". In the modes above the noise floor the background reads "
-                           f"{_num(v.get('background_amplitude_um'), '.3g')} &micro;m (median, the "
-                           f"{int(v.get('n_background_reference_points', 0))} points seen by as many views as the "
-                           f"structure), {_num(v['background_amplitude_ratio'], '.1f', 100)} % of the structure's "
-                           f"median amplitude ({_num(v.get('background_amplitude_ratio_all'), '.1f', 100)} % over "
-                           "the whole background): the shapes' noise against their motion")
-    if "window_s" in v and len(v["window_s"]) == 2:
-        out.append(f"; window {_num(v['window_s'][0], '.1f', 1e3)} to {_num(v['window_s'][1], '.1f', 1e3)} ms")
+                background["amplitude"] = {
+                    "um": _num(v.get("background_amplitude_um"), ".3g"),
+                    "n_reference": _count(v.get("n_background_reference_points", 0)),
+                    "ratio": _num(v["background_amplitude_ratio"], ".1f", 100),
+                    "ratio_all": _num(v.get("background_amplitude_ratio_all"), ".1f", 100)}
+        out["surface"] = {"n": _count(v["n_surface_points"]), "background": background}
+    window = v.get("window_s")
+    if isinstance(window, list) and len(window) == 2:
+        out["window"] = [_num(window[0], ".1f", 1e3), _num(window[1], ".1f", 1e3)]
     if "condition" in v:
-        out.append(f"; condition number {_num(v['condition'], '.3g')}")
-    real = [m for m in v.get("real_modes") or [] if isinstance(m, dict)]
+        out["condition"] = _num(v["condition"], ".3g")
+    real = _dicts(v.get("real_modes"))
     if real:
-        n_real = sum(bool(m.get("real")) for m in real)
-        ratios = [float(m["quadrature_over_noise"]) for m in real
-                  if m.get("real") and isinstance(m.get("quadrature_over_noise"), (int, float))]
-        if n_real:
-            out.append(f". {n_real} of {len(real)} mode shapes are real (normal) modes, each on its common phase: "
-                       "what lay out of phase was noise"
-                       + (f" ({_num(min(ratios), '.2f')}-{_num(max(ratios), '.2f')} x the noise's energy there)"
-                          if ratios else "")
-                       + ", so half the noise's power is gone from them"
-                       + ("; the others are complex and kept as fitted (notes)" if n_real < len(real) else ""))
-        else:
-            out.append(". No mode shape is real within the noise: all are kept complex, as fitted (notes)")
-    out.append(".</p>")
-    sensors = [str(s) for s in doc.get("sensors", [])]
-    r2 = v.get("sensor_r2", [])
-    if r2:
-        out.append("<p>Share of each sensor point's video motion that these modes explain (r&sup2;):</p>")
-        out.append(_sensor_table(sensors, "r&sup2;", r2))
-    corr = doc.get("correlation")
-    pairs = corr.get("pairs", []) if isinstance(corr, dict) else []
-    out.append(_poles_table(modes, v.get("freq_hz", []), v.get("damping", []),
-                            "Poles found in the reconstruction's motion alone (matrix pencil, stable over ranks)",
-                            "No pole was found stable in the reconstruction's motion alone.", pairs))
+        ratios = [r for r in (_float(m.get("quadrature_over_noise")) for m in real if m.get("real")) if r is not None]
+        out["real"] = {"n_real": sum(bool(m.get("real")) for m in real), "n": len(real),
+                       "ratios": [_num(min(ratios), ".2f"), _num(max(ratios), ".2f")] if ratios else None}
+    sensors = [str(s) for s in _list(doc.get("sensors"))]
+    out["r2"] = _sensor_rows(sensors, _list(v.get("sensor_r2")))
+    pairs = _dicts(_obj(doc.get("correlation")).get("pairs"))
+    out["poles"] = _poles(modes, v.get("freq_hz"), v.get("damping"), pairs)
     im = doc.get("image_poles")
     if isinstance(im, dict):
-        window = im.get("window_s") or [None, None]
-        out.append(_poles_table(modes, im.get("freq_hz", []), im.get("damping", []),
-                                f"Poles found in the raw frames alone ({int(im.get('n_views', 0))} views, "
-                                f"{int(im.get('n_pixels', 0))} pixels, {_num(window[0], '.1f', 1e3)} to "
-                                f"{_num(window[-1], '.1f', 1e3)} ms; matrix pencil)",
-                                "No pole was found stable in the raw frames alone.", pairs))
-    out.append(_noise(v))
-    checks = v.get("crosscheck") or []
+        window = _list(im.get("window_s")) or [None]
+        out["image_poles"] = {"n_views": _count(im.get("n_views", 0)), "n_pixels": _count(im.get("n_pixels", 0)),
+                              "window": [_num(window[0], ".1f", 1e3), _num(window[-1], ".1f", 1e3)],
+                              **_poles(modes, im.get("freq_hz"), im.get("damping"), pairs)}
+    out["noise"] = _noise(v)
+    checks = _dicts(v.get("crosscheck"))
     if checks:
-        out.append("<p>The 3D motion projected into single views against 2D tracks of their raw frames "
-                   "(gain 1: the reconstruction moves as much as the images show):</p>")
-        out.append(_verdict(v.get("crosscheck_verdict")))
-        out.append(_table(["take", "points", "gain", "correlation", "motion rms (px)", "track noise (px)",
-                           "impulse ratio"],
-                          [[escape(str(c.get("take", ""))), str(c.get("n_points", "")), _num(c.get("gain"), ".2f"),
-                            _num(c.get("correlation"), ".2f"), _num(c.get("motion_rms_px"), ".3f"),
-                            _num(c.get("noise_px"), ".4f"), _num(c.get("force_ratio"), ".2f")] for c in checks]))
-    return "".join(out)
+        out["crosscheck_verdict"] = _verdict(v.get("crosscheck_verdict"))
+        out["crosscheck"] = [[str(c.get("take", "")), _count(c.get("n_points")), _num(c.get("gain"), ".2f"),
+                              _num(c.get("correlation"), ".2f"), _num(c.get("motion_rms_px"), ".3f"),
+                              _num(c.get("noise_px"), ".4f"), _num(c.get("force_ratio"), ".2f")] for c in checks]
+    return out
 
 
-def _verdict(v) -> str:
-    """A verdict's line, coloured by its status."""
+def _verdict(v) -> dict | None:
+    """A verdict's line and status, with the CSS class of its colour."""
     if not isinstance(v, dict) or "line" not in v:
-        return ""
+        return None
     status = str(v.get("status", ""))
-    css = {"met": "ok", "not met": "bad"}.get(status, "meta")
-    return f'<p class="{css}"><b>Verdict ({escape(status)}):</b> {escape(str(v["line"]))}</p>'
+    return {"css": {"met": "ok", "not met": "bad"}.get(status, "meta"), "status": status, "line": str(v["line"])}
 
 
-def _noise(v: dict) -> str:
+def _noise(v: dict) -> dict | None:
     """The video's noise floor: where it was measured, and in metres."""
     nf = v.get("noise_floor")
     if not isinstance(nf, dict):
-        return ""
-    parts = [f"the motion the modes do not explain, {_num(nf.get('sigma_um'), '.3g')} &micro;m per point and "
-             "timestep (median over the points)"]
-    if nf.get("n_static_points"):
-        parts.append(f"{int(nf['n_static_points'])} static points (the modes explain none of their motion): "
-                     f"{_num(nf.get('static_sigma_um'), '.3g')} &micro;m")
-    if nf.get("pre_impact_sigma_um") is not None:
-        parts.append(f"{int(nf.get('n_pre_impact', 0))} timesteps before the impact: "
-                     f"{_num(nf.get('pre_impact_sigma_um'), '.3g')} &micro;m")
+        return None
     k = nf.get("floor_sigmas")
-    at_floor = nf.get("floor_mac", k * k / (k * k + 1) if isinstance(k, (int, float)) else None)  # older files
-    return ("<p>The video's noise floor, measured where nothing moves: " + "; ".join(parts)
-            + f". A mode needs {_num(k, '.3g')} noise standard deviations of amplitude at the sensors (the noise then "
-            f"allows its complex shape a MAC of {_num(at_floor, '.2f')}; a real mode's shape keeps half the noise's "
-            "power, so it reads at or above what this allows) to be judged; the correlation table gives each "
-            "mode's.</p>")
+    kf = _float(k)
+    at_floor = nf.get("floor_mac", kf * kf / (kf * kf + 1) if kf is not None else None)   # older files
+    return {"sigma": _num(nf.get("sigma_um"), ".3g"),
+            "static": ({"n": _count(nf["n_static_points"]), "sigma": _num(nf.get("static_sigma_um"), ".3g")}
+                       if nf.get("n_static_points") else None),
+            "pre_impact": ({"n": _count(nf.get("n_pre_impact", 0)), "sigma": _num(nf.get("pre_impact_sigma_um"), ".3g")}
+                           if nf.get("pre_impact_sigma_um") is not None else None),
+            "sigmas": _num(k, ".3g"), "mac": _num(at_floor, ".2f")}
 
 
 def _products(modes: list[dict], pairs: list[dict]) -> list[tuple[float, str]]:
     """The second-order products of the video's two strongest modes (by their video amplitude): twice each, their
     sum and their difference, with names. A camera's intensity is not quite linear in the motion, so the strongest
     motion leaves a little energy there, and a pole finder can find it."""
-    amps = {int(p["a"]): float(p["video_amplitude_um"]) for p in pairs
-            if isinstance(p, dict) and isinstance(p.get("video_amplitude_um"), (int, float)) and "a" in p}
-    top = sorted((k for k in amps if 0 <= k < len(modes)), key=lambda k: -amps[k])[:2]
+    amps = {}
+    for p in pairs:
+        k, a = _index(p.get("a"), len(modes)), _float(p.get("video_amplitude_um"))
+        if k is not None and a is not None:
+            amps[k] = a
+    top = sorted(amps, key=lambda k: -amps[k])[:2]
     f = {k: float(modes[k]["freq_hz"]) for k in top}
     out = [(2 * f[k], f"2 x mode {k + 1}") for k in top]
     if len(top) == 2:
@@ -270,185 +308,204 @@ def _products(modes: list[dict], pairs: list[dict]) -> list[tuple[float, str]]:
     return out
 
 
-def _poles_table(modes: list[dict], fv, zv, title: str, none: str, pairs: list[dict] | None = None) -> str:
+def _poles(modes: list[dict], fv, zv, pairs: list[dict]) -> dict:
     """The camera's own poles against the nearest accelerometer mode; one more than 1 % from every mode is said to
     be no mode of theirs, and named where it lies near a product of the strongest motion (`_products`)."""
-    if not fv:
-        return f"<p>{none}</p>"
-    fa = np.array([m["freq_hz"] for m in modes], float)
-    products = _products(modes, pairs or [])
+    fv, zv = _list(fv), _list(zv)
+    fa = np.array([_float(m["freq_hz"]) or np.nan for m in modes], float)
+    products = _products(modes, pairs)
     rows = []
-    for i, f in enumerate(fv):
-        f = float(f)
-        near = int(np.argmin(np.abs(fa - f))) if len(fa) else None
+    for i, x in enumerate(fv):
+        f = _float(x)
+        near = int(np.nanargmin(np.abs(fa - f))) if f is not None and np.isfinite(fa).any() else None
         diff = (f - fa[near]) / fa[near] if near is not None else None
-        note = ""
-        if diff is None or abs(diff) > 0.01:
-            note = "no accelerometer mode within 1 %"
+        row = {"n": str(i + 1), "freq": _num(f, ".2f"), "damping": _num(zv[i] if i < len(zv) else None, ".2f", 100),
+               "mode": _mode_name(modes, near) if near is not None else DASH, "diff": _num(diff, "+.2f", 100),
+               "off": False, "near": None}
+        if f is not None and (diff is None or abs(diff) > 0.01):
+            row["off"] = True
             close = [(abs(f - fp) / fp, fp, name) for fp, name in products if fp > 0 and abs(f - fp) < 0.05 * fp]
             if close:
                 _, fp, name = min(close)
-                note += f"; near {name} ({fp:.1f} Hz), where the strongest motion's image is not quite linear"
-        rows.append([str(i + 1), _num(f, ".2f"), _num(zv[i] if i < len(zv) else None, ".2f", 100),
-                     _mode_name(modes, near) if near is not None else "&ndash;", _num(diff, "+.2f", 100), note])
-    return (f"<p>{title}, against the nearest accelerometer mode:</p>"
-            + _table(["#", "frequency (Hz)", "damping (%)", "nearest mode", "difference (%)", "note"], rows, 1))
+                row["near"] = {"name": name, "freq": f"{fp:.1f}"}
+        rows.append(row)
+    return {"rows": rows}
 
 
-def _sensor_table(sensors: list[str], header: str, values) -> str:
+def _poles_table(modes: list[dict], fv, zv, title: str, empty: str, pairs: list[dict] | None = None) -> str:
+    """One table of poles (`_poles`) as the page lays it out, under `title` (the line `empty` where there are none)."""
+    macros = _TEMPLATES.get_template("macros.html").module
+    return str(macros.poles_table(_poles(modes, fv, zv, pairs or []), title, empty))
+
+
+def _sensor_rows(sensors: list[str], values: list) -> list[list[str]]:
     """One value per sensor (named, or numbered where the document has fewer names)."""
-    return _table(["sensor", header], [[escape(sensors[j] if j < len(sensors) else f"sensor {j + 1}"),
-                                        _num(x, ".3f")] for j, x in enumerate(values)])
+    return [[sensors[j] if j < len(sensors) else f"sensor {j + 1}", _num(x, ".3f")] for j, x in enumerate(values)]
 
 
-def _correlation(doc: dict) -> str:
+def _correlation(doc: dict) -> dict:
     c = doc.get("correlation")
-    out = []
     modes = doc["modes"]
-    fitted = (doc.get("video") or {}).get("modes_fitted", [])
+    fitted = _list(_obj(doc.get("video")).get("modes_fitted"))
+    out = {"pairs": None, "verdict": None, "comac": [], "ods": []}
     if c:
         rows = []
-        for p in c.get("pairs", []):
-            a, b = p.get("a"), p.get("b")
-            ma = fitted[a] if isinstance(a, int) and a < len(fitted) else a
-            mb = fitted[b] if isinstance(b, int) and b < len(fitted) else b
-            below = p.get("below_noise_floor") is True
-            floor = (f'{_num(p.get("video_amplitude_um"), ".3g")} / {_num(p.get("noise_floor_um"), ".3g")}'
-                     + (' <span class="bad">below the noise floor: not judged</span>' if below else ""))
-            rows.append([_mode_name(modes, ma), _mode_name(modes, mb),
-                         (f'<span class="bad">{_num(p.get("mac"), ".3f")}</span>' if below
-                          else _num(p.get("mac"), ".3f")), _num(p.get("expected_mac"), ".3f"), floor,
-                         _num(p.get("scale_factor_abs"), ".3g"), _num(p.get("scale_factor_phase_deg"), "+.1f"),
-                         _num(p.get("freq_a_hz"), ".2f"), _num(p.get("freq_b_hz"), ".2f"),
-                         _num(p.get("freq_diff_rel"), "+.2f", 100)])
-        out.append("<h2>Correlation: accelerometers (a) vs video (b)</h2>")
-        out.append(_verdict(c.get("verdict")))
-        out.append(_table(["mode a", "mode b", "MAC", "MAC the noise allows",
-                           "video amplitude / noise floor (&micro;m)", "|scale a/b|", "scale phase (deg)", "f a (Hz)",
-                           "f b (Hz)", "&Delta;f (%)"], rows, 2)
-                   if rows else "<p>No pairs.</p>")
-        sensors = [str(s) for s in doc.get("sensors", [])]
-        comac = c.get("comac", [])
-        if comac:
-            out.append("<h3>CoMAC per sensor</h3>")
-            out.append(_sensor_table(sensors, "CoMAC", comac))
-    ods = doc.get("ods", [])
-    if ods:
-        out.append("<h2>ODS: accelerometers vs video</h2>")
-        out.append(_table(["line", "frequency (Hz)", "MAC"],
-                          [[str(i + 1), _num(o.get("freq_hz"), ".2f"), _num(o.get("mac"), ".3f")]
-                           for i, o in enumerate(ods) if isinstance(o, dict)]))
-    return "".join(out)
+        for p in _dicts(c.get("pairs")):
+            rows.append({"a": _mode_name(modes, _fitted_mode(fitted, p.get("a"))),
+                         "b": _mode_name(modes, _fitted_mode(fitted, p.get("b"))),
+                         "mac": _num(p.get("mac"), ".3f"), "below": p.get("below_noise_floor") is True,
+                         "expected": _num(p.get("expected_mac"), ".3f"),
+                         "amplitude": _num(p.get("video_amplitude_um"), ".3g"),
+                         "floor": _num(p.get("noise_floor_um"), ".3g"),
+                         "scale": _num(p.get("scale_factor_abs"), ".3g"),
+                         "phase": _num(p.get("scale_factor_phase_deg"), "+.1f"),
+                         "freq_a": _num(p.get("freq_a_hz"), ".2f"), "freq_b": _num(p.get("freq_b_hz"), ".2f"),
+                         "diff": _num(p.get("freq_diff_rel"), "+.2f", 100)})
+        out["pairs"] = rows
+        out["verdict"] = _verdict(c.get("verdict"))
+        out["comac"] = _sensor_rows([str(s) for s in _list(doc.get("sensors"))], _list(c.get("comac")))
+    out["ods"] = [[str(i + 1), _num(o.get("freq_hz"), ".2f"), _num(o.get("mac"), ".3f")]
+                  for i, o in enumerate(doc.get("ods", [])) if isinstance(o, dict)]
+    return out
 
 
-def _inline(doc: dict, folder: Path, suffix: str):
-    """(key, file, base64 data or None when missing) for each output file of the analysis ending in `suffix`."""
+def _settings(doc: dict) -> str | None:
+    s = doc.get("settings")
+    return json.dumps(s, indent=1) if s else None
+
+
+# ---------------------------------------------------------------------------------------------- inlined files
+
+_ANALYSIS_FOLDER = "derived/analysis"
+_SIGNATURES = {".png": (b"\x89PNG\r\n\x1a\n",), ".gif": (b"GIF87a", b"GIF89a")}
+_MEDIA = {".png": "image/png", ".gif": "image/gif"}
+
+
+def _own_file(folder: Path, rel, where: str = _ANALYSIS_FOLDER, writer: str = "the analysis") -> Path | str:
+    """The file `rel` names in `folder`, or why it is not one of the folder's own (one line). Its own: a relative
+    name of plain parts ("plots/frf.png": no `..`, `.` or empty part, no absolute path or drive, no backslash),
+    no symbolic link on the way from `folder` down (the file included), a regular file, and inside `folder` once
+    resolved. `where` names the folder in the line, `writer` what writes its files."""
+    outside = f"not a file {writer} wrote (outside {where})"
+    if not isinstance(rel, str) or not rel:
+        return outside
+    parts = rel.split("/")
+    if (PurePosixPath(rel).is_absolute() or PureWindowsPath(rel).anchor or "\\" in rel or "\0" in rel
+            or any(p in ("", ".", "..") for p in parts)):
+        return outside
+    path = folder
+    for part in parts:
+        path = path / part
+        if path.is_symlink():
+            return f"not a file {writer} wrote (a symbolic link)"
+    if not path.exists():
+        return "not found"
+    if not path.is_file():
+        return "not a regular file"
+    if not path.resolve().is_relative_to(folder.resolve()):
+        return outside
+    return path
+
+
+def _read_own(path: Path) -> bytes:
+    """A file `_own_file` accepted, opened without following a link (a link put in its place after the check makes
+    the open fail) and read only if it is still a regular file."""
+    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0)
+    with os.fdopen(os.open(path, flags), "rb") as fh:
+        if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+            raise OSError(f"{path}: not a regular file")
+        return fh.read()
+
+
+def _data_uri(media: str, data: bytes) -> str:
+    """A data: URI of bytes read here: base64 holds no character HTML would need escaped."""
+    return f"data:{media};base64,{base64.b64encode(data).decode('ascii')}"
+
+
+def _inline(doc: dict, folder: Path, suffix: str) -> list[dict]:
+    """Each output file of the analysis ending in `suffix`, as {"key", "file", "src"} with its data: URI, or with
+    "problem" (one line naming the file) where it is missing ("missing" set) or is no file of the analysis's own
+    in `folder`, or no image of its kind."""
+    out = []
     for key, rel in doc["files"].items():
         if not (isinstance(rel, str) and rel.lower().endswith(suffix)):
             continue
-        path = folder / rel
-        if not path.is_file():
-            log.warning("report: %s not found; left out", path)
-            yield key, rel, None
-            continue
-        yield key, rel, base64.b64encode(path.read_bytes()).decode("ascii")
+        item = {"key": str(key), "file": rel, "src": None, "problem": None, "missing": False}
+        out.append(item)
+        path = _own_file(folder, rel)
+        if path == "not found":
+            item.update(problem=f"{rel} not found.", missing=True)
+        elif isinstance(path, str):
+            item["problem"] = f"{rel}: {path}"
+        else:
+            try:
+                data = _read_own(path)
+            except OSError as e:
+                item["problem"] = f"{rel}: could not be read ({e.strerror or e})"
+            else:
+                if data.startswith(_SIGNATURES[suffix]):
+                    item["src"] = _data_uri(_MEDIA[suffix], data)
+                else:
+                    item["problem"] = f"{rel}: not a {suffix[1:].upper()} image"
+        if item["problem"]:
+            log.warning("report: %s; left out", item["problem"])
+    return out
 
 
-def _figures(doc: dict, folder: Path) -> str:
-    out = []
-    for key, rel, data in _inline(doc, folder, ".png"):
-        if data is None:
-            out.append(f'<p class="bad">{escape(rel)} not found.</p>')
-            continue
-        out.append(f'<figure><img src="data:image/png;base64,{data}" alt="{escape(str(key))}">'
-                   f"<figcaption>{escape(str(key))} ({escape(rel)})</figcaption></figure>")
-    return ("<h2>Figures</h2>" + "".join(out)) if out else ""
-
-
-def _settings(doc: dict) -> str:
-    s = doc.get("settings")
-    if not s:
-        return ""
-    return f"<details><summary>Settings</summary><pre>{escape(json.dumps(s, indent=1))}</pre></details>"
-
-
-def _summary(doc: dict, setup: dict) -> str:
-    """The page's top: the setup, the modes with their MAC, the quality of the take, and a verdict line."""
-    modes = doc["modes"]
-    fitted = (doc.get("video") or {}).get("modes_fitted", [])
-    c = doc.get("correlation") or {}
-    by_mode = {}
-    for p in c.get("pairs", []):
-        b = p.get("b")
-        k = fitted[b] if isinstance(b, int) and b < len(fitted) else None
-        if k is not None:
-            by_mode[int(k)] = p
-    rows = []
-    for k, m in enumerate(modes):
-        p = by_mode.get(k)
-        mac = "&ndash;" if p is None else (_num(p.get("mac"), ".3f")
-                                           + (" (below the video's noise floor)" if p.get("below_noise_floor") else ""))
-        scale = "&ndash;" if p is None else _num(p.get("scale_factor_abs"), ".2f")
-        rows.append([str(k + 1), _num(m["freq_hz"], ".2f"), _num(m["damping"], ".2f", 100), mac, scale])
-    verdict = (c.get("verdict") or {}).get("line")
-    notes = doc.get("notes") or []
-    if verdict:
-        line = escape(str(verdict))
-    elif doc.get("video"):
-        line = "The video's shapes were fitted; no MAC verdict was made."
-    else:
-        line = (f"{len(modes)} modes from the accelerometers; no video side"
-                + (f" ({len(notes)} note(s) below)" if notes else "") + ".")
-    cls = "ok" if (c.get("verdict") or {}).get("status") == "met" else ("bad" if notes or verdict else "")
-    band = doc.get("band_hz") or [None, None]
-    setup_rows = [[escape(k), escape(str(v))] for k, v in setup.items()]
-    setup_rows += [["hits averaged", f"{escape(str(doc.get('n_averages', '?')))} of {len(doc.get('takes', []))}"],
-                   ["sensors", escape(", ".join(str(s) for s in doc.get("sensors", [])))],
-                   ["fit band", f"{_num(band[0], '.0f')} to {_num(band[-1], '.0f')} Hz"]]
-    return ("<h2>Summary</h2>" + f'<p class="{cls}"><b>Verdict:</b> {line}</p>'
-            + _table(["", ""], setup_rows, 2)
-            + (_table(["mode", "frequency (Hz)", "damping (%)", "MAC video/accelerometers", "|scale|"], rows)
-               if doc.get("video") else _table(["mode", "frequency (Hz)", "damping (%)"], [r[:3] for r in rows])))
-
-
-def _animations(doc: dict, folder: Path) -> str:
-    """The modes in motion: each animation inline (a GIF in the page itself)."""
-    out = []
-    for key, _, data in _inline(doc, folder, ".gif"):
-        if data is None:
-            continue
-        out.append(f'<figure style="display:inline-block"><img src="data:image/gif;base64,{data}" '
-                   f'alt="{escape(str(key))}"><figcaption>mode {escape(str(key).rpartition("_")[2].lstrip("0"))}'
-                   "</figcaption></figure>")
-    return ("<h2>The modes in motion</h2><p>Each shape through one cycle (grey: at rest), exaggerated.</p>"
-            + "".join(out)) if out else ""
+def _animations(doc: dict, folder: Path) -> list[dict]:
+    """The modes in motion: each animation inline (a GIF in the page itself), captioned with its mode's number."""
+    items = _inline(doc, folder, ".gif")
+    for item in items:
+        item["mode"] = item["key"].rpartition("_")[2].lstrip("0")
+    return [item for item in items if not item["missing"]]          # a missing one is left out without a line
 
 
 RENDER_WIDTH_PX = 480     # the render's frames, downscaled, as one animated WebP in the page
+_RENDER_FOLDER = "derived/reconstruction/render"
 
 
-def render_video(folder: Path) -> str:
-    """The reconstruction's magnified novel-view render (`odsplat render`'s frames in `folder`) inline, as an
-    animated WebP: browsers play it in the page, where they cannot play the mp4 this OpenCV build writes
-    (MPEG-4 Part 2)."""
+def _render(folder: Path) -> dict | None:
+    """The render's frames in `folder` as one animated WebP: {"n_frames", "src", "left_out"}; None without frames.
+    Only the folder's own frames are read (`_own_file`); the others are named in left_out."""
     frames = sorted(folder.glob("frame_*.png")) if folder.is_dir() else []
     if not frames:
-        return ""
+        return None
     from PIL import Image
 
-    images = []
+    images, left_out = [], []
     for path in frames:
-        with Image.open(path) as im:
+        own = _own_file(folder, path.name, _RENDER_FOLDER, "`odsplat render`")
+        if isinstance(own, str):
+            left_out.append(f"{path.name}: {own}")
+            log.warning("report: render %s: %s; left out", path.name, own)
+            continue
+        try:
+            data = _read_own(own)
+        except OSError as e:
+            left_out.append(f"{path.name}: could not be read ({e.strerror or e})")
+            continue
+        with Image.open(io.BytesIO(data)) as im:
             w, h = im.size
             scale = min(1.0, RENDER_WIDTH_PX / w)
             images.append(im.convert("RGB").resize((max(1, round(w * scale)), max(1, round(h * scale)))))
+    if not images:
+        return {"n_frames": 0, "src": None, "left_out": left_out}
     buf = io.BytesIO()
     images[0].save(buf, format="WEBP", save_all=True, append_images=images[1:], duration=120, loop=0, quality=80)
-    data = base64.b64encode(buf.getvalue()).decode("ascii")
-    return ("<h2>The magnified render</h2><p>The reconstruction seen from new viewpoints as time runs, magnified "
-            f"in 3D (`odsplat render`, {len(frames)} frames; the mp4 lies beside them).</p>"
-            f'<img src="data:image/webp;base64,{data}" alt="render">')
+    return {"n_frames": len(images), "src": _data_uri("image/webp", buf.getvalue()), "left_out": left_out}
 
+
+def render_video(folder: Path) -> str:
+    """The reconstruction's magnified novel-view render (`odsplat render`'s frames in `folder`) as the report's
+    section, inline as an animated WebP: browsers play it in the page, where they cannot play the mp4 this OpenCV
+    build writes (MPEG-4 Part 2). Empty where there are no frames."""
+    render = _render(folder)
+    if render is None:
+        return ""
+    return str(_TEMPLATES.get_template("macros.html").module.render(render))
+
+
+# ---------------------------------------------------------------------------------------------- the page
 
 def capture_setup(capture: Capture) -> dict:
     """The setup in a few facts, from the capture and (where they ran) sync and poses: what the summary shows."""
@@ -481,15 +538,16 @@ def capture_setup(capture: Capture) -> dict:
     return out
 
 
-def render_report(doc: dict, folder: Path, title: str, setup: dict | None = None, video: str = "") -> str:
+def render_report(doc: dict, folder: Path, title: str, setup: dict | None = None,
+                  render: dict | None = None) -> str:
     """The report's HTML from a loaded analysis.json (`folder` holds it and its plots); `setup`: facts of the
-    capture for the summary (capture_setup); `video`: the render's section (render_video)."""
-    sections = [_summary(doc, setup or {}), _notes(doc), _animations(doc, folder), video, _hits(doc), _modes(doc),
-                _video(doc), _correlation(doc), _figures(doc, folder), _settings(doc)]
-    return _PAGE.format(title=escape(str(doc.get("capture") or title)),
-                        created=escape(str(doc.get("created_utc", "(no date)"))),
-                        n_sensors=len(doc.get("sensors", [])), n_avg=escape(str(doc.get("n_averages", "?"))),
-                        sections="\n".join(s for s in sections if s))
+    capture for the summary (capture_setup); `render`: the render's frames (`_render`), where there are any."""
+    return _TEMPLATES.get_template("report.html").render(
+        title=str(doc.get("capture") or title), created=str(doc.get("created_utc", "(no date)")),
+        n_sensors=len(_list(doc.get("sensors"))), n_averages=str(doc.get("n_averages", "?")),
+        summary=_summary(doc, setup or {}), notes=_notes(doc), animations=_animations(doc, folder), render=render,
+        hits=_hits(doc), modes=_modes(doc), video=_video(doc), correlation=_correlation(doc),
+        figures=_inline(doc, folder, ".png"), settings=_settings(doc))
 
 
 def write_report(capture: Capture) -> Path:
@@ -497,6 +555,6 @@ def write_report(capture: Capture) -> Path:
     doc = read_analysis(capture)
     path = capture.paths.report_html
     atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name, capture_setup(capture),
-                                          render_video(capture.paths.render_dir)))
+                                          _render(capture.paths.render_dir)))
     log.info("report written to %s", path)
     return path
