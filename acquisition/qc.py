@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from odsplat.checks import NON_NEGATIVE, Range, check_fields, maybe
+from odsplat.checks import MAX_FORCE_N, Range, check_fields, maybe
 from odsplat.contract import check, describe
 from odsplat.errors import InputError
 from odsplat.impulse import impact_onsets
@@ -143,7 +143,8 @@ class QCSettings:
     double_hit_fraction: float = 0.05
 
     def __post_init__(self) -> None:
-        check_fields(self, {"force_band_n": maybe(NON_NEGATIVE), "double_hit_fraction": Range(above=0, below=1)})
+        check_fields(self, {"force_band_n": maybe(Range(at_least=0, at_most=MAX_FORCE_N)),
+                            "double_hit_fraction": Range(above=0, below=1)})
         if self.force_band_n is not None and not self.force_band_n[0] < self.force_band_n[1]:
             raise InputError("QCSettings.force_band_n", f"expected LOW < HIGH in N, got {list(self.force_band_n)}")
 

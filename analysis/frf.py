@@ -9,7 +9,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from odsplat.checks import COUNT, POSITIVE, Range, check_fields, maybe
+from odsplat.checks import DURATION_S, FORCE_N, FREQUENCY_HZ, Range, check_fields, maybe
 from odsplat.errors import InputError
 from odsplat.impulse import fit_pulse
 
@@ -218,10 +218,13 @@ class FRFSettings:
     response_full_scale: float | None = None
 
     def __post_init__(self) -> None:
+        # n_fft: 2**24 lines hold 10 minutes at 25.6 kHz; response_full_scale is in the response's unit (a shock
+        # accelerometer's 1e5 g is 1e6 m/s^2).
         check_fields(self, {
-            "force_window_s": maybe(POSITIVE), "exponential_end": maybe(Range(above=0, below=1)),
-            "fmax_hz": maybe(POSITIVE), "n_fft": maybe(COUNT), "double_hit_ratio": Range(above=0, below=1),
-            "overload_n": maybe(POSITIVE), "full_scale_n": maybe(POSITIVE), "response_full_scale": maybe(POSITIVE)},
+            "force_window_s": maybe(DURATION_S), "exponential_end": maybe(Range(above=0, below=1)),
+            "fmax_hz": maybe(FREQUENCY_HZ), "n_fft": maybe(Range(at_least=1, at_most=2**24, integer=True)),
+            "double_hit_ratio": Range(above=0, below=1), "overload_n": maybe(FORCE_N),
+            "full_scale_n": maybe(FORCE_N), "response_full_scale": maybe(Range(above=0, at_most=1e7))},
             name="estimate_frf: settings")
 
 

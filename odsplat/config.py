@@ -11,13 +11,15 @@ from typing import Any
 
 import tomli_w
 
+from .checks import shown
 from .contract import plain
 from .errors import InputError
-from .manifest import from_plain, load_toml
+from .manifest import MAX_TOML_DEPTH, from_plain, load_toml, parse_toml_value
 
 CONFIG_NAME = "odsplat.toml"
 STAGES = ("qc", "sync", "magnify", "poses", "reconstruct", "analyze", "report")
 _WITH_SETTINGS = STAGES[:-1]  # the report has none
+MAX_SET_CHARS = 10_000          # one --set: a list of a thousand frequencies fits
 
 
 def settings_types() -> dict[str, type]:
@@ -74,7 +76,7 @@ class Config:
             raise InputError(source, "expected a table of stages")
         unknown = sorted(set(table) - set(_WITH_SETTINGS))
         if unknown:
-            raise InputError(source, f"unknown stage(s) {unknown}; expected some of {list(_WITH_SETTINGS)}")
+            raise InputError(source, f"unknown stage(s) {shown(unknown)}; expected some of {list(_WITH_SETTINGS)}")
         for stage, over in table.items():
             if not isinstance(over, dict):
                 raise InputError(f"{source}: [{stage}]", "expected a table of settings")
@@ -124,12 +126,17 @@ def _drop_none(d: dict[str, Any], where: str, unset: list[str]) -> dict[str, Any
 def parse_set(item: str) -> dict[str, Any]:
     """`stage.field=value` (or `stage.sub.field=value`) as a nested table; the value is read as TOML, else kept
     as a string: `magnify.alpha=30`, `analyze.fmax_hz=900`, `magnify.band_hz=[20, 400]`."""
+    if len(item) > MAX_SET_CHARS:
+        raise InputError("--set", f"expected STAGE.FIELD=VALUE of at most {MAX_SET_CHARS} characters; got "
+                                  f"{len(item)}, starting {shown(item[:40])}")
     key, eq, text = item.partition("=")
     parts = key.strip().split(".")
     if not eq or len(parts) < 2 or not all(p.isidentifier() for p in parts):
-        raise InputError("--set", f"expected STAGE.FIELD=VALUE, e.g. magnify.alpha=30; got {item!r}")
+        raise InputError("--set", f"expected STAGE.FIELD=VALUE, e.g. magnify.alpha=30; got {shown(item)}")
+    if len(parts) > MAX_TOML_DEPTH:
+        raise InputError("--set", f"{shown(key)} is nested too deep: more than {MAX_TOML_DEPTH} names")
     try:
-        value = tomllib.loads(f"v = {text.strip()}")["v"]
+        value = parse_toml_value(text.strip(), f"--set {key.strip()}")
     except tomllib.TOMLDecodeError:
         value = text.strip()
     table: dict[str, Any] = {parts[-1]: value}
@@ -148,7 +155,9 @@ def load_config(capture: Any = None, *, path: str | Path | None = None, sets: tu
     if path is not None:
         config = config.updated(load_toml(path, missing="no such configuration file"), str(path))
     for item in sets:
-        config = config.updated(parse_set(item), f"--set {item}")
+        # The layer is named by the item itself, cut short where a hostile one runs to thousands of characters.
+        layer = item if len(item) <= 120 else f"{item[:100]}... ({len(item)} characters)"
+        config = config.updated(parse_set(item), f"--set {layer}")
     return config
 
 

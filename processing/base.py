@@ -11,7 +11,7 @@ from abc import ABC, abstractmethod
 
 import torch
 
-from odsplat.checks import Range
+from odsplat.checks import MAGNIFICATION, check_number
 from odsplat.errors import InputError
 
 # NTSC YIQ: luminance first. Phase and linear methods magnify Y and carry I, Q along.
@@ -29,8 +29,8 @@ def yiq_to_rgb(x: torch.Tensor) -> torch.Tensor:
 
 
 def check_alpha(alpha: float) -> float:
-    if not Range(above=0).holds(alpha):
-        raise InputError("--alpha", f"the magnification must be positive and finite, got {alpha}")
+    """The magnification as a float, refused outside MAGNIFICATION (the settings' range, odsplat.checks)."""
+    check_number("alpha", alpha, MAGNIFICATION)
     return float(alpha)
 
 

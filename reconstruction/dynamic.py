@@ -19,13 +19,25 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from odsplat.checks import FRACTION, NON_NEGATIVE, POSITIVE, Range, check_fields, maybe
+from odsplat.checks import (
+    FRACTION,
+    ITERATIONS,
+    LEARNING_RATE,
+    MAX_ITERATIONS,
+    NEIGHBOURS,
+    SEED,
+    WEIGHT,
+    Range,
+    check_choice,
+    check_fields,
+    maybe,
+)
 from odsplat.errors import InputError
 
 from .gaussians import Gaussians
 from .losses import Neighbours, image_loss
 from .quaternion import quat_normalize, quat_to_matrix
-from .raster import rasterize
+from .raster import BACKENDS, rasterize
 from .views import Camera, TrainView
 
 log = logging.getLogger(__name__)
@@ -74,24 +86,21 @@ class FitSettings:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.average_last <= 1.0:
-            raise InputError("FitSettings.average_last", f"expected a fraction in [0, 1]; got {self.average_last}")
-        if not 0.0 < self.prior_fraction <= 1.0:
-            raise InputError("FitSettings.prior_fraction", f"expected a fraction in (0, 1]; got {self.prior_fraction}")
-        for name in ("iters_t0", "iters_per_step", "densify_every", "k_neighbours", "max_gaussians"):
-            if getattr(self, name) < 0 or (name in ("densify_every", "k_neighbours") and getattr(self, name) < 1):
-                raise InputError(name, f"expected a positive integer, got {getattr(self, name)}")
-        if not 0 <= self.ssim_weight <= 1:
-            raise InputError("ssim_weight", f"expected a weight in [0, 1], got {self.ssim_weight}")
+        # Lengths are in scene radii (the scene is 1 across); max_gaussians: 3DGS scenes hold a few million.
         check_fields(self, {
-            "iters_first_step": maybe(Range(at_least=0, integer=True)), "lr_means": POSITIVE,
-            "lr_means_final": POSITIVE, "lr_quats": POSITIVE, "lr_scales": POSITIVE, "lr_opacity": POSITIVE,
-            "lr_colors": POSITIVE,
-            "densify_from": Range(at_least=0, integer=True), "densify_until_frac": FRACTION,
-            "grad_threshold": POSITIVE, "percent_dense": POSITIVE, "prune_opacity": FRACTION, "max_scale": POSITIVE,
-            "opacity_reset_every": Range(at_least=0, integer=True), "lr_means_dynamic": POSITIVE,
-            "lr_quats_dynamic": POSITIVE, "rigid_weight": NON_NEGATIVE, "rot_weight": NON_NEGATIVE,
-            "iso_weight": NON_NEGATIVE, "neighbour_width": POSITIVE, "background": maybe(FRACTION)})
+            "iters_t0": ITERATIONS, "iters_per_step": ITERATIONS, "iters_first_step": maybe(ITERATIONS),
+            "ssim_weight": FRACTION, "lr_means": LEARNING_RATE, "lr_means_final": LEARNING_RATE,
+            "lr_quats": LEARNING_RATE, "lr_scales": LEARNING_RATE, "lr_opacity": LEARNING_RATE,
+            "lr_colors": LEARNING_RATE, "densify_from": ITERATIONS, "densify_until_frac": FRACTION,
+            "densify_every": Range(at_least=1, at_most=MAX_ITERATIONS, integer=True),
+            "grad_threshold": Range(above=0, at_most=1), "percent_dense": Range(above=0, at_most=1),
+            "prune_opacity": FRACTION, "max_scale": Range(above=0, at_most=100), "opacity_reset_every": ITERATIONS,
+            "max_gaussians": Range(at_least=0, at_most=10_000_000, integer=True),
+            "lr_means_dynamic": LEARNING_RATE, "lr_quats_dynamic": LEARNING_RATE, "rigid_weight": WEIGHT,
+            "rot_weight": WEIGHT, "iso_weight": WEIGHT, "k_neighbours": NEIGHBOURS, "average_last": FRACTION,
+            "prior_fraction": Range(above=0, at_most=1), "neighbour_width": Range(above=0, at_most=100),
+            "background": maybe(FRACTION), "seed": SEED})
+        check_choice("FitSettings.backend", self.backend, BACKENDS)
 
 
 def render(g: Gaussians, camera: Camera, *, means: torch.Tensor | None = None, quats: torch.Tensor | None = None,

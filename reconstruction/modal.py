@@ -37,13 +37,25 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from odsplat.checks import COUNT, NON_NEGATIVE, POSITIVE, Range, check_fields
+from odsplat.checks import (
+    BLUR_PX,
+    CHUNK_FRAMES,
+    ITERATIONS,
+    LEARNING_RATE,
+    NEIGHBOURS,
+    SEED,
+    WEIGHT,
+    Range,
+    check_choice,
+    check_fields,
+)
 from odsplat.errors import InputError
 
 from .dynamic import Trajectory, render
 from .gaussians import Gaussians
 from .losses import Neighbours
 from .quaternion import quat_from_rotvec, quat_multiply, quat_normalize
+from .raster import BACKENDS
 from .views import TrainView
 
 log = logging.getLogger(__name__)
@@ -71,21 +83,13 @@ class ModalSettings:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        if self.n_components < 1:
-            raise InputError("n_components", f"expected at least 1 basis function, got {self.n_components}")
-        if self.batch < 1:
-            raise InputError("batch", f"expected at least 1 pair per step, got {self.batch}")
-        if self.iters < 0:
-            raise InputError("iters", f"expected iterations >= 0, got {self.iters}")
-        if self.loss not in LOSSES:
-            raise InputError("loss", f"expected one of {', '.join(LOSSES)}, got {self.loss!r}")
-        check_fields(self, {"lr": POSITIVE, "lr_final_frac": Range(above=0, at_most=1), "blur_px": NON_NEGATIVE,
-                            "rigid_weight": NON_NEGATIVE, "rot_weight": NON_NEGATIVE, "k_neighbours": COUNT,
-                            "neighbour_width": POSITIVE})
-        if not self.blur_px >= 0:
-            raise InputError("blur_px", f"expected a blur >= 0 px, got {self.blur_px}")
-        if self.k_neighbours < 1:
-            raise InputError("k_neighbours", f"expected a positive integer, got {self.k_neighbours}")
+        # n_components: a handful of modes in any record; batch: (view, timestep) pairs rendered per step.
+        check_fields(self, {"n_components": Range(at_least=1, at_most=256, integer=True), "iters": ITERATIONS,
+                            "lr": LEARNING_RATE, "lr_final_frac": Range(above=0, at_most=1), "blur_px": BLUR_PX,
+                            "batch": CHUNK_FRAMES, "rigid_weight": WEIGHT, "rot_weight": WEIGHT,
+                            "k_neighbours": NEIGHBOURS, "neighbour_width": Range(above=0, at_most=100), "seed": SEED})
+        check_choice("ModalSettings.loss", self.loss, LOSSES)
+        check_choice("ModalSettings.backend", self.backend, BACKENDS)
 
 
 @dataclass

@@ -36,7 +36,7 @@ def test_parse_set(item, value):
     (("render.width=3",), "--set render.width=3", "unknown stage"),
     (("magnify.alhpa=3",), "--set magnify.alhpa=3: magnify", "unknown field"),
     (("magnify.alpha=fast",), "--set magnify.alpha=fast: magnify.alpha", "expected a number"),
-    (("magnify.alpha=-2",), "--alpha", "alpha"),
+    (("magnify.alpha=-2",), "MagnifySettings.alpha", "expected a finite number > 0 and <= 10000"),
     (("reconstruct.source=frames",), "source", "expected 'sync' or 'magnified/METHOD'"),
 ])
 def test_bad_settings_are_named(sets, where, message):

@@ -45,7 +45,8 @@ def small(tmp_path) -> Capture:
     (["magnify", "--option", "n_orientations=many"], "MagnifySettings.options.n_orientations"),
     (["magnify", "--option", "sigma_px=NaN"], "MagnifySettings.options.sigma_px"),
     (["magnify", "--option", "no_such=1"], "MagnifySettings.options.no_such"),
-    (["magnify", "--alpha", "inf"], "--alpha"),
+    (["magnify", "--alpha", "inf"], "MagnifySettings.alpha"),
+    (["magnify", "--alpha", "1e308"], "MagnifySettings.alpha"),
     (["magnify", "--band", "nan", "30"], "MagnifySettings.band_hz[0]"),
     (["sync", "--trigger-delay-s", "nan"], "SyncSettings.camera_trigger_delay_s"),
     (["sync", "--max-memory-mb", "nan"], "SyncSettings.max_memory_mb"),
@@ -73,7 +74,7 @@ def test_a_bad_option_is_one_line_naming_the_field(small, args, field):
 
 
 @pytest.mark.parametrize("setting, field", [
-    ("magnify.alpha=inf", "--alpha"),
+    ("magnify.alpha=inf", "MagnifySettings.alpha"),
     ("magnify.options=[['n_orientations', 'many']]", "MagnifySettings.options.n_orientations"),
     ("sync.max_memory_mb=nan", "SyncSettings.max_memory_mb"),
     ("analyze.fmax_hz=0", "AnalyzeSettings.fmax_hz"),
