@@ -43,12 +43,13 @@ class SurfaceMotion:
     source: str = ""
 
     @classmethod
-    def read(cls, path: str | Path, *, min_opacity: float = 0.5) -> SurfaceMotion:
-        """From a reconstruction's trajectories.npz, keeping Gaussians at least `min_opacity` opaque (the
-        translucent ones fill gaps and carry little of the image, so their motion is weakly observed)."""
+    def read(cls, path: str | Path, *, min_opacity: float = 0.5, capture_id: str | None = None) -> SurfaceMotion:
+        """From a reconstruction's trajectories.npz (or measured_motion.npz), keeping Gaussians at least
+        `min_opacity` opaque (the translucent ones fill gaps and carry little of the image, so their motion is
+        weakly observed). Given the capture's id, a file of another capture is refused (`MotionRecord.read`)."""
         from odsplat.reconstruction import MotionRecord  # the file's owner reads it
 
-        m = MotionRecord.read(path)
+        m = MotionRecord.read(path, capture_id)
         times, rest, disp, alpha = m.times_s, m.means_rest_m, np.asarray(m.displacement_m, float), m.source_alpha
         opacity = 1.0 / (1.0 + np.exp(-m.opacity_logits))
         keep = opacity >= min_opacity

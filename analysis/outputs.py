@@ -179,10 +179,13 @@ def records(result: AnalysisResult) -> dict:
             "mac": _mac_record(result, s_ids), "stabilisation": stab}
 
 
-def write_outputs(dest: Path, result: AnalysisResult, *, plots: bool = True) -> dict[str, str]:
-    """results.h5, analysis.uff and (with `plots`) the figures into dest; returns {what: file name}."""
+def write_outputs(dest: Path, result: AnalysisResult, *, plots: bool = True,
+                  capture_id: str | None = None) -> dict[str, str]:
+    """results.h5 (recording `capture_id`, the capture's), analysis.uff and (with `plots`) the figures into dest;
+    returns {what: file name}."""
     recs = records(result)
-    write_results_h5(dest / "results.h5", **recs, attrs={"capture_takes": list(result.takes)})
+    write_results_h5(dest / "results.h5", **recs, attrs={"capture_takes": list(result.takes)},
+                     capture_id=capture_id)
     write_uff(dest / "analysis.uff", geometry=recs["geometry"], frfs=recs["frfs"], coherence=recs["coherence"],
               shapes=recs["shapes"], description="odsplat analysis")
     files = {"results": "results.h5", "uff": "analysis.uff"}

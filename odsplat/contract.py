@@ -1,18 +1,30 @@
 """How a derived file describes itself, one way for every stage: its kind, its schema version, the capture it
 belongs to, and the settings and input identities that produced it (`Provenance`). A reader refuses a file of
-another kind, of a newer or older schema, or from another capture with one line naming the file."""
+another kind, of a newer or older schema, or from another capture with one line naming the file.
+
+The index files (JSON) open with the whole header; the data files beside them (`.npz`, `.h5`, `.ply`) record the
+capture's id (`CAPTURE_KEY`), which their owners check with `check_capture`. `read_npz` is the one way a derived
+`.npz` is read: whatever is wrong with the file (missing, empty, cut short, not a zip of arrays, damaged, holding
+pickled objects, of another capture) becomes one line naming it."""
 from __future__ import annotations
 
 import dataclasses
 import hashlib
 import json
+import pickle
+import struct
 import uuid
+import zipfile
+import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from .errors import InputError
-from .manifest import utc_now
+from .manifest import check_regular_file, utc_now
 
 
 def plain(value: Any) -> Any:
@@ -91,10 +103,82 @@ def check(doc: Any, path: str | Path, *, kind: str, schema_version: int, capture
                                "run its stage again")
     other = doc.get("capture_id")
     if capture_id is not None and other != capture_id:
-        raise InputError(path, f"belongs to another capture (id {other!r}, this capture is {capture_id!r}); "
-                               "remove it or run its stage again")
+        raise foreign(path, other, capture_id)
     prov = doc.get("provenance") or {}
     if not isinstance(prov, dict):
         raise InputError(path, "provenance: expected an object")
     return Provenance(kind, version, str(other), prov.get("settings") or {}, prov.get("inputs") or {},
                       run_id=str(prov.get("run_id", "")), created_utc=str(prov.get("created_utc", "")))
+
+
+# ------------------------------------------------------------------------------------------ derived data files
+
+CAPTURE_KEY = "capture_id"   # the key (.npz), attribute (.h5) or comment word (.ply) that holds the capture's id
+
+
+def foreign(path: str | Path, other: Any, capture_id: str) -> InputError:
+    """The one refusal of a derived file that records another capture's id."""
+    return InputError(path, f"belongs to another capture (id {other!r}, not this capture's {capture_id!r}: copied "
+                            "from another capture?); run its stage again")
+
+
+def check_capture(found: Any, path: str | Path, capture_id: str | None) -> None:
+    """A data file's recorded capture id (None: it records none) against this capture's (None: not known, nothing
+    to check). A file of another capture is refused; one that records none was written before odsplat recorded
+    it, and its index file (which does) vouches for it."""
+    if isinstance(found, bytes):
+        found = found.decode(errors="replace")
+    if isinstance(found, np.ndarray):
+        found = str(found.item()) if found.shape == () else repr(found.tolist())
+    if capture_id is not None and found is not None and found != capture_id:
+        raise foreign(path, found, capture_id)
+
+
+# What np.load and zipfile raise on a file that is not a whole .npz of plain arrays: cut short or empty (EOFError,
+# BadZipFile), a damaged member (BadZipFile's CRC, zlib.error), another format or pickled objects (ValueError,
+# UnpicklingError), a garbled array header (ValueError, struct.error, MemoryError for an absurd shape), an
+# unsupported zip feature (NotImplementedError, RuntimeError).
+NPZ_ERRORS = (OSError, EOFError, ValueError, KeyError, zipfile.BadZipFile, zlib.error, pickle.UnpicklingError,
+              struct.error, MemoryError, NotImplementedError, RuntimeError, TypeError)
+
+
+def read_npz(path: str | Path, *, missing: str, capture_id: str | None = None) -> dict[str, np.ndarray]:
+    """Every array of a derived `.npz`, read whole (each member through its CRC) without unpickling anything,
+    its recorded capture id checked against `capture_id` and left out of the result. One line naming the file when
+    it is missing (`missing` says what was expected there), empty, cut short, not an `.npz`, damaged or another
+    capture's."""
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, missing)
+    check_regular_file(path, ".npz file")
+    if path.stat().st_size == 0:
+        raise InputError(path, "empty file (0 bytes); run its stage again")
+    with open(path, "rb") as fh:
+        head = fh.read(8)
+    if not head.startswith(b"PK"):   # every zip archive, so every .npz, begins so
+        raise InputError(path, f"not an .npz file (a zip archive of arrays): it begins {head!r}; run its stage again")
+    try:
+        with np.load(path, allow_pickle=False) as z:   # a zip: an NpzFile
+            arrays = {k: z[k] for k in z.files}
+    except NPZ_ERRORS as exc:
+        text = " ".join(str(exc).split())[:200]
+        raise InputError(path, f"not a readable .npz file, cut short or damaged ({type(exc).__name__}: {text}); "
+                               "run its stage again") from None
+    found = arrays.pop(CAPTURE_KEY, None)
+    check_capture(found, path, capture_id)
+    return arrays
+
+
+def numeric(arrays: Mapping[str, np.ndarray], key: str, path: str | Path,
+            shape: tuple[int | None, ...] | None = None) -> np.ndarray:
+    """arrays[key], checked: present, of numbers (integers or floats, not text or objects), of `shape` where given
+    (None matches any length on that axis). One line naming the file and the key otherwise."""
+    if key not in arrays:
+        raise InputError(path, f"no {key} (not the file its stage writes); run its stage again")
+    a = np.asarray(arrays[key])
+    if a.dtype.kind not in "iuf":
+        raise InputError(f"{path}: {key}", f"expected numbers, got {a.dtype} data; run its stage again")
+    if shape is not None and (a.ndim != len(shape) or any(n is not None and n != m for n, m in zip(shape, a.shape))):
+        want = "(" + ", ".join("any" if n is None else str(n) for n in shape) + ("," if len(shape) == 1 else "") + ")"
+        raise InputError(f"{path}: {key}", f"expected shape {want}, got {a.shape}; run its stage again")
+    return a

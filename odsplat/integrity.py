@@ -20,6 +20,12 @@ log = logging.getLogger(__name__)
 STATES = ("missing", "truncated", "unreadable", "damaged", "unfinished", "unlisted", "no checksums", "ok")
 _FINE = ("ok", "no checksums")
 _BLOCK_CHUNKS = 64  # chunks read at once; a block that fails is read again chunk by chunk to name the damage
+# What reading a take whose metadata (superblock, object headers, heaps, attributes) is damaged raises, from h5py
+# or from parsing what it returns: KeyError (an object header that does not parse: "bad object header version
+# number"), RuntimeError (visiting a group whose metadata checksum fails), OSError (a heap or attribute that
+# does not read), ValueError (an attribute's JSON garbled), TypeError and IndexError (an attribute of the wrong
+# type or shape). Measured by flipping each byte of a take's superblock and object headers in turn.
+UNREADABLE_ERRORS = (KeyError, RuntimeError, OSError, ValueError, TypeError, IndexError, AttributeError)
 
 
 @dataclass
@@ -57,10 +63,18 @@ def file_problem(path: Path, record: TakeRecord | None = None) -> tuple[str, str
         if cut:
             return "truncated", f"{path}: cut short, holds {int(cut[1])} of its {int(cut[2])} bytes"
         return "unreadable", str(exc)
+    except UNREADABLE_ERRORS as exc:
+        return "unreadable", _metadata_damage(path, exc)
     if record is not None and (n_frames < record.n_frames or n_samples < record.n_samples):
         return "truncated", (f"{path}: holds {n_frames} frames and {n_samples} samples; capture.json lists "
                              f"{record.n_frames} and {record.n_samples}")
     return None
+
+
+def _metadata_damage(path: Path, exc: BaseException) -> str:
+    """One line for a take whose HDF5 metadata does not read (h5py's own message names what failed)."""
+    text = " ".join(str(exc).split()).strip("'\"")[:200]
+    return f"{path}: its HDF5 metadata (a header, heap or attribute) is damaged and does not read ({text})"
 
 
 def listed_take_problems(capture: Capture) -> list[TakeCheck]:
@@ -100,16 +114,21 @@ def verify_take(path: Path, record: TakeRecord | None = None, name: str | None =
     problem = file_problem(path, record)
     if problem is not None:
         return TakeCheck(name, file, problem[0], [problem[1]])
-    with TakeReader(path) as r:
-        n_frames, n_samples = r.n_frames, r.n_samples
     details, unchecked = [], []
-    with h5py.File(path, "r") as f:
-        for ds in _raw_datasets(f):
-            bad = _damage(ds)
-            if bad:
-                details.append(f"{ds.name}: {damage_text(ds, bad)}")
-            if not ds.fletcher32:
-                unchecked.append(ds.name)
+    try:
+        with TakeReader(path) as r:
+            n_frames, n_samples = r.n_frames, r.n_samples
+        with h5py.File(path, "r") as f:
+            for ds in _raw_datasets(f):
+                bad = _damage(ds)
+                if bad:
+                    details.append(f"{ds.name}: {damage_text(ds, bad)}")
+                if not ds.fletcher32:
+                    unchecked.append(ds.name)
+    except InputError as exc:
+        return TakeCheck(name, file, "unreadable", [str(exc)])
+    except UNREADABLE_ERRORS as exc:
+        return TakeCheck(name, file, "unreadable", [_metadata_damage(path, exc)])
     if details:
         status = "damaged"
     elif unchecked:
@@ -141,4 +160,5 @@ def verify_capture(capture: Capture) -> list[TakeCheck]:
     return checks
 
 
-__all__ = ["STATES", "TakeCheck", "file_problem", "listed_take_problems", "verify_capture", "verify_take"]
+__all__ = ["STATES", "UNREADABLE_ERRORS", "TakeCheck", "file_problem", "listed_take_problems", "verify_capture",
+           "verify_take"]

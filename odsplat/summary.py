@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import OdsplatError
-from .integrity import file_problem
+from .integrity import UNREADABLE_ERRORS, file_problem
 from .store import Capture, TakeReader
 
 
@@ -117,7 +117,7 @@ def summarize(root: str | Path) -> CaptureSummary:
                     size_bytes=r.size_bytes,
                     problem=problem,
                 )
-        except OdsplatError as exc:
+        except (OdsplatError, *UNREADABLE_ERRORS) as exc:   # a damaged header: file_problem says what
             t = TakeSummary(record.name, record.view, record.status, record.qc, [], 0, [], "", None, None, None, 0,
                             path.stat().st_size if path.exists() else 0, problem=problem or str(exc))
         summary.takes.append(t)

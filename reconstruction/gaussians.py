@@ -6,6 +6,8 @@ structures we film are matte, and the cameras look at them from a hemisphere wit
 """
 from __future__ import annotations
 
+import hashlib
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,6 +16,7 @@ import torch
 from plyfile import PlyData, PlyElement, PlyParseError
 from scipy.spatial import cKDTree
 
+from odsplat.contract import CAPTURE_KEY, check_capture
 from odsplat.errors import InputError, SchemaError
 from odsplat.store import atomic_path
 
@@ -110,8 +113,18 @@ def _ply_names(n_colors_rest: int) -> list[str]:
     return names
 
 
-def save_ply(g: Gaussians, path: str | Path) -> Path:
+_CAPTURE_COMMENT = f"odsplat {CAPTURE_KEY} "   # the header comment that records the capture a .ply belongs to
+_DIGEST_COMMENT = "odsplat sha256 "              # ... and the one that records its vertex data's SHA-256
+# What plyfile raises on a file that is not a whole PLY: a bad header (PlyParseError), data cut short (EOFError,
+# ValueError), a garbled count or type (MemoryError, OverflowError, KeyError, IndexError), bytes that are not text.
+_PLY_ERRORS = (PlyParseError, ValueError, EOFError, OSError, MemoryError, OverflowError, KeyError, IndexError,
+               TypeError, struct.error)
+
+
+def save_ply(g: Gaussians, path: str | Path, *, capture_id: str | None = None) -> Path:
     """Write the INRIA 3DGS layout (binary little-endian float32, through plyfile) that standard splat viewers open.
+    A capture's file (`capture_id` given) records in header comments, which viewers ignore, the capture's id and
+    its vertex data's SHA-256, which `load_ply` checks: a PLY has no checksum of its own.
 
     Mono colour goes to all three f_dc channels. Higher SH bands (f_rest_*, 45 of them for degree 3) are written
     as zeros: viewers expect them, and our colour has none.
@@ -133,26 +146,45 @@ def save_ply(g: Gaussians, path: str | Path) -> Path:
     vertex = np.zeros(len(g), dtype=[(name, "<f4") for name in _ply_names(45)])  # normals and f_rest stay 0
     for name, values in columns.items():
         vertex[name] = values
-    ply = PlyData([PlyElement.describe(vertex, "vertex")], text=False, byte_order="<")
+    comments = [] if capture_id is None else [_CAPTURE_COMMENT + capture_id,
+                                              _DIGEST_COMMENT + hashlib.sha256(vertex.tobytes()).hexdigest()]
+    ply = PlyData([PlyElement.describe(vertex, "vertex")], text=False, byte_order="<", comments=comments)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             ply.write(fh)
     return path
 
 
-def load_ply(path: str | Path, *, n_colors: int = 3, dtype: torch.dtype = torch.float32) -> Gaussians:
+def load_ply(path: str | Path, *, n_colors: int = 3, dtype: torch.dtype = torch.float32,
+             capture_id: str | None = None) -> Gaussians:
     """Read an INRIA-layout `.ply` (ours or another tool's, any PLY encoding plyfile reads); mono when n_colors is 1
-    (the mean of f_dc)."""
+    (the mean of f_dc). Given `capture_id`, a file whose header records another capture's is refused; a file whose
+    vertex data does not match the SHA-256 its header records is refused as damaged."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "no such .ply file")
+    if path.stat().st_size == 0:
+        raise SchemaError(path, "empty file (0 bytes), not a PLY file")
     try:
         ply = PlyData.read(str(path), mmap=False)
-    except (PlyParseError, ValueError, EOFError) as exc:
-        raise SchemaError(path, f"not a readable PLY file ({exc})") from None
+    except _PLY_ERRORS as exc:
+        text = " ".join(str(exc).split())[:200]
+        raise SchemaError(path, f"not a readable PLY file, cut short or damaged ({type(exc).__name__}: {text})") \
+            from None
+    recorded = {}
+    for comment in ply.comments:
+        for key in (_CAPTURE_COMMENT, _DIGEST_COMMENT):
+            if comment.startswith(key):
+                recorded[key] = comment[len(key):].strip()
+    check_capture(recorded.get(_CAPTURE_COMMENT), path, capture_id)
     if "vertex" not in ply:
         raise SchemaError(path, "not a Gaussian splat .ply (missing element vertex)")
     vertex = ply["vertex"].data
+    if _DIGEST_COMMENT in recorded:
+        little = vertex.astype(vertex.dtype.newbyteorder("<"))
+        if hashlib.sha256(little.tobytes()).hexdigest() != recorded[_DIGEST_COMMENT]:
+            raise SchemaError(path, "its vertex data does not match the SHA-256 its header records (damaged or "
+                                    "edited); run its stage again")
     props = vertex.dtype.names or ()
     missing = [p for p in _ply_names(0) if p not in props and p not in ("nx", "ny", "nz")]
     if missing:

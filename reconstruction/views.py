@@ -201,7 +201,7 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
         if not path.exists():
             notes.append(f"{vp.name}: no {source} frames, left out")
             continue
-        with SourceFrames(path, generation) as ff:
+        with SourceFrames(path, generation, capture.id) as ff:
             times = ff.times_s
             if grid is None:
                 grid, bit_depth = times, int(ff.attrs["bit_depth"])

@@ -17,12 +17,13 @@ from odsplat.framefile import ALIGNED_KIND, FrameFile, atomic_h5, create_frames,
 
 @contextlib.contextmanager
 def write_aligned(path: Path, *, n_frames: int, frame_shape: tuple[int, ...], band_rows: int, bit_depth: int,
-                  times_s: np.ndarray, attrs: dict[str, Any]) -> Iterator[Callable[[slice, np.ndarray], None]]:
+                  times_s: np.ndarray, attrs: dict[str, Any], capture_id: str | None = None
+                  ) -> Iterator[Callable[[slice, np.ndarray], None]]:
     """Yields `write_band(rows, values_dn)` for (n_frames, rows, W[, C]) bands in the raw take's DN; the file
-    appears at `path` only when the block ends without an error."""
+    appears at `path` only when the block ends without an error. `capture_id`: the capture's, recorded in it."""
     with atomic_h5(path) as f:
         ds, scale = create_frames(f, ALIGNED_KIND, frame_shape=frame_shape, bit_depth=bit_depth, times_s=times_s,
-                                  n_frames=n_frames, chunk_rows=band_rows, attrs=attrs)
+                                  n_frames=n_frames, chunk_rows=band_rows, attrs=attrs, capture_id=capture_id)
 
         def write_band(rows: slice, values_dn: np.ndarray) -> None:
             ds[:, rows] = to_stored(values_dn, scale)

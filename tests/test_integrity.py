@@ -108,6 +108,32 @@ def test_a_missing_or_cut_short_take_is_flagged_by_info_verify_and_recover(one_t
     assert code == 1 and f"{record.name}: NOT recoverable here: missing" in text
 
 
+@pytest.mark.parametrize("where", ["root group", "frames"])
+def test_a_flipped_byte_in_an_object_header_is_unreadable_in_one_line(one_take, where):
+    """h5py reports a garbled object header as a KeyError ("incorrect metadata checksum", or "bad object header
+    version number" at its first bytes) on opening the object: any byte of the root group's header (bytes 48 to 570
+    of this take, after the superblock) or of `frames`' header, the first dataset a take is opened by. verify, info
+    and recover report the take unreadable, one line each, no traceback."""
+    cap = one_take
+    (record,) = cap.manifest.takes
+    path = cap.root / record.file
+    with h5py.File(path, "r") as f:
+        header = 48 if where == "root group" else h5py.h5o.get_info(f["frames"].id).addr
+    data = bytearray(path.read_bytes())
+    data[header + 60] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with h5py.File(path, "r") as f, pytest.raises(KeyError, match="metadata checksum"):
+        f["frames"]
+    code, text = _odsplat("verify", cap.root)
+    line = next(ln for ln in text.splitlines() if ln.startswith(record.name))
+    assert code == 1 and line.startswith(f"{record.name}: UNREADABLE: {path}: its HDF5 metadata") and \
+        "metadata checksum" in line, text
+    code, text = _odsplat("info", cap.root)
+    assert code == 0 and f"WARNING take {record.name}: unreadable" in text, text
+    code, text = _odsplat("recover", cap.root)
+    assert code == 1 and f"{record.name}: NOT recoverable here: unreadable" in text, text
+
+
 def _without_checksums(path) -> None:
     """Rewrite a take as odsplat wrote it before checksums: every dataset the same, without Fletcher-32."""
     old = path.with_name("old.h5")
