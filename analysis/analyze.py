@@ -12,7 +12,21 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from odsplat.checks import COUNT, FRACTION, NON_NEGATIVE, POSITIVE, Range, check_fields, maybe
+from odsplat.checks import (
+    DURATION_S,
+    FRACTION,
+    FREQUENCY_HZ,
+    MAX_DURATION_S,
+    MAX_FREQUENCY_HZ,
+    MAX_LENGTH_M,
+    NEIGHBOURS,
+    RANK,
+    Range,
+    check_choice,
+    check_fields,
+    maybe,
+    shown,
+)
 from odsplat.contract import describe, plain
 from odsplat.errors import InputError
 from odsplat.manifest import utc_now
@@ -97,31 +111,33 @@ class AnalyzeSettings:
     image_pixel_fraction: float = 0.05               # the most textured pixels of each view
 
     def __post_init__(self) -> None:
-        if self.takes not in ("accepted", "all"):
-            raise InputError("AnalyzeSettings.takes", f"expected 'accepted' or 'all'; got {self.takes!r}")
+        check_choice("AnalyzeSettings.takes", self.takes, ("accepted", "all"))
+        # max_order: LSCF fits every order up to it, and 120 already over-fits any band; the ranks: the matrix
+        # pencil's, each at most half the timesteps; the cross-check tracks points in takes, a few tens of each;
+        # outlier_factor: below 1 it can leave no Gaussian.
         check_fields(self, {
-            "pretrigger_s": NON_NEGATIVE, "record_s": maybe(POSITIVE), "fmin_hz": maybe(NON_NEGATIVE),
-            "fmax_hz": maybe(POSITIVE), "max_order": maybe(COUNT), "approx_freq_hz": maybe(POSITIVE),
-            "ods_freq_hz": maybe(POSITIVE),
-            "min_opacity": FRACTION, "k_neighbours": COUNT, "video_ranks": maybe(COUNT),
-            "crosscheck_views": Range(at_least=0, integer=True), "crosscheck_points": COUNT,
-            "image_ranks": maybe(COUNT),
-            "image_pixel_fraction": Range(above=0, at_most=1), "floor_margin_m": maybe(NON_NEGATIVE)})
+            "pretrigger_s": Range(at_least=0, at_most=MAX_DURATION_S), "record_s": maybe(DURATION_S),
+            "fmin_hz": maybe(Range(at_least=0, at_most=MAX_FREQUENCY_HZ)), "fmax_hz": maybe(FREQUENCY_HZ),
+            "max_order": maybe(Range(at_least=1, at_most=500, integer=True)), "approx_freq_hz": maybe(FREQUENCY_HZ),
+            "ods_freq_hz": maybe(FREQUENCY_HZ), "min_opacity": FRACTION, "k_neighbours": NEIGHBOURS,
+            "video_ranks": maybe(RANK), "crosscheck_views": Range(at_least=0, at_most=1000, integer=True),
+            "crosscheck_points": Range(at_least=1, at_most=10_000, integer=True), "image_ranks": maybe(RANK),
+            "image_pixel_fraction": Range(above=0, at_most=1),
+            "floor_margin_m": maybe(Range(at_least=0, at_most=MAX_LENGTH_M)),
+            "outlier_factor": maybe(Range(at_least=1, at_most=1e6))})
         if self.structure_box_m is not None:
             try:
                 box = np.asarray(self.structure_box_m, float)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 box = None
-            if box is None or box.shape != (2, 3) or not np.all(np.isfinite(box)) or np.any(box[0] >= box[1]):
+            if (box is None or box.shape != (2, 3) or not np.all(np.abs(box) <= MAX_LENGTH_M)
+                    or np.any(box[0] >= box[1])):
                 raise InputError("AnalyzeSettings.structure_box_m", "expected [[x, y, z] min, [x, y, z] max] in "
-                                 f"metres, min below max on every axis; got {self.structure_box_m!r}")
+                                 f"metres, each within +-{MAX_LENGTH_M:g} and min below max on every axis; got "
+                                 f"{shown(self.structure_box_m)}")
         if self.fmin_hz is not None and self.fmax_hz is not None and not self.fmin_hz < self.fmax_hz:
             raise InputError("AnalyzeSettings.fmin_hz",
                              f"expected below fmax_hz={self.fmax_hz:g}; got {self.fmin_hz:g}")
-        if self.outlier_factor is not None and not Range(at_least=1).holds(self.outlier_factor):
-            raise InputError("AnalyzeSettings.outlier_factor",
-                             "expected None or a factor >= 1 (below 1 it can leave no Gaussian); "
-                             f"got {self.outlier_factor}")
 
 
 # ------------------------------------------------------------------------------------------- accelerometers
@@ -244,14 +260,14 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     if not s.video or not path.is_file():
         log.info("no video side: %s", "disabled" if not s.video else f"{path} not found")
         return None
-    model = SurfaceMotion.read(path, min_opacity=s.min_opacity)
+    model = SurfaceMotion.read(path, min_opacity=s.min_opacity, capture_id=capture.id)
     motion, shapes_from = model, "trajectories"
     measured = capture.paths.measured_motion_npz
     if s.measured_motion and measured.is_file():
         # The linear model's unfiltered motion: the fit with known poles below is itself the filter, and recovers
         # modes the model's basis leaves below its noise floor. The model (denoised) still gives the video's own
         # poles and the 2D cross-check.
-        m = SurfaceMotion.read(measured, min_opacity=0.0)
+        m = SurfaceMotion.read(measured, min_opacity=0.0, capture_id=capture.id)
         if len(m.times_s) == len(model.times_s) and np.allclose(m.times_s, model.times_s, rtol=0, atol=1e-7):
             motion, shapes_from = m, "measured"
         else:
@@ -482,7 +498,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
 
 def _write(capture: Capture, result: AnalysisResult, s: AnalyzeSettings) -> AnalysisResult:
     dest = capture.paths.ensure(capture.paths.analysis_dir)
-    files = write_outputs(dest, result, plots=s.plots)
+    files = write_outputs(dest, result, plots=s.plots, capture_id=capture.id)
     summary = {**describe(capture.id, KIND, SCHEMA, s).header(), "capture": capture.root.name,
                "created_utc": utc_now(), "settings": plain(s), **result.summary(), "files": files}
     # Last: a reader that finds it finds the files it lists.

@@ -39,20 +39,23 @@ class ViewCheck:
         return float(m / np.hypot(m, n)) if np.isfinite(n) and m > 0 else float("nan")
 
 
-def _poses(capture: Capture) -> dict[str, dict]:
-    """The pose stage's cameras by take name (read through its contract, `PoseResult.read`)."""
+def _poses(capture: Capture) -> dict[str, dict] | None:
+    """The pose stage's cameras by take name (read through its contract, `PoseResult.read`); None when the capture
+    has no poses.json. A poses file that is there but unreadable, damaged or another capture's is refused with its
+    one line, never taken for no poses."""
     from odsplat.reconstruction import PoseResult
 
+    if not capture.paths.poses_json.exists():
+        return None
     return {v.name: {"K": v.K, "R": v.R, "t": v.t} for v in PoseResult.read(capture).views}
 
 
 def views_seeing(capture: Capture, points_m: np.ndarray) -> np.ndarray | None:
     """(N,) how many posed views hold each point inside their frame, in front of the camera (occlusion aside);
     None without poses. On the demo the floor's far edges are in 28-48 % fewer views than the structure."""
-    try:
-        poses = _poses(capture)
-    except InputError as e:
-        log.info("no view coverage: %s", e)
+    poses = _poses(capture)
+    if poses is None:
+        log.info("no view coverage: %s not found", capture.paths.poses_json)
         return None
     cam = capture.manifest.camera
     pts = np.asarray(points_m, float).reshape(-1, 3)
@@ -153,18 +156,17 @@ def _track_noise(frames: np.ndarray, frame_times_s: np.ndarray, uv: np.ndarray, 
 def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int = 6, n_points: int = 30,
                      method: str = "gradient", k: int = 16, outlier_factor: float | None = 2.0) -> list[ViewCheck]:
     """check_view on up to max_views synced takes spread over the capture (those with aligned frames and a
-    pose); none when the capture has no aligned frames or poses."""
+    pose); none when the capture has no aligned frames or no poses.json (one that is there must read)."""
     from odsplat.sync import AlignedTake, load_sync
 
-    try:
-        poses = _poses(capture)
-    except InputError as e:
-        log.info("no 2D cross-check: %s", e)
+    poses = _poses(capture)
+    if poses is None:
+        log.info("no 2D cross-check: %s not found", capture.paths.poses_json)
         return []
     sync = load_sync(capture)
     synced = sync.ok
     takes = [tk for tk in synced if tk.aligned_file and tk.name in poses
-             and (capture.paths.root / tk.aligned_file).is_file()]
+             and capture.paths.listed(tk.aligned_file).is_file()]
     if not takes:
         log.info("no 2D cross-check: no synced take has aligned frames and a pose")
         return []
@@ -173,7 +175,7 @@ def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int 
     chosen = [takes[int(i)] for i in np.unique(np.linspace(0, len(takes) - 1, min(max_views, len(takes))).round())]
     out = []
     for tk in chosen:
-        with AlignedTake(capture.paths.root / tk.aligned_file, sync.generation) as ff:
+        with AlignedTake(capture.paths.listed(tk.aligned_file), sync.generation) as ff:
             frames, times = ff.read_frames(), ff.times_s
         if frames.ndim == 4:
             frames = frames.mean(axis=-1)

@@ -82,19 +82,18 @@ def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] | No
 
     from odsplat.sync import AlignedTake, load_sync
 
-    try:
-        sync = load_sync(capture)
-    except InputError as e:
-        log.info("no image poles: %s", e)
+    if not capture.paths.sync_json.exists():   # one that is there must read: load_sync refuses a bad one
+        log.info("no image poles: %s not found", capture.paths.sync_json)
         return None
-    takes = [tk for tk in sync.ok if tk.aligned_file and (capture.paths.root / tk.aligned_file).is_file()]
+    sync = load_sync(capture)
+    takes = [tk for tk in sync.ok if tk.aligned_file and capture.paths.listed(tk.aligned_file).is_file()]
     if not takes:
         log.info("no image poles: no synced take has aligned frames")
         return None
     gram, times, n_pix = None, None, 0
     for tk in tqdm(takes, desc="analysis: image poles", unit="take", disable=not progress):
-        path = capture.paths.root / tk.aligned_file
-        with AlignedTake(path, sync.generation) as f:
+        path = capture.paths.listed(tk.aligned_file)
+        with AlignedTake(path, sync.generation, capture.id) as f:
             frames, t = f.read_frames(), f.times_s
         if times is None:
             times = t

@@ -170,18 +170,23 @@ class BatchResult:
         return "\n".join(lines)
 
 
-def _captures(paths: Iterable[str | Path]) -> list[str]:
-    """Absolute capture folders, each once (two tasks must never write the same capture), in the order given."""
+def _captures(paths: Iterable[str | Path]) -> tuple[list[str], dict[str, CaptureOutcome]]:
+    """Absolute capture folders, each once (two tasks must never write the same capture), in the order given; and
+    the folders that are no capture, each with its outcome (it fails alone: the others still run)."""
     out: list[str] = []
+    refused: dict[str, CaptureOutcome] = {}
     for p in paths:
         root = str(Path(p).resolve())
+        if root in out or root in refused:
+            continue
         if not (Path(root) / "capture.json").is_file():
-            raise InputError(p, "not a capture (no capture.json)")
-        if root not in out:
+            refused[root] = CaptureOutcome(root, ok=False, failed_stage="config",
+                                           error=f"{p}: not a capture (no capture.json)")
+        else:
             out.append(root)
-    if not out:
+    if not out and not refused:
         raise InputError("CAPTURE", "no captures given")
-    return out
+    return out, refused
 
 
 def run_batch(captures: Iterable[str | Path], *, scheduler: str | None = None, workers: int | None = None,
@@ -196,8 +201,14 @@ def run_batch(captures: Iterable[str | Path], *, scheduler: str | None = None, w
     from distributed import Client, LocalCluster, as_completed
 
     say = echo or (lambda line: log.info("%s", line))
-    roots = _captures(captures)
+    roots, refused = _captures(captures)
+    order = [str(Path(p).resolve()) for p in captures]
+    order = [r for i, r in enumerate(order) if r not in order[:i]]
     lock = threading.Lock()
+    for outcome in refused.values():
+        say(outcome.line())
+    if not roots:
+        return BatchResult([refused[r] for r in order], 0.0, None)
 
     def tell(line: str) -> None:
         with lock:
@@ -243,7 +254,8 @@ def run_batch(captures: Iterable[str | Path], *, scheduler: str | None = None, w
         client.close()
         if cluster is not None:
             cluster.close()
-    return BatchResult([done[r] for r in roots], time.perf_counter() - started, dashboard)
+    done.update(refused)
+    return BatchResult([done[r] for r in order], time.perf_counter() - started, dashboard)
 
 
 __all__ = ["BatchResult", "CaptureOutcome", "ClusterExecutor", "run_batch", "run_capture"]

@@ -11,8 +11,9 @@ from typing import Any
 import click
 from click.core import ParameterSource
 
+from .checks import MAX_MAGNIFICATION, PLAYBACK_FPS, WIDTH_PX, WORKERS, Range, check_number, maybe
 from .config import STAGES, load_config
-from .errors import OdsplatError
+from .errors import OdsplatError, exit_if_hdf5_unclosed, storage_error
 
 
 class _Group(click.Group):
@@ -22,8 +23,16 @@ class _Group(click.Group):
         try:
             return super().invoke(ctx)
         except OdsplatError as exc:
-            click.echo(f"odsplat: error: {exc}", err=True)
-            sys.exit(2)
+            line, storage = str(exc), storage_error(exc)
+        except Exception as exc:   # a full disk, a read-only folder: one line too; anything else is a bug
+            storage = storage_error(exc)
+            if storage is None:
+                raise
+            line = str(storage)
+        click.echo(f"odsplat: error: {line}", err=True)
+        if storage is not None:
+            exit_if_hdf5_unclosed()
+        sys.exit(2)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
@@ -56,17 +65,55 @@ def _given(**fields: Any) -> dict[str, Any]:
     return table
 
 
+def _set_wait(ctx: click.Context, _param: click.Parameter, value: bool) -> None:
+    ctx.meta["odsplat.wait"] = value
+
+
+def _set_derived(ctx: click.Context, _param: click.Parameter, value: Path | None) -> None:
+    ctx.meta["odsplat.derived"] = value
+
+
+def _wait_option(command):
+    """--wait and --derived, for the commands that write a capture's derived files."""
+    command = click.option(
+        "--derived", type=click.Path(path_type=Path, file_okay=False), default=None, expose_value=False,
+        callback=_set_derived, is_eager=True,
+        help="Read and write the derived files in this folder instead of the capture's derived/ (a read-only "
+             "capture, a faster disk).")(command)
+    return click.option(
+        "--wait", is_flag=True, expose_value=False, callback=_set_wait,
+        help="When another odsplat command is writing this capture, wait for it to finish instead of stopping.",
+    )(command)
+
+
+def _waits() -> bool:
+    return bool(click.get_current_context().meta.get("odsplat.wait"))
+
+
+def _open(capture_dir: Path):
+    """The capture, with its derived files where --derived says."""
+    from .store import Capture
+
+    return Capture.open(capture_dir, derived=click.get_current_context().meta.get("odsplat.derived"))
+
+
+def _locked(capture: Any):
+    """The capture's lock for a command that writes it outside the pipeline (recover, geometry, render)."""
+    from .lock import capture_lock
+
+    return capture_lock(capture, wait=_waits())
+
+
 def _stage(capture_dir: Path, stage: str, given: dict[str, Any]) -> tuple[Any, Any]:
     """Run one stage through the pipeline's entry: the capture's configuration with the options given laid over.
     Returns (capture, the stage's result)."""
     from .pipeline import run_stage
-    from .store import Capture
 
-    cap = Capture.open(capture_dir)
+    cap = _open(capture_dir)
     config = load_config(cap)
     if given:
         config = config.updated({stage: given}, "the command line")
-    return cap, run_stage(cap, stage, config).result
+    return cap, run_stage(cap, stage, config, wait=_waits()).result
 
 
 @main.command()
@@ -94,14 +141,15 @@ def import_(rig: Path, out: Path, data: Path | None) -> None:
 
 
 @main.command()
+@_wait_option
 @click.argument("capture", type=click.Path(path_type=Path))
 def recover(capture: Path) -> None:
     """Recover takes left unfinished by a crash, keeping every flushed frame and sample."""
     from .integrity import listed_take_problems
-    from .store import Capture
 
-    cap = Capture.open(capture)
-    reports = cap.recover()
+    cap = _open(capture)
+    with _locked(cap):
+        reports = cap.recover()
     lost = listed_take_problems(cap)
     if not reports and not lost:
         click.echo("nothing to recover: every listed take's file is there and whole, and no take is unfinished")
@@ -121,9 +169,8 @@ def verify(capture: Path) -> None:
     missing, truncated, unfinished, not listed, or without checksums (an older take: readable, but damage cannot be
     detected). Exit 1 when anything is wrong."""
     from .integrity import verify_capture
-    from .store import Capture
 
-    cap = Capture.open(capture)
+    cap = _open(capture)
     checks = verify_capture(cap)
     for check in checks:
         click.echo(check.line())
@@ -137,6 +184,7 @@ def verify(capture: Path) -> None:
 
 
 @main.command()
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.argument("geometry_file", type=click.Path(path_type=Path), required=False)
 def geometry(capture_dir: Path, geometry_file: Path | None) -> None:
@@ -144,13 +192,13 @@ def geometry(capture_dir: Path, geometry_file: Path | None) -> None:
     direction), set their positions and directions in the capture; without it, print the capture's geometry in
     that format, to edit. The raw takes are untouched; `odsplat run` then redoes the analysis."""
     from .sensors import apply_geometry, geometry_toml, read_geometry
-    from .store import Capture
 
-    cap = Capture.open(capture_dir)
+    cap = _open(capture_dir)
     if geometry_file is None:
         click.echo(geometry_toml(cap), nl=False)
         return
-    changes = apply_geometry(cap, read_geometry(geometry_file), geometry_file)
+    with _locked(cap):
+        changes = apply_geometry(cap, read_geometry(geometry_file), geometry_file)
     click.echo("\n".join(changes) if changes else "the geometry is as the file says already")
 
 
@@ -167,6 +215,7 @@ def _span_options(command):
 
 
 @main.command("run")
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @_span_options
 @click.option("--config", "config_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
@@ -178,11 +227,10 @@ def run_(capture_dir: Path, start: str | None, stop: str | None, force: tuple[st
     """Run the pipeline on CAPTURE_DIR, from the raw takes to the report; stages whose outputs are current are
     skipped, stale ones rerun with everything downstream (docs/config.md)."""
     from .pipeline import run
-    from .store import Capture
 
-    cap = Capture.open(capture_dir)
+    cap = _open(capture_dir)
     config = load_config(cap, path=config_path, sets=sets)
-    result = run(cap, config, start=start, stop=stop, force=force, echo=click.echo)
+    result = run(cap, config, start=start, stop=stop, force=force, echo=click.echo, wait=_waits())
     click.echo(result.text())
 
 
@@ -191,7 +239,7 @@ def run_(capture_dir: Path, start: str | None, stop: str | None, force: tuple[st
 @click.option("--scheduler", default=None, metavar="ADDRESS",
               help="A running Dask scheduler (e.g. tcp://host:8786) whose workers see the captures at these paths; "
                    "default: a local cluster.")
-@click.option("--workers", type=click.IntRange(min=1), default=None,
+@click.option("--workers", type=int, default=None,
               help="Worker processes of the local cluster, one thread each (default: one per core).")
 @_span_options
 @click.option("--config", "config_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
@@ -206,6 +254,7 @@ def batch_(captures: tuple[Path, ...], scheduler: str | None, workers: int | Non
     Prints the Dask dashboard's address, and a line per capture and stage as they finish."""
     from .batch import run_batch
 
+    check_number("--workers", workers, maybe(WORKERS))
     # Dask's own INFO lines (workers started and closed) only with -v, like odsplat's
     logging.getLogger("distributed").setLevel(max(logging.WARNING, logging.getLogger().level))
     result = run_batch(captures, scheduler=scheduler, workers=workers, start=start, stop=stop, force=force,
@@ -223,9 +272,8 @@ def batch_(captures: tuple[Path, ...], scheduler: str | None, workers: int | Non
 @click.option("--status", is_flag=True, help="Also say which stages are current.")
 def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], status: bool) -> None:
     """Print the effective configuration of CAPTURE_DIR (defaults, its odsplat.toml, --set) as TOML."""
-    from .store import Capture
 
-    cap = Capture.open(capture_dir)
+    cap = _open(capture_dir)
     config = load_config(cap, path=config_path, sets=sets)
     click.echo(config.to_toml(), nl=False)
     if status:
@@ -238,6 +286,7 @@ def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], 
 
 
 @main.command()
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--force-band", "force_band_n", type=(float, float), default=None,
               help="Planned peak force (N); takes outside are rejected (default: any).")
@@ -368,6 +417,7 @@ def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: i
 
 
 @main.command()
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--method", type=click.Choice(["auto", "ttl", "image"]), default="auto", show_default=True,
               help="Frame timing: the exposure strobe (ttl), the trigger frame refined by the images, "
@@ -399,6 +449,7 @@ def sync(capture_dir: Path, method: str, all_takes: bool, normalize_impulse: boo
 
 
 @main.command()
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--method", type=click.Choice(["phase", "linear", "learned"]), default="phase", show_default=True)
 @click.option("--alpha", type=float, default=20.0, show_default=True, help="Output motion = alpha x input motion.")
@@ -432,6 +483,7 @@ def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: 
 
 
 @main.command("export-video")
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--take", default=None, help="The take (default: every take of the source).")
 @click.option("--source", default="raw", show_default=True,
@@ -444,21 +496,23 @@ def export_video(capture_dir: Path, take: str | None, source: str, out: Path | N
     """Write a take's raw, aligned or magnified frames to an 8-bit mp4 to watch (docs/processing.md)."""
     from .errors import InputError
     from .processing import check_export, export_video, source_takes
-    from .store import Capture
 
-    cap = Capture.open(capture_dir)
+    cap = _open(capture_dir)
     check_export(cap, take or "", source, out, fps)
+    check_number("--fps", fps, PLAYBACK_FPS)
     takes = [take] if take else source_takes(cap, source)
     if out is not None and len(takes) != 1:
         raise InputError("-o", f"one file for {len(takes)} takes: name one with --take")
     for name in takes:
-        done = export_video(cap, name, source, out, fps)
+        with _locked(cap):
+            done = export_video(cap, name, source, out, fps)
         v = done.mp4
         click.echo(f"{name}: {v.n_frames} frames {v.width_px}x{v.height_px} px ({source}) -> {v.path} "
                    f"({v.bytes / 1e6:.2f} MB, {v.codec}, {v.fps:g} frames/s; recorded at {done.recorded_fps:g})")
 
 
 @main.command()
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--no-static", is_flag=True, help="Leave out the still photos in static/.")
 @click.option("--estimate-intrinsics", is_flag=True,
@@ -508,6 +562,7 @@ def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, 
 
 
 @main.command()
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--source", default=None,
               help="Frames to fit: 'sync' (unmagnified, on the common grid) or 'magnified/METHOD'. Default: "
@@ -545,6 +600,7 @@ def reconstruct(capture_dir: Path, source: str | None, width_px: int, n_timestep
 
 
 @main.command()
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--camera", "camera_spec", default="orbit", show_default=True,
               help="A take name (its estimated pose), orbit[:N[:ELEVATION_DEG[:DISTANCE_M]]], or a JSON camera path.")
@@ -561,28 +617,26 @@ def reconstruct(capture_dir: Path, source: str | None, width_px: int, n_timestep
 def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | None, width_px: int | None,
            alpha: float | None, fps: float, no_mp4: bool) -> None:
     """Render the reconstruction of CAPTURE_DIR from any camera path over any time range."""
-    from .errors import InputError
     from .reconstruction import DynamicScene, camera_path, check_camera_spec, parse_times, render_sequence
-    from .store import Capture
 
-    if alpha is not None and not 0 <= alpha < float("inf"):
-        raise InputError("--alpha", f"expected a magnification >= 0, got {alpha}")
-    if width_px is not None and width_px < 8:
-        raise InputError("--width", f"expected an image width of at least 8 px, got {width_px}")
-    if not 0 < fps < float("inf"):
-        raise InputError("--fps", f"expected a frame rate > 0, got {fps}")
-    cap = Capture.open(capture_dir)
+    # alpha 0 shows the rest state; above, the 2D magnification's bound (MAGNIFICATION), so one number rules both.
+    check_number("--alpha", alpha, maybe(Range(at_least=0, at_most=MAX_MAGNIFICATION)))
+    check_number("--width", width_px, maybe(WIDTH_PX))
+    check_number("--fps", fps, PLAYBACK_FPS)
+    cap = _open(capture_dir)
     check_camera_spec(camera_spec)
     scene = DynamicScene.load(cap)
     times = parse_times(times_spec, scene.times_s)
     cameras = camera_path(cap, camera_spec, len(times), width_px)
-    paths = render_sequence(scene, cameras, times, out or cap.paths.render_dir, alpha=alpha, fps=fps,
-                            mp4=not no_mp4)
+    with _locked(cap):
+        paths = render_sequence(scene, cameras, times, out or cap.paths.render_dir, alpha=alpha, fps=fps,
+                                mp4=not no_mp4)
     click.echo(f"{sum(p.suffix == '.png' for p in paths)} frames -> {paths[0].parent}"
                + (f" (and {paths[-1].name})" if paths and paths[-1].suffix == ".mp4" else ""))
 
 
 @main.command()
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--force", "force_channel", default=None,
               help="Force channel (default: the capture's one force channel).")
@@ -633,6 +687,7 @@ def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, 
 
 
 @main.command()
+@_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 def report(capture_dir: Path) -> None:
     """Write derived/analysis/report.html from the last `odsplat analyze` of CAPTURE_DIR."""
@@ -694,13 +749,12 @@ def view(capture_dir: Path, export_path: Path | None, screenshot_path: Path | No
 
     from .errors import InputError
     from .viewer import default_state, export_video, load_viewer, save_screenshot
+    from .viewer.model import ALPHA_RANGE
 
-    if not 1 <= alpha <= 1000:
-        raise InputError("--alpha", f"expected a magnification from 1 to 1000, got {alpha}")
-    if n_frames < 1:
-        raise InputError("--frames", f"expected at least 1 frame, got {n_frames}")
-    if not 0 < fps < float("inf"):
-        raise InputError("--fps", f"expected a frame rate > 0, got {fps}")
+    # The window's magnification slider spans ALPHA_RANGE (1 to 1000, within MAGNIFICATION); its frames box 10000.
+    check_number("--alpha", alpha, Range(at_least=ALPHA_RANGE[0], at_most=ALPHA_RANGE[1]))
+    check_number("--frames", n_frames, Range(at_least=1, at_most=10_000, integer=True))
+    check_number("--fps", fps, PLAYBACK_FPS)
     if min(size_px) < 8 or max(size_px) > 8192:
         raise InputError("--size", f"expected 8 to 8192 px each way, got {size_px[0]} x {size_px[1]}")
     if sum(x is not None and x is not False for x in (mode_number, ods_number, motion or None)) > 1:

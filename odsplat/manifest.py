@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from .checks import shown
 from .errors import InputError, SchemaError
 from .units import SI_UNITS
 
@@ -291,6 +292,10 @@ class Manifest:
         if dup:
             raise InputError(f"{where}: channels", f"duplicate channel names {sorted(dup)}")
         for i, take in enumerate(self.takes):
+            check_name(take.name, f"{where}: takes[{i}].name")   # names become file names: checked on every load
+            if take.file != f"takes/{take.name}.h5":
+                raise InputError(f"{where}: takes[{i}].file", f"expected 'takes/{take.name}.h5' (a take's file is "
+                                                              f"named after it, inside takes/); got {take.file!r}")
             if take.status not in TAKE_STATUSES:
                 raise InputError(f"{where}: takes[{i}].status", f"expected one of {TAKE_STATUSES}; got {take.status!r}")
             if take.qc not in QC_STATUSES:
@@ -328,17 +333,62 @@ def load_json(path: str | Path, *, missing: str) -> Any:
     return _load_text(path, json.loads, json.JSONDecodeError, "JSON", missing)
 
 
+# A TOML file odsplat reads is written by hand or by a short script: a configuration, a rig, a lab, a thousand views'
+# cameras fit in well under a megabyte. Larger is refused before it is read (tomllib takes seconds a megabyte).
+MAX_TOML_BYTES = 4 * 2**20
+# Tables and lists nested deeper than this are refused: odsplat's deepest TOML is four levels.
+MAX_TOML_DEPTH = 16
+
+
 def load_toml(path: str | Path, *, missing: str) -> dict[str, Any]:
     """Read a TOML configuration file; errors name the file (`missing` says what was expected there)."""
-    return _load_text(path, tomllib.loads, tomllib.TOMLDecodeError, "TOML", missing)
+    data = _load_text(path, tomllib.loads, tomllib.TOMLDecodeError, "TOML", missing, max_bytes=MAX_TOML_BYTES)
+    check_depth(data, str(path))
+    return data
 
 
-def _load_text(path: str | Path, parse, error: type[Exception], fmt: str, missing: str) -> Any:
+def parse_toml_value(text: str, where: str) -> Any:
+    """One TOML value (`--set`'s VALUE); InputError naming `where` when it is nested too deep or an integer too long
+    to read; TOMLDecodeError when it is not TOML."""
+    try:
+        value = tomllib.loads(f"v = {text}")["v"]
+    except RecursionError:
+        raise InputError(where, f"nested too deep to read; settings nest at most {MAX_TOML_DEPTH} levels") from None
+    except tomllib.TOMLDecodeError:
+        raise
+    except ValueError as exc:  # an integer of more than 4300 digits (Python's limit on reading one)
+        raise InputError(where, f"not a value odsplat can read: {str(exc).partition(':')[0]}") from None
+    check_depth(value, where)
+    return value
+
+
+def check_depth(data: Any, where: str, limit: int = MAX_TOML_DEPTH) -> None:
+    """Refuse tables and lists nested more than `limit` deep, walked without recursion (a hostile file may nest
+    a hundred thousand levels)."""
+    stack = [(data, 1)]
+    while stack:
+        value, depth = stack.pop()
+        if isinstance(value, dict):
+            children = value.values()
+        elif isinstance(value, list | tuple):
+            children = value
+        else:
+            continue
+        if depth > limit:
+            raise InputError(where, f"nested too deep: more than {limit} levels of tables and lists")
+        stack.extend((child, depth + 1) for child in children)
+
+
+def _load_text(path: str | Path, parse, error: type[Exception], fmt: str, missing: str,
+               max_bytes: int | None = None) -> Any:
     path = Path(path)
     if not path.exists():
         raise InputError(path, missing)
     check_regular_file(path, f"{fmt} file")
     try:
+        if max_bytes is not None and path.stat().st_size > max_bytes:
+            raise InputError(path, f"{path.stat().st_size / 2**20:.1f} MiB: too large for a {fmt} file odsplat "
+                                   f"reads (at most {max_bytes / 2**20:g} MiB)")
         data = path.read_bytes()
     except OSError as exc:
         raise InputError(path, f"cannot be read: {exc.strerror or exc}") from None
@@ -351,6 +401,12 @@ def _load_text(path: str | Path, parse, error: type[Exception], fmt: str, missin
         return parse(text)
     except error as exc:
         raise InputError(path, f"not valid {fmt}: {exc}") from None
+    except RecursionError:
+        raise InputError(path, f"not {fmt} odsplat can read: nested too deep") from None
+    except MemoryError:
+        raise InputError(path, f"not {fmt} odsplat can read: too large to hold in memory") from None
+    except ValueError as exc:  # an integer of more than 4300 digits (Python's limit on reading one)
+        raise InputError(path, f"not {fmt} odsplat can read: {str(exc).partition(':')[0]}") from None
 
 
 def from_plain(cls: type, data: Any, where: str) -> Any:
@@ -361,7 +417,7 @@ def from_plain(cls: type, data: Any, where: str) -> Any:
     known = {f.name: f for f in dataclasses.fields(cls)}
     unknown = set(data) - set(known)
     if unknown:
-        raise InputError(where, f"unknown field(s) {sorted(unknown)}; expected some of {sorted(known)}")
+        raise InputError(where, f"unknown field(s) {shown(sorted(unknown))}; expected some of {sorted(known)}")
     kwargs = {}
     for name, f in known.items():
         if name in data:
@@ -401,18 +457,25 @@ def _convert(tp: Any, value: Any, where: str) -> Any:
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise InputError(where, f"expected a number; got {value!r}")
-        return float(value)
+            raise InputError(where, f"expected a number; got {shown(value)}")
+        try:
+            return float(value)
+        except OverflowError:  # an int past a float's range
+            raise InputError(where, f"expected a finite number; got {shown(value)}") from None
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise InputError(where, f"expected an integer; got {value!r}")
+            raise InputError(where, f"expected an integer; got {shown(value)}")
         return value
     if tp is bool:
         if not isinstance(value, bool):
-            raise InputError(where, f"expected true or false; got {value!r}")
+            raise InputError(where, f"expected true or false; got {shown(value)}")
         return value
     if tp is str:
         if not isinstance(value, str):
-            raise InputError(where, f"expected a string; got {value!r}")
+            raise InputError(where, f"expected a string; got {shown(value)}")
+        return value
+    if tp is Path:
+        if not isinstance(value, (str, os.PathLike)):
+            raise InputError(where, f"expected a path (a string); got {shown(value)}")
         return value
     return value

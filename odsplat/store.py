@@ -37,7 +37,8 @@ import hdf5plugin
 import numpy as np
 
 from .contract import check, digest
-from .errors import IncompleteTakeError, InputError, OdsplatError, SchemaError
+from .errors import IncompleteTakeError, InputError, OdsplatError, SchemaError, storage_error
+from .guard import lexically_inside, refuse_links
 from .manifest import (
     CAN_SOURCE_PREFIX,
     QC_KIND,
@@ -52,6 +53,7 @@ from .manifest import (
     utc_now,
 )
 from .paths import DerivedPaths
+from .space import CHUNK_CACHE_BYTES, Reserve, close_h5, writing_h5
 from .timebase import resample_onto
 
 log = logging.getLogger(__name__)
@@ -84,9 +86,16 @@ _TEMPORARY = re.compile(r"\..+\.(?P<pid>\d+)\.tmp(\.\w+)?")   # what atomic_path
 def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     """A temporary path beside `path` to write; on a clean exit the file is fsynced and renamed over `path` (and
     the directory fsynced), on an error removed. A crash leaves either the old file or the new one, never half.
-    `suffix` ends the temporary's name, for writers that choose a format by it (OpenCV's mp4: ".mp4")."""
+    `suffix` ends the temporary's name, for writers that choose a format by it (OpenCV's mp4: ".mp4").
+    A folder that is a symbolic link is refused (nothing is written through a link), and whatever lies at the
+    temporary's name (a dead process's file with this pid, or a link planted there) is removed first, so the
+    writer creates a new plain file."""
     path = Path(path)
+    if path.parent.is_symlink():
+        raise InputError(path.parent, "a symbolic link: odsplat writes nothing through a link (remove it)")
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{suffix}")
+    if os.path.lexists(tmp):
+        tmp.unlink()
     try:
         yield tmp
         fsync_path(tmp)
@@ -99,18 +108,21 @@ def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
 
 def remove_stale_temporaries(folder: str | Path) -> list[Path]:
     """Remove the temporaries `atomic_path` leaves when its writer is killed (`.NAME.PID.tmp[SUFFIX]`, in `folder`
-    and below) whose process is gone; a live writer's are left alone. Returns what was removed."""
+    and below) whose process is gone; a live writer's are left alone. Links are neither followed nor removed, a
+    linked `folder` is not walked. Returns what was removed."""
     folder = Path(folder)
-    removed = []
-    if not folder.is_dir():
+    removed: list[Path] = []
+    if folder.is_symlink() or not folder.is_dir():
         return removed
-    for tmp in folder.rglob(".*.tmp*"):
-        match = _TEMPORARY.fullmatch(tmp.name)
-        if match is None or _alive(int(match["pid"])):
-            continue
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-            removed.append(tmp)
+    for here, _dirs, files in os.walk(folder, followlinks=False):
+        for name in files:
+            tmp = Path(here) / name
+            match = _TEMPORARY.fullmatch(name)
+            if match is None or tmp.is_symlink() or _alive(int(match["pid"])):
+                continue
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+                removed.append(tmp)
     if removed:
         log.info("removed %d temporaries of killed runs under %s", len(removed), folder)
     return removed
@@ -226,7 +238,12 @@ class TakeWriter:
         self._view = (attrs or {}).get("view")
 
         self.partial_path.parent.mkdir(parents=True, exist_ok=True)
-        f = h5py.File(self.partial_path, "w", libver="latest")
+        self._reserve = Reserve(self.partial_path.parent)   # room to close the file on a full disk (odsplat.space)
+        try:
+            f = h5py.File(self.partial_path, "w", libver="latest", rdcc_nbytes=CHUNK_CACHE_BYTES)
+        except BaseException:
+            self._reserve.release()
+            raise
         self._file = f
         f.attrs.update(
             {
@@ -397,9 +414,9 @@ class TakeWriter:
 
     def finalize(self, *, recovered: bool = False) -> TakeRecord:
         """Write trigger and QC, verify, fsync and rename to the final name. Returns the manifest record."""
-        self._file.close()
         self._closed = True
-        with h5py.File(self.partial_path, "r+") as f:
+        close_h5(self._file, self._reserve)
+        with writing_h5(self.partial_path, "r+") as f:
             trig = f.require_group("trigger")
             for key, value in asdict(self._trigger).items():
                 trig.attrs[key] = _none_to_nan(value)
@@ -432,8 +449,12 @@ class TakeWriter:
     def close_unfinished(self) -> None:
         """Close without finalising: the `.partial` file stays for `recover_partial` to deal with."""
         if not self._closed:
-            self._file.close()
             self._closed = True
+            try:
+                close_h5(self._file, self._reserve)
+            except (OSError, RuntimeError) as exc:   # a full disk: what was flushed stays, for `recover_partial`
+                log.warning("%s: not closed cleanly (%s); `odsplat recover` keeps what was flushed",
+                            self.partial_path, " ".join(str(exc).split())[:200])
 
     def _verify(self) -> None:
         with h5py.File(self.partial_path, "r") as f:
@@ -575,7 +596,12 @@ class TakeReader:
         if not attrs.get("complete") and not attrs.get("recovered"):
             self._file.close()
             raise IncompleteTakeError(self.path, "the take was not finalised")
-        self.name = str(attrs.get("take", self.path.stem))
+        name = attrs.get("take", self.path.stem)
+        try:   # the name becomes derived file names (derived/sync/NAME.h5): checked here as on import
+            self.name = check_name(name.decode() if isinstance(name, bytes) else name, f"{self.path}: attribute take")
+        except InputError:
+            self._file.close()
+            raise
         self.recovered = bool(attrs.get("recovered"))
 
     # -- metadata ---------------------------------------------------------------------------
@@ -825,12 +851,15 @@ def recover_partial(partial_path: str | Path, *, chunk_frames: int = 64) -> Reco
                 if m:
                     g = src["can"][node]
                     writer.append_can_samples(node, g["times_s"][:m], {n: g[n][:m] for n in node_names})
-        except (OSError, KeyError, ValueError) as exc:
+        except (OSError, KeyError, ValueError, RuntimeError) as exc:
             if writer is not None:
                 writer.close_unfinished()
             for leftover in half_made:
                 leftover.unlink(missing_ok=True)
             src.close()
+            storage = storage_error(exc)
+            if storage is not None:   # the disk, not the take: left as it is, to recover once there is room
+                raise storage from None
             what = ("its writer stopped while creating it, before any frame or sample was written"
                     if isinstance(exc, KeyError) else "could not be copied")
             return _set_aside(partial_path, crashed_path, f"{what} ({type(exc).__name__}: {exc})")
@@ -862,6 +891,26 @@ class Capture:
         self.manifest = manifest
         # Every derived path comes from this registry; `derived` sends them elsewhere (the capture stays as it is).
         self.paths = DerivedPaths(Path(derived) if derived is not None else self.root / "derived")
+        if derived is not None:
+            self._check_derived_elsewhere(Path(derived))
+
+    def _check_derived_elsewhere(self, derived: Path) -> None:
+        """A derived folder given apart from the capture may lie anywhere but among its raw data (takes/, static/,
+        the capture's own top folder) or above the capture: a stage's clean-up deletes files in it."""
+        for own in (self.root, self.takes_dir, self.static_dir):
+            if lexically_inside(own, derived) and not lexically_inside(self.root / "derived", derived):
+                raise InputError(derived, f"inside the capture's {'top folder' if own == self.root else own.name + '/'}"
+                                          "; derived files go to derived/ or a folder outside the capture")
+        if lexically_inside(derived, self.root):
+            raise InputError(derived, f"holds the capture {self.root}; derived files go to a folder of their own")
+
+    def refuse_links(self) -> None:
+        """Refuse (one line) a capture that holds a symbolic link anywhere (capture.json, takes/, static/, derived/,
+        or the derived folder given apart): odsplat goes through none (`guard`)."""
+        outside = self.paths.root if not lexically_inside(self.root, self.paths.root) else None
+        refuse_links(self.root)
+        if outside is not None:
+            refuse_links(outside)
 
     @classmethod
     def create(cls, root: str | Path, manifest: Manifest) -> Capture:
@@ -883,7 +932,9 @@ class Capture:
         root = Path(root)
         if not root.is_dir():
             raise InputError(root, "no such capture directory")
-        return cls(root, Manifest.load(root / MANIFEST_NAME), derived)
+        capture = cls(root, Manifest.load(root / MANIFEST_NAME), derived)
+        capture.refuse_links()
+        return capture
 
     @property
     def id(self) -> str:

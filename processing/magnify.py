@@ -25,7 +25,22 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from odsplat.checks import COUNT, POSITIVE, Range, check_fields, maybe
+from odsplat.checks import (
+    BLUR_PX,
+    CHUNK_FRAMES,
+    FRACTION,
+    MAGNIFICATION,
+    MAX_WIDTH_PX,
+    PLAYBACK_FPS,
+    VIDEO_FREQUENCY_HZ,
+    WORKERS,
+    Range,
+    check_choice,
+    check_fields,
+    check_number,
+    maybe,
+    shown,
+)
 from odsplat.contract import check, describe
 from odsplat.errors import InputError, OdsplatError
 from odsplat.framefile import (
@@ -42,13 +57,17 @@ from odsplat.manifest import load_json, utc_now
 from odsplat.mp4 import Mp4Writer, display_range, to_8bit
 from odsplat.store import Capture, atomic_write_text
 
-from .base import Magnifier, check_alpha
+from .base import Magnifier
 from .filters import KINDS, check_band, make_filter
 from .limits import check_limit, motion_px, sample_indices
 
 log = logging.getLogger(__name__)
 
 METHODS = ("phase", "linear", "learned")
+MODES = ("static", "dynamic")             # the learned method's without a band (learned.MODES): against the
+#                                           first frame, or the one before
+SOURCES = ("auto", "aligned", "raw")
+MAX_VIEW = 9999                           # a viewpoint's number
 KIND = "odsplat.magnify"
 SCHEMA = 3   # 2: generation, the run id its magnified files carry; 3: each take's video and motion limit
 LUMA = np.array([0.299, 0.587, 0.114], np.float32)   # Y of YIQ, what the methods magnify
@@ -72,17 +91,16 @@ class MagnifySettings:
     side_by_side: bool = False                   # the video shows the input (left) beside the magnified (right)
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise InputError("--method", f"expected one of {METHODS}, got {self.method!r}")
-        check_alpha(self.alpha)
-        if self.filter is not None and self.filter not in KINDS:
-            raise InputError("--filter", f"expected one of {KINDS}, got {self.filter!r}")
+        check_choice("MagnifySettings.method", self.method, METHODS)
+        if self.filter is not None:
+            check_choice("MagnifySettings.filter", self.filter, KINDS)
         if self.filter not in (None, "none") and self.band_hz is None:
             raise InputError("--band", f"the {self.filter} filter needs a band LOW HIGH in Hz")
-        if self.source not in ("auto", "aligned", "raw"):
-            raise InputError("--source", f"expected auto, aligned or raw, got {self.source!r}")
-        check_fields(self, {"band_hz": maybe(POSITIVE), "chunk_frames": COUNT, "workers": maybe(COUNT),
-                            "video_fps": POSITIVE, "views": Range(at_least=0, integer=True)})
+        check_choice("MagnifySettings.mode", self.mode, MODES)
+        check_choice("MagnifySettings.source", self.source, SOURCES)
+        check_fields(self, {"alpha": MAGNIFICATION, "band_hz": maybe(VIDEO_FREQUENCY_HZ), "chunk_frames": CHUNK_FRAMES,
+                            "workers": maybe(WORKERS), "video_fps": PLAYBACK_FPS,
+                            "views": Range(at_least=0, at_most=MAX_VIEW, integer=True)})
         if self.band_hz is not None and not self.band_hz[0] < self.band_hz[1]:
             raise InputError("MagnifySettings.band_hz", f"expected LOW < HIGH in Hz, got {list(self.band_hz)}")
         check_options(self.method, self.options)
@@ -102,7 +120,7 @@ def parse_options(items) -> tuple[tuple[str, Any], ...]:
             raise InputError("--option", f"expected KEY=VALUE, got {item!r}")
         try:
             parsed.append((key, json.loads(value.lower() if value.lower() in ("true", "false") else value)))
-        except json.JSONDecodeError:
+        except (ValueError, RecursionError):  # not JSON (or nested past reading): kept as a string
             parsed.append((key, value))
     return tuple(parsed)
 
@@ -122,6 +140,18 @@ def _magnifier_class(method: str) -> type[Magnifier]:
 
 
 _OPTION_TYPES = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
+# The numeric options' ranges: past any real use, short of sizes that allocate without bound.
+_OPTION_RANGES = {
+    "n_orientations": Range(at_least=1, at_most=16, integer=True),
+    "n_scales": maybe(Range(at_least=1, at_most=16, integer=True)),
+    "levels": Range(at_least=0, at_most=16, integer=True),
+    "sigma_px": BLUR_PX,
+    "twidth": Range(above=0, at_most=4),                  # octaves
+    "noise_sd": maybe(FRACTION),
+    "cutoff_wavelength_px": Range(above=0, at_most=MAX_WIDTH_PX),
+    "batch_frames": CHUNK_FRAMES,
+    "batch": CHUNK_FRAMES,
+}
 
 
 def check_options(method: str, options: tuple[tuple[str, Any], ...]) -> None:
@@ -141,7 +171,10 @@ def check_options(method: str, options: tuple[tuple[str, Any], ...]) -> None:
         kinds = tuple(t for n in names for t in _OPTION_TYPES.get(n, ()))
         fits = "bool" in names if isinstance(value, bool) else isinstance(value, kinds)
         if not fits or (isinstance(value, float) and not math.isfinite(value)):
-            raise InputError(where, f"expected {' or '.join(sorted(names))} for the {method} method; got {value!r}")
+            raise InputError(where, f"expected {' or '.join(sorted(names))} for the {method} method; got "
+                                    f"{shown(value)}")
+        if key in _OPTION_RANGES and not isinstance(value, bool):
+            check_number(where, value, _OPTION_RANGES[key])
 
 
 def make_magnifier(settings: MagnifySettings, fps: float) -> Magnifier:
@@ -236,7 +269,7 @@ class _Source:
         if aligned_file:
             from odsplat.sync import AlignedTake
 
-            self._r = AlignedTake(Path(aligned_file), sync_generation)
+            self._r = AlignedTake(Path(aligned_file), sync_generation, capture.id)
             self.kind = "aligned"
             self.bit_depth = int(self._r.attrs["bit_depth"])
             self.times_s = self._r.times_s
@@ -311,7 +344,7 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
                          band_hz=json.dumps(list(settings.band_hz) if settings.band_hz else None),
                          view=None if src.view is None else int(src.view), generation=generation)
             ds, scale = create_frames(f, MAGNIFIED_KIND, frame_shape=src.frame_shape, bit_depth=src.bit_depth,
-                                      times_s=src.times_s, attrs=attrs)
+                                      times_s=src.times_s, attrs=attrs, capture_id=capture.id)
 
             def emit(y: torch.Tensor) -> None:
                 nonlocal written
@@ -374,7 +407,7 @@ def _inputs(capture: Capture, s: MagnifySettings) -> tuple[list[tuple[str, str |
         from odsplat.sync import load_sync
 
         sync = load_sync(capture)
-        synced = {t.name: str(capture.paths.root / t.aligned_file) for t in sync.ok if t.aligned_file}
+        synced = {t.name: str(capture.paths.listed(t.aligned_file)) for t in sync.ok if t.aligned_file}
     if s.source == "aligned" and not synced:
         raise InputError(sync_json, "no aligned frames: run `odsplat sync` first (or --source raw)")
     if synced:
@@ -389,6 +422,13 @@ def _inputs(capture: Capture, s: MagnifySettings) -> tuple[list[tuple[str, str |
     if missing:
         raise InputError(capture.root, f"no takes named {missing}")
     return [(n, None) for n in _of_views(capture, names, s.views)], None
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
 
 
 def _of_views(capture: Capture, names: list[str], views: tuple[int, ...]) -> list[str]:
@@ -417,7 +457,9 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
     if not jobs:
         raise OdsplatError(f"{capture.root}: no takes to magnify{capture.unchecked_hint()}")
     dest = capture.paths.magnified_dir(s.method)
-    generation = begin_outputs(capture.paths.magnify_json(s.method), dest)
+    # The magnified frames take about what their source frames do (the same size, compressed alike).
+    needed = sum(_size(Path(src) if src else capture.root / f"takes/{name}.h5") for name, src in jobs)
+    generation = begin_outputs(capture.paths.magnify_json(s.method), dest, needed, "the magnified frames")
     capture.paths.ensure(dest)
     workers = max(1, min(s.workers or os.cpu_count() or 1, len(jobs)))
     # torch's threads per view: one per task on an executor (a cluster's worker slot), like the process pool when
@@ -445,7 +487,7 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
     finally:
         bar.close()
     result.write(capture)
-    prune_outputs(dest, [capture.paths.root / f for t in result.takes
+    prune_outputs(dest, [capture.paths.listed(f) for t in result.takes
                          for f in (t.file, *([t.video["file"]] if t.video else []))])
     warned = [t for t in result.takes if t.warning]
     if len(warned) <= 3:

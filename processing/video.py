@@ -49,7 +49,7 @@ def _open(capture: Capture, take: str, source: str):
         files = {t.name: t.aligned_file for t in sync.ok if t.aligned_file}
         if take not in files:
             raise InputError("--take", f"sync has no aligned frames of {take!r} (it has {', '.join(files) or 'none'})")
-        reader = AlignedTake(capture.paths.root / files[take], sync.generation)
+        reader = AlignedTake(capture.paths.listed(files[take]), sync.generation, capture.id)
         return reader, _rate(reader.times_s), None
     method = source.partition("/")[2]
     result = MagnifyResult.read(capture, method)
@@ -57,7 +57,7 @@ def _open(capture: Capture, take: str, source: str):
     if found is None:
         raise InputError("--take", f"no magnified {take!r} in {source} (it has "
                                    f"{', '.join(t.name for t in result.takes)})")
-    reader = MagnifiedVideo(capture.paths.root / found.file, result.generation)
+    reader = MagnifiedVideo(capture.paths.listed(found.file), result.generation, capture.id)
     dn_range = tuple(found.video["dn_range"]) if found.video else None
     return reader, _rate(reader.times_s), dn_range
 

@@ -43,7 +43,7 @@ from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from odsplat.checks import COUNT, FRACTION, NON_NEGATIVE, POSITIVE, Range, check_fields
+from odsplat.checks import BLUR_PX, CHUNK_FRAMES, FRACTION, LENGTH_M, NEIGHBOURS, WEIGHT, Range, check_fields, maybe
 from odsplat.errors import InputError
 from odsplat.store import Capture
 
@@ -80,17 +80,14 @@ class LinearSettings:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        if self.node_spacing_m is not None and not Range(above=0).holds(self.node_spacing_m):
-            raise InputError("node_spacing_m", f"expected a positive spacing in metres, got {self.node_spacing_m}")
-        check_fields(self, {"max_nodes": COUNT, "smoothing": NON_NEGATIVE, "blur_px": NON_NEGATIVE,
-                            "min_alpha": FRACTION, "min_opacity": FRACTION, "rank_factor": POSITIVE,
-                            "max_components": COUNT, "chunk_frames": COUNT})
-        if self.smoothing < 0:
-            raise InputError("smoothing", f"expected a weight >= 0, got {self.smoothing}")
-        if not 0 <= self.gradient_quantile < 1:
-            raise InputError("gradient_quantile", f"expected a quantile in [0, 1), got {self.gradient_quantile}")
-        if self.k_interp < 1 or self.k_graph < 1:
-            raise InputError("k_interp/k_graph", f"expected at least 1, got {self.k_interp}/{self.k_graph}")
+        # max_nodes: six unknowns each in one sparse solve; max_components: at most one per timestep.
+        check_fields(self, {"node_spacing_m": maybe(LENGTH_M),
+                            "max_nodes": Range(at_least=1, at_most=100_000, integer=True), "smoothing": WEIGHT,
+                            "blur_px": BLUR_PX, "min_alpha": FRACTION, "min_opacity": FRACTION,
+                            "gradient_quantile": Range(at_least=0, below=1), "k_interp": NEIGHBOURS,
+                            "k_graph": NEIGHBOURS, "rank_factor": Range(above=0, at_most=1e6),
+                            "max_components": Range(at_least=1, at_most=1024, integer=True),
+                            "chunk_frames": CHUNK_FRAMES})
 
 
 def _filter(image: np.ndarray, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
@@ -255,7 +252,7 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
     generation = source_generation(capture, "sync")
     for v, cam in tqdm(list(zip(vs.views, cameras)), desc="linear motion", unit="view", disable=not s.progress):
         path = source_path(capture, "sync", v.name)
-        with SourceFrames(path, generation) as ff:
+        with SourceFrames(path, generation, capture.id) as ff:
             times = ff.times_s
             if frames.max() >= len(times) or not np.allclose(times[frames], vs.times_s, atol=1e-9):
                 raise InputError(path, "times_s differ from the training grid's")

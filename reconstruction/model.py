@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from odsplat.checks import COUNT, Range, check_fields, maybe
-from odsplat.contract import check, describe, plain
+from odsplat.checks import FRAME_INDEX, MAX_FRAMES, WIDTH_PX, WORKERS, Range, check_choice, check_fields, maybe, shown
+from odsplat.contract import CAPTURE_KEY, check, describe, numeric, plain, read_npz
 from odsplat.errors import InputError
 from odsplat.geometry import look_at
 from odsplat.manifest import load_json, utc_now
@@ -85,18 +85,21 @@ class ReconstructSettings:
         return TIMESTEP_DEFAULT if self.motion == "timestep" else None
 
     def __post_init__(self) -> None:
-        if self.motion not in MOTIONS:
-            raise InputError("motion", f"expected one of {', '.join(MOTIONS)}, got {self.motion!r}")
-        check_fields(self, {"width_px": Range(at_least=8, integer=True), "n_timesteps": maybe(COUNT), "step": COUNT,
-                            "start": maybe(Range(at_least=0, integer=True)), "init_opacity": Range(above=0, below=1),
-                            "threads": maybe(COUNT)})
+        check_choice("ReconstructSettings.motion", self.motion, MOTIONS)
+        # n_timesteps: a second at 100k frames/s; every model holds all of them in memory at once.
+        check_fields(self, {"width_px": WIDTH_PX,
+                            "n_timesteps": maybe(Range(at_least=1, at_most=100_000, integer=True)),
+                            "step": Range(at_least=1, at_most=MAX_FRAMES, integer=True), "start": maybe(FRAME_INDEX),
+                            "init_opacity": Range(above=0, below=1), "threads": maybe(WORKERS)})
         if self.source is None:
             object.__setattr__(self, "source", default_source(self.motion))
-        if self.source != "sync" and not (self.source.startswith("magnified/") and len(self.source) > 10):
-            raise InputError("source", f"expected 'sync' or 'magnified/METHOD', got {self.source!r}")
+        # METHOD names a folder of derived/magnified/: a word, never a path.
+        kind, _, method = self.source.partition("/") if isinstance(self.source, str) else ("", "", "")
+        if self.source != "sync" and not (kind == "magnified" and method.isidentifier() and len(method) <= 32):
+            raise InputError("source", f"expected 'sync' or 'magnified/METHOD', got {shown(self.source)}")
         if self.motion == "linear" and self.source != "sync":
             raise InputError("source", f"the linear motion model reads the raw frames: expected 'sync', got "
-                                       f"{self.source!r} (it magnifies in 3D, at render time)")
+                                       f"{shown(self.source)} (it magnifies in 3D, at render time)")
 
 
 def _poses(capture: Capture):
@@ -158,11 +161,20 @@ class ReconstructResult:
         path = capture.paths.reconstruction_json
         doc = load_json(path, missing="no reconstruction here (run `odsplat reconstruct` first)")
         check(doc, path, kind=KIND, schema_version=SCHEMA, capture_id=capture.id)
-        try:
-            r = dict(doc["result"])
-            return cls(**{**r, "out_dir": Path(r["out_dir"]), "notes": list(r.get("notes", []))})
-        except (KeyError, TypeError) as exc:
-            raise InputError(path, f"not a readable reconstruction summary: {exc}") from None
+        r = doc.get("result")
+        if not isinstance(r, dict):
+            raise InputError(f"{path}: result", f"expected an object, got {type(r).__name__}; run `odsplat "
+                                                "reconstruct` again")
+        counts, figures = ("n_gaussians", "n_views", "n_static", "n_timesteps"), ("seconds_t0", "seconds_dynamic",
+                                                                                  "psnr_t0_db", "psnr_last_db")
+        bad = [k for k in counts if not isinstance(r.get(k), int) or isinstance(r.get(k), bool)]
+        bad += [k for k in figures if not isinstance(r.get(k), (int, float)) or isinstance(r.get(k), bool)]
+        bad += [k for k, kind in (("out_dir", str), ("notes", list)) if not isinstance(r.get(k, []), kind)]
+        if bad or "out_dir" not in r:
+            raise InputError(f"{path}: result", f"{', '.join(bad or ['out_dir'])}: missing or of the wrong type; run "
+                                                "`odsplat reconstruct` again")
+        return cls(Path(r["out_dir"]), *(r[k] for k in counts), *(float(r[k]) for k in figures),
+                   [str(n) for n in r.get("notes", [])])
 
 
 def _psnr(g: Gaussians, views, t: int, means=None, quats=None, background=0.0) -> float:
@@ -234,39 +246,48 @@ class MotionRecord:
     KEYS = ("times_s", "means_rest_m", "opacity_logits")   # and displacement_m, or a modal model's basis and shapes
 
     @classmethod
-    def read(cls, path: str | Path) -> MotionRecord:
+    def read(cls, path: str | Path, capture_id: str | None = None) -> MotionRecord:
+        """The motion in a `trajectories.npz` or `measured_motion.npz`; given the capture's id, a file of another
+        capture is refused. Whatever is wrong with the file (empty, cut short, not an .npz, damaged, an array
+        missing, of text or of the wrong shape) is one line naming it."""
         path = Path(path)
-        if not path.is_file():
-            raise InputError(path, "no reconstruction motion here (run `odsplat reconstruct` first)")
-        try:
-            with np.load(path) as z:
-                d = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as exc:
-            raise InputError(path, f"not a readable .npz file: {exc}") from None
+        d = read_npz(path, missing="no reconstruction motion here (run `odsplat reconstruct` first)",
+                     capture_id=capture_id)
         missing = [k for k in cls.KEYS if k not in d]
         if "displacement_m" not in d and not {"basis", "shapes_m"} <= d.keys():
             missing.append("displacement_m")
         if missing:
-            raise InputError(path, f"not a reconstruction's motion file: no {', '.join(missing)}")
-        times, rest = np.asarray(d.pop("times_s"), float), np.asarray(d.pop("means_rest_m"), float)
-        logits = np.asarray(d.pop("opacity_logits"), float).reshape(-1)
-        disp = np.asarray(d.pop("displacement_m")) if "displacement_m" in d else \
-            modal_displacement(path, d["basis"], d["shapes_m"], len(times), len(rest))
-        alpha = float(d.pop("source_alpha", 1.0))
-        if rest.ndim != 2 or rest.shape[1] != 3 or disp.shape != (len(times), len(rest), 3) or len(logits) != len(rest):
-            raise InputError(f"{path}: displacement_m", f"expected shape {(len(times), len(rest), 3)} with "
-                             f"{len(rest)} rest points and opacities; got {disp.shape}, {len(logits)}")
-        if not alpha > 0:
+            raise InputError(path, f"not a reconstruction's motion file: no {', '.join(missing)}; run "
+                                   "`odsplat reconstruct` again")
+        times = numeric(d, "times_s", path, (None,)).astype(float)
+        rest = numeric(d, "means_rest_m", path, (None, 3)).astype(float)
+        logits = numeric(d, "opacity_logits", path, (len(rest),)).astype(float)
+        if not len(times) or not np.all(np.isfinite(times)):
+            raise InputError(f"{path}: times_s", f"expected finite times, got {len(times)} with "
+                                                 f"{int(np.sum(~np.isfinite(times)))} not finite")
+        if "displacement_m" in d:
+            disp = numeric(d, "displacement_m", path, (len(times), len(rest), 3))
+        else:
+            disp = modal_displacement(path, numeric(d, "basis", path), numeric(d, "shapes_m", path), len(times),
+                                      len(rest))
+        for k in ("times_s", "means_rest_m", "opacity_logits", "displacement_m"):
+            d.pop(k, None)
+        alpha = float(numeric(d, "source_alpha", path, ())) if "source_alpha" in d else 1.0
+        d.pop("source_alpha", None)
+        if not 0 < alpha < np.inf:
             raise InputError(f"{path}: source_alpha", f"expected a positive magnification; got {alpha}")
         return cls(times, rest, disp, logits, alpha, d)
 
-    def write(self, path: Path) -> None:
+    def write(self, path: Path, capture_id: str | None = None) -> None:
         """A modal model's motion is written as its basis and shapes (in `extra`), not as the (T, N, 3) field they
-        multiply out to: on the demo 22k Gaussians x 247 timesteps, 159 MB with the quaternions against 6-7 MB."""
+        multiply out to: on the demo 22k Gaussians x 247 timesteps, 159 MB with the quaternions against 6-7 MB.
+        `capture_id`: the capture's, recorded in the file (`odsplat.contract.CAPTURE_KEY`)."""
         arrays = dict(times_s=np.asarray(self.times_s, float), means_rest_m=self.means_rest_m,
                       opacity_logits=self.opacity_logits, source_alpha=self.source_alpha, **self.extra)
         if not {"basis", "shapes_m"} <= self.extra.keys():
             arrays["displacement_m"] = np.asarray(self.displacement_m, np.float32)
+        if capture_id is not None:
+            arrays[CAPTURE_KEY] = np.asarray(capture_id)
         with atomic_path(path) as tmp, open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
 
@@ -294,15 +315,15 @@ def modal_quats(basis, rot_shapes_rad, quats_rest, chunk: int = 16) -> np.ndarra
     return out.numpy()
 
 
-def save_measured(dest: Path, times_s: np.ndarray, measured: NodeMotion | None) -> None:
-    """`measured_motion.npz` from the linear solve, or none: a stale one from an earlier linear run goes, so that
-    the analysis never pairs it with another model."""
+def save_measured(dest: Path, times_s: np.ndarray, measured: NodeMotion | None, capture_id: str | None = None) -> None:
+    """`measured_motion.npz` from the linear solve (recording `capture_id`), or none: a stale one from an earlier
+    linear run goes, so that the analysis never pairs it with another model."""
     path = dest / MEASURED
     if measured is None:
         path.unlink(missing_ok=True)
         return
     MotionRecord(times_s, measured.points_m, measured.displacement_m, np.full(len(measured.points_m), 10.0), 1.0,
-                 {"kind": "linear nodes"}).write(path)
+                 {"kind": "linear nodes"}).write(path, capture_id)
 
 
 def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -> ReconstructResult:
@@ -317,8 +338,8 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
     psnr0 = _psnr(m.g0, vs.views, 0, background=bg)
     psnr_last = _psnr(m.g0, vs.views, last, m.trajectory.means[last], m.trajectory.quats[last], bg)
     dest = capture.paths.reconstruction_dir
-    m.scene().save(dest)
-    save_measured(dest, vs.times_s, m.measured)
+    m.scene().save(dest, capture.id)
+    save_measured(dest, vs.times_s, m.measured, capture.id)
     result = ReconstructResult(dest, len(m.g0), len(vs.views), len(vs.static), vs.n_timesteps, m.stats_t0["seconds"],
                                m.seconds_dynamic, psnr0, psnr_last, vs.notes + [f"initialised from {m.init} points"])
     report = dict(**describe(capture.id, KIND, SCHEMA, s).header(), created_utc=utc_now(), settings=plain(s),
@@ -366,35 +387,50 @@ class DynamicScene:
 
     @classmethod
     def load(cls, capture: Capture) -> DynamicScene:
-        return cls.read(capture.paths.trajectories_npz)
+        """The capture's model (derived/reconstruction/trajectories.npz); a file of another capture is refused."""
+        return cls.read(capture.paths.trajectories_npz, capture.id)
 
     @classmethod
-    def read(cls, path: Path) -> DynamicScene:
-        """A model saved by `save` (its trajectories.npz)."""
-        m = MotionRecord.read(path)
+    def read(cls, path: Path, capture_id: str | None = None) -> DynamicScene:
+        """A model saved by `save` (its trajectories.npz); given the capture's id, a file of another capture is
+        refused. A file that is not a whole model (`MotionRecord.read`'s refusals, a rest-state array missing or of
+        the wrong shape) is one line naming it."""
+        path = Path(path)
+        m = MotionRecord.read(path, capture_id)
         d = m.extra
         missing = [k for k in ("log_scales_m", "color_logits", "scene_center_m", "scene_radius_m",
                                "frame_index", "bit_depth", "background") if k not in d]
         if "quats" not in d and not {"quats_rest", "basis", "rot_shapes_rad"} <= d.keys():
             missing.insert(0, "quats")
         if missing:
-            raise InputError(path, f"not a trained model's trajectories: no {', '.join(missing)}")
+            raise InputError(path, f"not a trained model's trajectories: no {', '.join(missing)}; run "
+                                   "`odsplat reconstruct` again")
+        n, n_t = len(m.means_rest_m), len(m.times_s)
+        color = numeric(d, "color_logits", path, (n, None))
+        checked = dict(log_scales_m=numeric(d, "log_scales_m", path, (n, 3)), color_logits=color,
+                       scene_center_m=numeric(d, "scene_center_m", path, (3,)),
+                       frame_index=numeric(d, "frame_index", path, (n_t,)),
+                       background=numeric(d, "background", path, (color.shape[1],)))
+        radius, bit_depth = float(numeric(d, "scene_radius_m", path, ())), numeric(d, "bit_depth", path, ())
+        if not 0 < radius < np.inf or not 1 <= bit_depth <= 32 or bit_depth != int(bit_depth):
+            raise InputError(f"{path}: scene_radius_m, bit_depth", f"expected a positive radius and a bit depth of 1 "
+                                                                   f"to 32; got {radius} and {bit_depth}")
+        d.update(checked)
         if "quats" not in d:                     # a modal model: its rotations from the rest state and the basis
-            if np.shape(d["rot_shapes_rad"]) != np.shape(d["shapes_m"]) or np.shape(d["quats_rest"]) != (
-                    len(m.means_rest_m), 4):
-                raise InputError(f"{path}: rot_shapes_rad, quats_rest", f"expected {np.shape(d['shapes_m'])} and "
-                                 f"({len(m.means_rest_m)}, 4); got {np.shape(d['rot_shapes_rad'])} and "
-                                 f"{np.shape(d['quats_rest'])}")
-            d["quats"] = modal_quats(d["basis"], d["rot_shapes_rad"], d.pop("quats_rest"))
+            rot = numeric(d, "rot_shapes_rad", path, np.shape(d["shapes_m"]))
+            d["quats"] = modal_quats(d["basis"], rot, numeric(d, "quats_rest", path, (n, 4)))
+            d.pop("quats_rest")
+        else:
+            d["quats"] = numeric(d, "quats", path, (n_t, n, 4))
         d.update(times_s=m.times_s, means_rest_m=m.means_rest_m, displacement_m=m.displacement_m,
                  opacity_logits=m.opacity_logits, source_alpha=m.source_alpha)
-        scene = SceneFrame(d["scene_center_m"], float(d["scene_radius_m"]))
+        scene = SceneFrame(d["scene_center_m"], radius)
         t = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)  # noqa: E731
         rest = Gaussians(means=t(scene.to_scene(d["means_rest_m"])), quats=t(d["quats"][0]),
                          log_scales=t(d["log_scales_m"] - np.log(scene.radius)), opacity_logits=t(d["opacity_logits"]),
                          color_logits=t(d["color_logits"]))
-        return cls(d["times_s"], d["frame_index"], d["means_rest_m"], d["displacement_m"], d["quats"], rest, scene,
-                   int(d["bit_depth"]), d["background"], float(d.get("source_alpha", 1.0)), d.get("basis"),
+        return cls(d["times_s"], d["frame_index"].astype(int), d["means_rest_m"], d["displacement_m"], d["quats"],
+                   rest, scene, int(bit_depth), d["background"], float(d.get("source_alpha", 1.0)), d.get("basis"),
                    d.get("shapes_m"), d.get("rot_shapes_rad"))
 
     @classmethod
@@ -413,12 +449,13 @@ class DynamicScene:
         return cls(np.asarray(vs.times_s, float), np.asarray(vs.frame_index), sc.to_world(means[0]), disp, quats,
                    rest, sc, vs.bit_depth, background.double().numpy(), float(vs.source_alpha), **extra)
 
-    def save(self, dest: Path) -> None:
-        """The rest state as `gaussians_t0.ply` and the whole motion as `trajectories.npz`, world frame (metres)."""
+    def save(self, dest: Path, capture_id: str | None = None) -> None:
+        """The rest state as `gaussians_t0.ply` and the whole motion as `trajectories.npz`, world frame (metres),
+        each recording `capture_id` (the capture's) where given."""
         dest.mkdir(parents=True, exist_ok=True)
         sc = self.scene
         world = self.rest.transformed(sc.radius, sc.center)
-        save_ply(world, dest / "gaussians_t0.ply")
+        save_ply(world, dest / "gaussians_t0.ply", capture_id=capture_id)
         # a modal model's orientations follow from its rest state and basis, as its displacement does
         modal = dict(quats=self.quats.astype(np.float32)) if self.basis is None else dict(
             basis=self.basis, shapes_m=self.shapes_m, rot_shapes_rad=self.rot_shapes_rad, quats_rest=self.quats[0])
@@ -426,8 +463,8 @@ class DynamicScene:
                     log_scales_m=world.log_scales.double().numpy(),
                     color_logits=self.rest.color_logits.double().numpy(), scene_center_m=sc.center,
                     scene_radius_m=sc.radius, bit_depth=self.bit_depth, background=self.background, **modal)
-        MotionRecord(self.times_s, self.means_rest_m, self.displacement_m,
-                     self.rest.opacity_logits.double().numpy(), self.source_alpha, rest).write(dest / TRAJECTORIES)
+        MotionRecord(self.times_s, self.means_rest_m, self.displacement_m, self.rest.opacity_logits.double().numpy(),
+                     self.source_alpha, rest).write(dest / TRAJECTORIES, capture_id)
 
     def physical_displacement_m(self) -> np.ndarray:
         """(T, N, 3) displacement of every Gaussian in metres, the frames' magnification divided out."""

@@ -21,11 +21,13 @@ import numpy as np
 from tqdm import tqdm
 
 from odsplat._deps import import_pycolmap
-from odsplat.contract import check, describe, plain
+from odsplat.checks import FRAME_INDEX, SEED, WORKERS, Range, check_choice, check_fields, maybe
+from odsplat.contract import CAPTURE_KEY, check, describe, numeric, plain, read_npz
 from odsplat.errors import InputError, OdsplatError
 from odsplat.geometry import camera_center_m, rotation_angle_deg
 from odsplat.manifest import TagLayout, load_json, load_toml
-from odsplat.store import Capture, atomic_open, atomic_write_text
+from odsplat.space import check_free
+from odsplat.store import TAKE_SELECTIONS, Capture, atomic_open, atomic_write_text
 from odsplat.tags import TagDetection, camera_pose_from_tags, detect_tags
 
 log = logging.getLogger(__name__)
@@ -58,7 +60,8 @@ class PoseSettings:
     seed: int = 0
     min_tags: int = 2                      # floor tags a view needs for a tag pose (one tag can flip, IPPE)
     fallback_min_tags: int = 1             # ... where SfM does not pose it (the fallback, unregistered views)
-    threads: int | None = None             # COLMAP's threads; None: the cores this process may use
+    threads: int | None = 1                # COLMAP's threads (None: every core): one gives the same poses on every run;
+    #                                        more are faster, but the result then varies from run to run (docs/poses.md)
     takes: str = "all"                     # rejected takes too: their first frame shows the structure at rest
     from_file: Path | None = None          # known cameras (TOML or JSON, per view K, R, t): taken, not estimated
 
@@ -67,17 +70,15 @@ class PoseSettings:
             self.masks_dir = Path(self.masks_dir)
         if self.from_file is not None:
             self.from_file = Path(self.from_file)
-        for name, low in (("min_registered", 2), ("max_features", 64), ("frame", 0), ("min_tags", 1),
-                          ("fallback_min_tags", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < low:
-                raise InputError(f"PoseSettings.{name}", f"expected an integer >= {low}, got {value!r}")
-        if self.peak_threshold is not None and (isinstance(self.peak_threshold, bool) or not isinstance(
-                self.peak_threshold, (int, float)) or not 0 < self.peak_threshold < 1):
-            raise InputError("PoseSettings.peak_threshold", f"expected a number in (0, 1) or None, got "
-                             f"{self.peak_threshold!r}")
-        if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
-            raise InputError("PoseSettings.threads", f"expected an integer >= 1 or None, got {self.threads!r}")
+        # max_features: COLMAP's default is 8192 and matching grows with its square; min_registered and the tag
+        # counts: no capture has ten thousand images, no view a thousand tags.
+        check_fields(self, {"min_registered": Range(at_least=2, at_most=10_000, integer=True),
+                            "max_features": Range(at_least=64, at_most=65536, integer=True), "frame": FRAME_INDEX,
+                            "min_tags": Range(at_least=1, at_most=1000, integer=True),
+                            "fallback_min_tags": Range(at_least=1, at_most=1000, integer=True),
+                            "peak_threshold": maybe(Range(above=0, below=1)), "threads": maybe(WORKERS),
+                            "seed": SEED})
+        check_choice("PoseSettings.takes", self.takes, TAKE_SELECTIONS)
 
 
 @dataclass
@@ -209,7 +210,7 @@ class PoseResult:
         }
         with atomic_open(paths.points_npz, "wb") as fh:
             np.savez(fh, points_m=self.points_m.astype(np.float64), points_color=self.points_color.astype(np.float32),
-                     points_error_px=self.points_error_px.astype(np.float32))
+                     points_error_px=self.points_error_px.astype(np.float32), **{CAPTURE_KEY: np.asarray(capture.id)})
         # The JSON goes last: a reader that finds it finds the points it describes.
         atomic_write_text(paths.poses_json, json.dumps(doc, indent=1) + "\n")
         log.info("poses: wrote %s and %s", paths.poses_json, paths.points_npz)
@@ -221,16 +222,14 @@ class PoseResult:
         doc = load_json(path, missing="no camera poses here; run `odsplat poses` first")
         prov = check(doc, path, kind=KIND, schema_version=SCHEMA, capture_id=capture.id)
         points_path = capture.paths.points_npz
+        arrays = read_npz(points_path, missing="missing beside poses.json; run `odsplat poses` again",
+                          capture_id=capture.id)
+        pts = numeric(arrays, "points_m", points_path, (None, 3))
+        points = dict(points_m=pts, points_color=numeric(arrays, "points_color", points_path, (len(pts), None)),
+                      points_error_px=numeric(arrays, "points_error_px", points_path, (len(pts),)))
         try:
-            with np.load(points_path, allow_pickle=False) as npz:
-                points = {k: npz[k] for k in ("points_m", "points_color", "points_error_px")}
-        except FileNotFoundError:
-            raise InputError(points_path, "missing beside poses.json; run `odsplat poses` again") from None
-        except (OSError, ValueError, KeyError) as exc:
-            raise InputError(points_path, f"not a readable points file: {exc}") from None
-        try:
-            views = [ViewPose(name=v["name"], kind=v["kind"], view=int(v["view"]), source=v["source"],
-                              K=np.array(v["K"], float), R=np.array(v["R"], float), t=np.array(v["t"], float),
+            views = [ViewPose(name=str(v["name"]), kind=v["kind"], view=int(v["view"]), source=v["source"],
+                              K=_matrix(v["K"], (3, 3)), R=_matrix(v["R"], (3, 3)), t=_matrix(v["t"], (3,)),
                               width_px=int(v["width_px"]), height_px=int(v["height_px"]),
                               reproj_rms_px=v["reproj_rms_px"], tag_rot_deg=v["tag_rot_deg"],
                               tag_trans_mm=v["tag_trans_mm"], dist=tuple(v.get("dist", ())))
@@ -247,8 +246,17 @@ class PoseResult:
                        reproj_mean_px=doc.get("reproj_mean_px"), timings_s=dict(doc.get("timings_s", {})),
                        settings=prov.settings, unposed={u["name"]: u["reason"] for u in doc.get("unposed", [])},
                        sim3_corners=int(doc.get("sim3_corners", 0)), source=str(doc.get("source", "")))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(path, f"malformed poses file ({exc!r}); run `odsplat poses` again") from None
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as exc:
+            raise InputError(path, f"malformed poses file ({type(exc).__name__}: {exc}); run `odsplat poses` "
+                                   "again") from None
+
+
+def _matrix(value: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """A camera matrix or vector from the poses file, of finite numbers and this shape (ValueError otherwise)."""
+    a = np.array(value, float)
+    if a.shape != shape or not np.all(np.isfinite(a)):
+        raise ValueError(f"expected {shape} finite numbers, got shape {a.shape}")
+    return a
 
 
 @dataclass
@@ -811,7 +819,11 @@ def estimate_poses(capture: Capture, settings: PoseSettings | None = None) -> Po
     if not images:
         raise InputError(capture.root, "no take with frames and no static photo: nothing to pose")
     work = capture.paths.poses_work_dir
-    shutil.rmtree(work, ignore_errors=True)  # a stale database would mix old features in
+    if work.exists():
+        shutil.rmtree(work)  # a stale database would mix old features in (a read-only folder: one line, not later)
+    # COLMAP's images (PNG), its database of features and matches and its models: a few times the images' bytes.
+    # pycolmap aborts the process on a full disk, so the space is checked first.
+    check_free(work, 4 * sum(im.image.nbytes for im in images), "COLMAP's work files")
     work.mkdir(parents=True)
     masks = _write_images(images, work, settings.masks_dir)
 
@@ -1216,7 +1228,8 @@ def _view(im: _Image, source: str, cam: _Intrinsics, R: np.ndarray, t: np.ndarra
 
 
 def _fresh(path: Path) -> Path:
-    shutil.rmtree(path, ignore_errors=True)
+    if path.exists():
+        shutil.rmtree(path)
     path.mkdir(parents=True)
     return path
 

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from odsplat.checks import COUNT, POSITIVE, Range, check_fields, maybe
+from odsplat.checks import MAX_FORCE_N, WORKERS, Range, check_choice, check_fields, maybe
 from odsplat.contract import check, describe
 from odsplat.errors import InputError, OdsplatError
 from odsplat.framefile import begin_outputs, discard_outputs, prune_outputs
@@ -63,13 +63,15 @@ class SyncSettings:
     #                                       per take (the results are the same with any number)
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise InputError("sync method", f"expected one of {METHODS}, got {self.method!r}")
-        if self.takes not in TAKE_SELECTIONS:
-            raise InputError("sync takes", f"expected one of {TAKE_SELECTIONS}, got {self.takes!r}")
-        check_fields(self, {"camera_trigger_delay_s": Range(above=-1, below=1), "search_frames": POSITIVE,
-                            "double_hit_fraction": Range(above=0, below=1), "min_peak_n": POSITIVE,
-                            "max_memory_mb": POSITIVE, "workers": maybe(COUNT)})
+        check_choice("SyncSettings.method", self.method, METHODS)
+        check_choice("SyncSettings.takes", self.takes, TAKE_SELECTIONS)
+        # search_frames: the image method tries a shift every 0.02 frame across it, and a camera's trigger is never
+        # 100 frames late; max_memory_mb: a budget (what is read is bounded by the take), up to a terabyte.
+        check_fields(self, {"camera_trigger_delay_s": Range(above=-1, below=1),
+                            "search_frames": Range(above=0, at_most=100),
+                            "double_hit_fraction": Range(above=0, below=1),
+                            "min_peak_n": Range(above=0, at_most=MAX_FORCE_N),
+                            "max_memory_mb": Range(above=0, at_most=1e6), "workers": maybe(WORKERS)})
 
 
 @dataclass
@@ -423,7 +425,8 @@ def _write_aligned(capture: Capture, t: TakeSync, reader: TakeReader, rest_count
     with write_aligned(path, n_frames=n_grid, frame_shape=shape, band_rows=band, bit_depth=reader.bit_depth,
                        times_s=grid, attrs=dict(take=t.name, view=t.view, offset_s=t.offset_s, method=t.method,
                                                 impulse_scale=t.impulse_scale or 1.0,
-                                                grid_shift_frames=mean_shift, generation=generation)) as write_band:
+                                                grid_shift_frames=mean_shift, generation=generation),
+                       capture_id=capture.id) as write_band:
         for r0 in range(0, shape[0], band):
             rows = slice(r0, min(r0 + band, shape[0]))
             x = np.empty((full.size, rows.stop - r0, *shape[1:]), np.float64)
@@ -458,6 +461,13 @@ def align_take(capture_root: str, derived_root: str, t: TakeSync, t0: float, fps
     return t
 
 
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0
+
+
 def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, progress: bool = True,
                  executor: Executor | None = None) -> SyncResult:
     """Sync every selected take of the capture; writes derived/sync.json and, if asked, the aligned frames.
@@ -471,7 +481,9 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
         raise OdsplatError(f"{capture.root}: no {'' if s.takes == 'all' else 'accepted '}takes to sync"
                            + ("" if s.takes == "all" else capture.unchecked_hint()))
     out_dir = capture.paths.aligned_dir
-    generation = begin_outputs(capture.paths.sync_json, out_dir)
+    # The aligned frames take about what the raw takes do (the same frames, resampled, compressed alike).
+    needed = sum(_size(capture.root / r.file) for r in records if r.n_frames) if s.write_frames else 0
+    generation = begin_outputs(capture.paths.sync_json, out_dir, needed, "the aligned frames")
     try:
         return _sync(capture, s, records, generation, out_dir, progress, executor)
     except BaseException:
@@ -524,7 +536,7 @@ def _sync(capture: Capture, s: SyncSettings, records, generation: str, out_dir: 
                         reference_impulse_n_s=ref_impulse, normalized=s.normalize_impulse, takes=results,
                         settings=asdict(s), generation=generation)
     path = result.write(capture)
-    prune_outputs(out_dir, [capture.paths.root / t.aligned_file for t in result.ok if t.aligned_file])
+    prune_outputs(out_dir, [capture.paths.listed(t.aligned_file) for t in result.ok if t.aligned_file])
     log.info("sync: %d/%d takes on the common grid (%d frames); %s", len(result.ok), len(results), n_grid, path)
     if s.plot and result.ok:
         from .plot import plot_sync

@@ -48,10 +48,11 @@ def pytest_addoption(parser):
 # The files that take longest (a minute or more on two cores), longest first: run first, so that pytest-xdist's
 # workers (a file each, in collection order) fill the rest of their time with the short ones instead of ending on
 # one long file while the other worker idles.
-LONG_FILES = ("test_pipeline.py", "test_batch.py", "reconstruction/test_modal.py", "analysis/test_imagepoles.py",
-              "test_demo.py", "reconstruction/test_run.py", "reconstruction/test_dynamic.py", "analysis/test_run.py",
-              "acquisition/test_session.py", "sync/test_sync.py", "processing/test_run.py", "processing/test_video.py",
-              "test_fidelity.py")
+LONG_FILES = ("test_pipeline.py", "test_data_safety.py", "test_batch.py", "reconstruction/test_modal.py",
+              "analysis/test_imagepoles.py", "test_demo.py", "reconstruction/test_run.py",
+              "reconstruction/test_dynamic.py", "analysis/test_run.py", "acquisition/test_session.py",
+              "sync/test_sync.py", "processing/test_run.py", "processing/test_video.py", "test_fidelity.py",
+              "test_derived_corruption.py")
 
 
 _missing = [f for f in LONG_FILES if not (REPO / "tests" / f).is_file()]

@@ -274,7 +274,7 @@ def _analysis(capture: Capture, need: bool):
         return None, None
     doc = read_analysis(capture)
     path = capture.paths.analysis_dir / "results.h5"
-    results = read_results_h5(path) if path.exists() else None
+    results = read_results_h5(path, capture.id) if path.exists() else None
     return doc, results
 
 
@@ -705,7 +705,7 @@ def aligned_frame(data: ViewerData, take: str, time_s: float) -> np.ndarray | No
         log.warning("sync's index could not be read (%s); the aligned frames are shown unchecked", e)
         generation = None
     try:
-        with AlignedTake(path, generation) as f:
+        with AlignedTake(path, generation, capture.id) as f:
             k = int(np.argmin(np.abs(f.times_s - time_s)))
             frame = np.asarray(f.read_frames(k, k + 1)[0], float)
     except OdsplatError as e:
