@@ -35,7 +35,8 @@ _RESERVE = re.compile(r"\.odsplat-reserve\.(?P<pid>\d+)\.tmp")
 _counter = iter(range(1 << 62))
 
 
-def _alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process `pid` still runs (on this machine): whose temporaries and reserves may be removed."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -95,7 +96,7 @@ class Reserve:
         with contextlib.suppress(OSError):
             for entry in os.scandir(self.folder):
                 match = _RESERVE.match(entry.name)
-                if match and not entry.is_symlink() and not _alive(int(match["pid"])):
+                if match and not entry.is_symlink() and not process_alive(int(match["pid"])):
                     with contextlib.suppress(FileNotFoundError):
                         os.unlink(entry.path)
 
@@ -190,4 +191,5 @@ def check_free(folder: Path, needed_bytes: float, what: str) -> None:
                                  "space or write elsewhere (a stage: --derived DIR)")
 
 
-__all__ = ["RESERVE_BYTES", "Reserve", "check_free", "close_h5", "writing_h5"]
+__all__ = ["CHUNK_CACHE_BYTES", "RESERVE_BYTES", "Reserve", "check_free", "close_h5", "folder_lock", "process_alive",
+           "writing_h5"]

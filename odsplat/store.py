@@ -53,7 +53,7 @@ from .manifest import (
     utc_now,
 )
 from .paths import DerivedPaths
-from .space import CHUNK_CACHE_BYTES, Reserve, close_h5, writing_h5
+from .space import CHUNK_CACHE_BYTES, Reserve, close_h5, process_alive, writing_h5
 from .timebase import resample_onto
 
 log = logging.getLogger(__name__)
@@ -118,7 +118,7 @@ def remove_stale_temporaries(folder: str | Path) -> list[Path]:
         for name in files:
             tmp = Path(here) / name
             match = _TEMPORARY.fullmatch(name)
-            if match is None or tmp.is_symlink() or _alive(int(match["pid"])):
+            if match is None or tmp.is_symlink() or process_alive(int(match["pid"])):
                 continue
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
@@ -126,16 +126,6 @@ def remove_stale_temporaries(folder: str | Path) -> list[Path]:
     if removed:
         log.info("removed %d temporaries of killed runs under %s", len(removed), folder)
     return removed
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 @contextlib.contextmanager

@@ -104,3 +104,41 @@ def bench_script():
         spec.loader.exec_module(module)
         return module
     return load
+
+
+# ------------------------------------------------------------------ a small capture through the whole pipeline
+
+# Test-sized settings for `odsplat run`: 64 px Gaussians, few iterations, a low LSCF order for 24-frame (12 ms)
+# takes, no 2D cross-check or figures (tests/analysis covers them).
+SMALL_PIPELINE_CONFIG = """
+[magnify]
+workers = 1
+[reconstruct]
+width_px = 64
+n_timesteps = 16
+[reconstruct.fit]
+iters_t0 = 150
+[analyze]
+max_order = 30
+image_poles = false
+crosscheck_views = 0
+plots = false
+"""
+
+
+def small_piped_capture(out: Path, *, n_views: int = 8, seed: int = 1) -> Path:
+    """`n_views` views of 24 frames with static photos on the simulated rig, through `odsplat run` once (about
+    40 s for 8 views): every derived file."""
+    from click.testing import CliRunner
+
+    from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
+    from odsplat.cli import main
+    from odsplat.hil_sim import SimBench
+
+    session = SessionSettings(name="cap", plan=PlanSettings(n_views=n_views), n_frames=24, pretrigger_frames=4,
+                              trigger=HammerTrigger(pretrigger_s=0.01, record_s=0.05), static_photos=True)
+    assert CaptureSession(out, session, SimBench(settings=SimBenchSettings(seed=seed))).run().complete
+    (out / "odsplat.toml").write_text(SMALL_PIPELINE_CONFIG)
+    r = CliRunner().invoke(main, ["run", str(out)])
+    assert r.exit_code == 0, r.output + repr(r.exception)
+    return out

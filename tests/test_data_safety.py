@@ -19,26 +19,11 @@ import h5py
 import pytest
 from click.testing import CliRunner
 
-from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
 from odsplat.batch import _captures
 from odsplat.cli import main
-from odsplat.hil_sim import SimBench, SimBenchSettings
 from odsplat.store import Capture
 
-CONFIG = """
-[magnify]
-workers = 1
-[reconstruct]
-width_px = 64
-n_timesteps = 16
-[reconstruct.fit]
-iters_t0 = 150
-[analyze]
-max_order = 30
-image_poles = false
-crosscheck_views = 0
-plots = false
-"""
+from .conftest import small_piped_capture
 
 # Every command that writes a capture (and the pipeline), with the arguments after CAPTURE.
 WRITERS = (["qc"], ["sync"], ["magnify"], ["poses"], ["reconstruct"], ["analyze"], ["report"], ["run"],
@@ -48,15 +33,7 @@ STAGES = (["qc"], ["sync"], ["magnify"], ["poses"], ["reconstruct"], ["analyze"]
 
 @pytest.fixture(scope="module")
 def piped(tmp_path_factory) -> Path:
-    """Eight views of 24 frames with static photos, through `odsplat run` once."""
-    out = tmp_path_factory.mktemp("safety") / "cap"
-    session = SessionSettings(name="cap", plan=PlanSettings(n_views=8), n_frames=24, pretrigger_frames=4,
-                              trigger=HammerTrigger(pretrigger_s=0.01, record_s=0.05), static_photos=True)
-    assert CaptureSession(out, session, SimBench(settings=SimBenchSettings(seed=2))).run().complete
-    (out / "odsplat.toml").write_text(CONFIG)
-    r = CliRunner().invoke(main, ["run", str(out)])
-    assert r.exit_code == 0, r.output + repr(r.exception)
-    return out
+    return small_piped_capture(tmp_path_factory.mktemp("safety") / "cap", seed=2)
 
 
 def _digests(root: Path) -> dict[str, str]:
@@ -200,6 +177,8 @@ HOLD = """
 import sys, time
 from odsplat.lock import capture_lock
 from odsplat.store import Capture
+
+from .conftest import small_piped_capture
 with capture_lock(Capture.open(sys.argv[1])):
     print("held", flush=True)
     time.sleep(float(sys.argv[2]))

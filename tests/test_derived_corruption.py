@@ -16,50 +16,26 @@ from typing import Any, Callable
 import h5py
 import numpy as np
 import pytest
-from click.testing import CliRunner
 from plyfile import PlyData, PlyElement
 
-from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
 from odsplat.analysis import read_analysis, read_results_h5
-from odsplat.cli import main
 from odsplat.config import load_config
 from odsplat.errors import InputError
-from odsplat.hil_sim import SimBench, SimBenchSettings
 from odsplat.pipeline import is_current
 from odsplat.processing import MagnifiedVideo, MagnifyResult
 from odsplat.reconstruction import DynamicScene, MotionRecord, PoseResult, ReconstructResult, load_ply
 from odsplat.store import Capture
 from odsplat.sync import AlignedTake, load_sync
 
-# Test-sized, as tests/test_pipeline.py: 64 px Gaussians, few iterations, no 2D cross-check, image poles or figures.
-CONFIG = """
-[magnify]
-workers = 1
-[reconstruct]
-width_px = 64
-n_timesteps = 16
-[reconstruct.fit]
-iters_t0 = 150
-[analyze]
-max_order = 30
-image_poles = false
-crosscheck_views = 0
-plots = false
-"""
+from .conftest import small_piped_capture
+
 OTHER_ID = "0123456789abcdef0123456789abcdef"   # another capture's id
 
 
 @pytest.fixture(scope="module")
 def piped(tmp_path_factory) -> Capture:
-    """Eight views of 24 frames with static photos, through `odsplat run` once: every derived file."""
-    out = tmp_path_factory.mktemp("corruption") / "cap"
-    session = SessionSettings(name="cap", plan=PlanSettings(n_views=8), n_frames=24, pretrigger_frames=4,
-                              trigger=HammerTrigger(pretrigger_s=0.01, record_s=0.05), static_photos=True)
-    assert CaptureSession(out, session, SimBench(settings=SimBenchSettings(seed=1))).run().complete
-    (out / "odsplat.toml").write_text(CONFIG)
-    r = CliRunner().invoke(main, ["run", str(out)])
-    assert r.exit_code == 0, r.output + repr(r.exception)
-    cap = Capture.open(out)
+    """Eight views through `odsplat run` once: every derived file."""
+    cap = Capture.open(small_piped_capture(tmp_path_factory.mktemp("corruption") / "cap"))
     assert cap.id != OTHER_ID
     return cap
 

@@ -26,22 +26,9 @@ from odsplat.processing import MagnifyResult
 from odsplat.store import Capture
 from odsplat.sync import AlignedTake, SyncSettings, load_sync
 
-# Test-sized: 64 px Gaussians, few iterations, a low LSCF order for 24-frame (12 ms) takes, no 2D cross-check or
-# figures (tests/analysis covers them).
-CONFIG = """
-[magnify]
-workers = 1
-[reconstruct]
-width_px = 64
-n_timesteps = 16
-[reconstruct.fit]
-iters_t0 = 150
-[analyze]
-max_order = 30
-image_poles = false
-crosscheck_views = 0
-plots = false
-"""
+from .conftest import SMALL_PIPELINE_CONFIG
+
+CONFIG = SMALL_PIPELINE_CONFIG
 RIG_MODES_HZ = (23.5, 31.0, 86.0, 142.0, 262.0, 371.0)
 
 
