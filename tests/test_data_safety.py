@@ -177,8 +177,6 @@ HOLD = """
 import sys, time
 from odsplat.lock import capture_lock
 from odsplat.store import Capture
-
-from .conftest import small_piped_capture
 with capture_lock(Capture.open(sys.argv[1])):
     print("held", flush=True)
     time.sleep(float(sys.argv[2]))
