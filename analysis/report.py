@@ -24,6 +24,7 @@ from markupsafe import Markup
 
 from odsplat.contract import check
 from odsplat.errors import InputError
+from odsplat.guard import check_inside
 from odsplat.manifest import load_json
 from odsplat.store import Capture, atomic_write_text
 
@@ -393,11 +394,11 @@ def _own_file(folder: Path, rel, where: str = _ANALYSIS_FOLDER, writer: str = "t
     if (PurePosixPath(rel).is_absolute() or PureWindowsPath(rel).anchor or "\\" in rel or "\0" in rel
             or any(p in ("", ".", "..") for p in parts)):
         return outside
-    path = folder
-    for part in parts:
-        path = path / part
-        if path.is_symlink():
-            return f"not a file {writer} wrote (a symbolic link)"
+    path = folder.joinpath(*parts)
+    try:   # the parts are plain, so the one thing it can refuse is a link on the way
+        check_inside(folder, path)
+    except InputError:
+        return f"not a file {writer} wrote (a symbolic link)"
     if not path.exists():
         return "not found"
     if not path.is_file():

@@ -57,15 +57,16 @@ _NEEDS = {errno.ENOSPC: "free some space or write elsewhere (a stage: --derived 
           errno.EPERM: "odsplat needs to write there: fix the permissions, or give --derived DIR"}
 
 
-def _free(path: str) -> str:
-    folder = path
-    while folder and not os.path.isdir(folder):
+def free_bytes(path: str | PathLike) -> int | None:
+    """The bytes free on the file system `path` is on (or would be: its nearest folder that exists), None where
+    that cannot be read."""
+    folder = os.path.abspath(path)
+    while not os.path.isdir(folder) and os.path.dirname(folder) != folder:
         folder = os.path.dirname(folder)
     try:
-        free = shutil.disk_usage(folder or ".").free
+        return shutil.disk_usage(folder).free
     except OSError:
-        return ""
-    return f", {human_bytes(free)} free"
+        return None
 
 
 def human_bytes(n: float) -> str:
@@ -94,7 +95,8 @@ def storage_error(exc: BaseException) -> StorageError | None:
                     code = errno.ENOSPC
             if code in _STORAGE:
                 where = str(name) if name else "a file odsplat was writing"
-                free = _free(str(name)) if name and code in (errno.ENOSPC, errno.EDQUOT) else ""
+                free = free_bytes(name) if name and code in (errno.ENOSPC, errno.EDQUOT) else None
+                free = f", {human_bytes(free)} free" if free is not None else ""
                 return StorageError(where, f"{_STORAGE[code]}{free}: {_NEEDS[code]}")
         if isinstance(exc, StorageError):
             return exc

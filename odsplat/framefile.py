@@ -25,6 +25,7 @@ import numpy as np
 
 from .contract import CAPTURE_KEY, check_capture
 from .errors import InputError, SchemaError
+from .guard import link_error
 from .space import check_free, writing_h5
 from .store import atomic_path, frame_compression, fsync_path, remove_stale_temporaries
 
@@ -35,19 +36,21 @@ SCHEMA = 3   # 3: the generation attribute
 
 # ------------------------------------------------------------------ a stage's outputs, committed together
 
-def begin_outputs(index: Path, folder: Path, needed_bytes: float = 0.0, what: str = "its frames") -> str:
+def begin_outputs(index: Path, folder: Path, sized_like: Iterable[Path] = (), what: str = "its frames") -> str:
     """Start a run of a stage that writes a folder of frame files and then their index (sync, magnify): the old
     index goes first, durably, so a run killed from here on leaves no index and no reader takes its files as a
     set; temporaries of killed runs are removed. Returns the new run's generation id, for every file it writes.
     A link at the index or the folder is refused (`_plain_folder`): nothing is deleted through one.
-    `needed_bytes`: about what the run will write; a disk with less free (the space its old files held counted
-    as free) is refused first, with one line (`space.check_free`)."""
+    `sized_like`: the files the run's outputs will take about as much room as (its input takes: the same frames,
+    resampled, compressed alike); a disk with less free (the space its old files held counted as free) is refused
+    first, with one line (`space.check_free`)."""
     _plain_folder(folder)
-    if needed_bytes:
+    needed = sum(_size(p) for p in sized_like)
+    if needed:
         old = sum(p.stat().st_size for p in _outputs(folder))
-        check_free(folder, needed_bytes - old, what)
+        check_free(folder, needed - old, what)
     if index.is_symlink():
-        raise _link(index)
+        raise link_error(index)
     if index.exists():
         index.unlink()
         fsync_path(index.parent)
@@ -55,18 +58,21 @@ def begin_outputs(index: Path, folder: Path, needed_bytes: float = 0.0, what: st
     return uuid.uuid4().hex[:16]
 
 
+def _size(path: Path) -> int:
+    try:
+        return Path(path).stat().st_size
+    except OSError:
+        return 0
+
+
 OUTPUT_PATTERNS = ("*.h5", "*.mp4")   # a stage's files in its folder: frames, and the videos made from them
-
-
-def _link(path: Path) -> InputError:
-    return InputError(path, "a symbolic link: odsplat deletes and writes nothing through a link (remove it)")
 
 
 def _plain_folder(folder: Path) -> None:
     """Refuse a stage's output folder that is a symbolic link (the capture was checked for links when opened;
     this is the last check before deleting in it)."""
     if folder.is_symlink():
-        raise _link(folder)
+        raise link_error(folder)
 
 
 def _outputs(folder: Path) -> list[Path]:
@@ -78,7 +84,7 @@ def _outputs(folder: Path) -> list[Path]:
     found = [p for pattern in OUTPUT_PATTERNS for p in folder.glob(pattern)]
     for path in found:
         if path.is_symlink():
-            raise _link(path)
+            raise link_error(path)
     return [p for p in found if p.is_file()]
 
 

@@ -5,7 +5,8 @@ link by hand. A link planted in `derived/` (`derived/sync -> ../takes`) would tu
 outputs into the deletion of the raw takes, and its writes into writes outside the capture. So odsplat makes no
 link itself and goes through none: a capture that holds one is refused with one line naming it, before a stage
 runs (`refuse_links`, called by `Capture.open`), every derived path is checked again as it is named
-(`check_inside`, by `DerivedPaths`), and the deleting helpers delete only plain files they name themselves.
+(`check_inside`, by `DerivedPaths`), and the deleting helpers delete only plain files they name themselves,
+refusing a link with the same line (`link_error`).
 """
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ REFUSAL = ("a symbolic link{to}: odsplat reads and writes a capture only through
            "never through a link (replace the link by the folder or file itself, or give the stage --derived DIR)")
 
 
-def _link_error(path: Path) -> InputError:
+def link_error(path: Path) -> InputError:
+    """The one refusal of a symbolic link in a capture, naming it and where it points."""
     try:
         target = f" (to {os.readlink(path)})"
     except OSError:
@@ -46,7 +48,7 @@ def check_inside(root: Path, path: Path, what: str = "derived file") -> Path:
     for part in ("", *rel.parts):
         node = node / part if part else node
         if node.is_symlink():
-            raise _link_error(node)
+            raise link_error(node)
         if part and not node.exists():
             break
     return path
@@ -57,7 +59,7 @@ def refuse_links(root: Path, skip: tuple[Path, ...] = ()) -> None:
     where it points). `skip`: folders under `root` not to walk (a derived folder walked on its own)."""
     root = Path(root)
     if root.is_symlink():
-        raise _link_error(root)
+        raise link_error(root)
     skipped = {os.path.normpath(os.path.abspath(p)) for p in skip}
     stack = [root]
     while stack:
@@ -70,22 +72,9 @@ def refuse_links(root: Path, skip: tuple[Path, ...] = ()) -> None:
             raise InputError(folder, "permission denied: odsplat needs to read every folder of the capture") from None
         for entry in entries:
             if entry.is_symlink():
-                raise _link_error(Path(entry.path))
+                raise link_error(Path(entry.path))
             if entry.is_dir(follow_symlinks=False) and os.path.normpath(entry.path) not in skipped:
                 stack.append(Path(entry.path))
 
 
-def remove_file(path: Path, root: Path) -> bool:
-    """Delete the plain file `path` inside `root` (see `check_inside`); a link in the way is refused, a missing
-    file is no error. Returns whether a file was removed."""
-    check_inside(root, path.parent, "file to delete")
-    if path.is_symlink():
-        raise _link_error(path)
-    try:
-        path.unlink()
-    except FileNotFoundError:
-        return False
-    return True
-
-
-__all__ = ["check_inside", "lexically_inside", "refuse_links", "remove_file"]
+__all__ = ["check_inside", "lexically_inside", "link_error", "refuse_links"]

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import InputError
+from .guard import link_error
 
 log = logging.getLogger(__name__)
 
@@ -91,7 +92,7 @@ def _open(path: Path) -> int | None:
             log.debug("%s: not locked (%s): the capture cannot be written", path, exc.strerror)
             return None
         if exc.errno == errno.ELOOP:
-            raise InputError(path, "a symbolic link: odsplat writes nothing through a link (remove it)") from None
+            raise link_error(path) from None
         raise
 
 

@@ -21,7 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from .errors import StorageError, human_bytes
+from .errors import StorageError, free_bytes, human_bytes
 
 log = logging.getLogger(__name__)
 
@@ -86,7 +86,9 @@ class Reserve:
             os.close(fd)
             path.unlink(missing_ok=True)
             if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
-                raise StorageError(self.folder, f"no space left ({_free(self.folder)} free): odsplat keeps "
+                free = free_bytes(self.folder)
+                free = "unknown" if free is None else human_bytes(free)
+                raise StorageError(self.folder, f"no space left ({free} free): odsplat keeps "
                                               f"{human_bytes(size)} in reserve to close its files safely; free "
                                               "some space or write elsewhere (a stage: --derived DIR)") from None
             raise
@@ -105,15 +107,6 @@ class Reserve:
             with contextlib.suppress(FileNotFoundError):
                 self.path.unlink()
             self.path = None
-
-
-def _free(folder: Path) -> str:
-    import shutil
-
-    try:
-        return human_bytes(shutil.disk_usage(folder).free)
-    except OSError:
-        return "unknown"
 
 
 _leaked: list[Any] = []   # files whose close failed even so: kept referenced, never closed again
@@ -176,14 +169,8 @@ def writing_h5(path: str | Path, mode: str = "w", **kwargs: Any) -> Iterator[Any
 def check_free(folder: Path, needed_bytes: float, what: str) -> None:
     """Refuse a stage that will write about `needed_bytes` into `folder` (the reserve added) when the disk has
     less free: one line, before anything is written."""
-    import shutil
-
-    probe = folder
-    while not probe.exists() and probe != probe.parent:
-        probe = probe.parent
-    try:
-        free = shutil.disk_usage(probe).free
-    except OSError:
+    free = free_bytes(folder)
+    if free is None:
         return
     need = needed_bytes + RESERVE_BYTES
     if free < need:

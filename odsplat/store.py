@@ -38,7 +38,7 @@ import numpy as np
 
 from .contract import check, digest
 from .errors import IncompleteTakeError, InputError, OdsplatError, SchemaError, storage_error
-from .guard import lexically_inside, refuse_links
+from .guard import lexically_inside, link_error, refuse_links
 from .manifest import (
     CAN_SOURCE_PREFIX,
     QC_KIND,
@@ -92,7 +92,7 @@ def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     writer creates a new plain file."""
     path = Path(path)
     if path.parent.is_symlink():
-        raise InputError(path.parent, "a symbolic link: odsplat writes nothing through a link (remove it)")
+        raise link_error(path.parent)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{suffix}")
     if os.path.lexists(tmp):
         tmp.unlink()
@@ -887,10 +887,10 @@ class Capture:
     def _check_derived_elsewhere(self, derived: Path) -> None:
         """A derived folder given apart from the capture may lie anywhere but among its raw data (takes/, static/,
         the capture's own top folder) or above the capture: a stage's clean-up deletes files in it."""
-        for own in (self.root, self.takes_dir, self.static_dir):
-            if lexically_inside(own, derived) and not lexically_inside(self.root / "derived", derived):
-                raise InputError(derived, f"inside the capture's {'top folder' if own == self.root else own.name + '/'}"
-                                          "; derived files go to derived/ or a folder outside the capture")
+        if lexically_inside(self.root, derived) and not lexically_inside(self.root / "derived", derived):
+            parts = Path(os.path.relpath(os.path.abspath(derived), os.path.abspath(self.root))).parts
+            raise InputError(derived, f"inside the capture's {parts[0] + '/' if parts else 'top folder'}; derived "
+                                      "files go to derived/ or a folder outside the capture")
         if lexically_inside(derived, self.root):
             raise InputError(derived, f"holds the capture {self.root}; derived files go to a folder of their own")
 

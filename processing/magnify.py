@@ -424,13 +424,6 @@ def _inputs(capture: Capture, s: MagnifySettings) -> tuple[list[tuple[str, str |
     return [(n, None) for n in _of_views(capture, names, s.views)], None
 
 
-def _size(path: Path) -> int:
-    try:
-        return path.stat().st_size
-    except OSError:
-        return 0
-
-
 def _of_views(capture: Capture, names: list[str], views: tuple[int, ...]) -> list[str]:
     """The takes of `names` filmed from one of `views` (all of them without views); none is an error."""
     if not views:
@@ -457,9 +450,8 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
     if not jobs:
         raise OdsplatError(f"{capture.root}: no takes to magnify{capture.unchecked_hint()}")
     dest = capture.paths.magnified_dir(s.method)
-    # The magnified frames take about what their source frames do (the same size, compressed alike).
-    needed = sum(_size(Path(src) if src else capture.root / f"takes/{name}.h5") for name, src in jobs)
-    generation = begin_outputs(capture.paths.magnify_json(s.method), dest, needed, "the magnified frames")
+    sources = [Path(src) if src else capture.root / f"takes/{name}.h5" for name, src in jobs]
+    generation = begin_outputs(capture.paths.magnify_json(s.method), dest, sources, "the magnified frames")
     capture.paths.ensure(dest)
     workers = max(1, min(s.workers or os.cpu_count() or 1, len(jobs)))
     # torch's threads per view: one per task on an executor (a cluster's worker slot), like the process pool when

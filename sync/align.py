@@ -461,13 +461,6 @@ def align_take(capture_root: str, derived_root: str, t: TakeSync, t0: float, fps
     return t
 
 
-def _size(path: Path) -> int:
-    try:
-        return path.stat().st_size
-    except OSError:
-        return 0
-
-
 def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, progress: bool = True,
                  executor: Executor | None = None) -> SyncResult:
     """Sync every selected take of the capture; writes derived/sync.json and, if asked, the aligned frames.
@@ -481,9 +474,8 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
         raise OdsplatError(f"{capture.root}: no {'' if s.takes == 'all' else 'accepted '}takes to sync"
                            + ("" if s.takes == "all" else capture.unchecked_hint()))
     out_dir = capture.paths.aligned_dir
-    # The aligned frames take about what the raw takes do (the same frames, resampled, compressed alike).
-    needed = sum(_size(capture.root / r.file) for r in records if r.n_frames) if s.write_frames else 0
-    generation = begin_outputs(capture.paths.sync_json, out_dir, needed, "the aligned frames")
+    takes = [capture.root / r.file for r in records if r.n_frames] if s.write_frames else []
+    generation = begin_outputs(capture.paths.sync_json, out_dir, takes, "the aligned frames")
     try:
         return _sync(capture, s, records, generation, out_dir, progress, executor)
     except BaseException:
