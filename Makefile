@@ -29,7 +29,7 @@ lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python tools/lint_imports.py --no-logo
 
-# The demo is `odsplat demo` (odsplat/demo.py): a guided 27-view capture on the simulated rig into
+# The demo is `odsplat demo` (odsplat/app/demo.py): a guided 27-view capture on the simulated rig into
 # $(DEMO_OUT)/sim-rig (256 frames per take at 2000 fps, with a rebound and a dropped packet injected, which QC
 # rejects and the session redoes), the whole pipeline on it (`odsplat run`, with odsplat/examples/demo.toml as the
 # capture's odsplat.toml), an orbit render magnified 30x in 3D, the report rewritten with the render, and the real

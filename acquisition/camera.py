@@ -18,8 +18,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from odsplat.errors import InputError
-from odsplat.manifest import CameraInfo
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import CameraInfo
 
 TRIGGER_MODES = ("internal", "external")
 PRETRIGGER_MODES = ("start", "center", "end")

@@ -16,8 +16,8 @@ from typing import Any
 import can
 import numpy as np
 
-from odsplat.errors import InputError, OdsplatError
-from odsplat.manifest import ChannelInfo, can_source
+from odsplat.spine.errors import InputError, OdsplatError
+from odsplat.spine.manifest import ChannelInfo, can_source
 
 from . import canproto as cp
 from .ring import SampleRing
@@ -81,7 +81,7 @@ class CANSetup:
     sample_rate_hz: float = 1000.0
     range_m_s2: float = cp.RANGES_M_S2[4]       # +-50 g: a node near the hammer sees tens of g
     margin_samples: int = 32                    # kept beyond the DAQ's record at each end: the resampling kernel's
-                                                # reach (odsplat.timebase), so the whole record is band-limited
+                                                # reach (odsplat.spine.timebase), so the whole record is band-limited
     timeout_s: float = 5.0                      # for the last samples of a take to arrive
 
     def __post_init__(self) -> None:

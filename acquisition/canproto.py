@@ -15,8 +15,8 @@ import can
 import cantools
 import numpy as np
 
-from odsplat.errors import InputError, SchemaError
-from odsplat.units import STANDARD_GRAVITY_M_S2
+from odsplat.spine.errors import InputError, SchemaError
+from odsplat.spine.units import STANDARD_GRAVITY_M_S2
 
 log = logging.getLogger(__name__)
 

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
-from odsplat.errors import InputError, OdsplatError
-from odsplat.manifest import CHANNEL_KINDS, ChannelInfo
+from odsplat.spine.errors import InputError, OdsplatError
+from odsplat.spine.manifest import CHANNEL_KINDS, ChannelInfo
 
 from . import daqproto as dp
 from .ring import SampleRing

@@ -11,7 +11,7 @@ from typing import ClassVar, Mapping, Union
 
 import numpy as np
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 

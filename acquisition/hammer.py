@@ -29,7 +29,7 @@ from typing import Protocol
 import can
 import serial
 
-from odsplat.errors import InputError, OdsplatError
+from odsplat.spine.errors import InputError, OdsplatError
 
 from . import hammerproto as hp
 

@@ -15,7 +15,7 @@ from typing import ClassVar, Union
 import can
 import cantools
 
-from odsplat.errors import InputError, SchemaError
+from odsplat.spine.errors import InputError, SchemaError
 
 from . import daqproto as dp
 

@@ -59,9 +59,9 @@ from typing import Any
 
 import numpy as np
 
-from odsplat.errors import InputError
-from odsplat.manifest import Intrinsics, TagLayout, from_plain, load_toml
-from odsplat.units import STANDARD_GRAVITY_M_S2
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import Intrinsics, TagLayout, from_plain, load_toml
+from odsplat.spine.units import STANDARD_GRAVITY_M_S2
 
 from . import canproto as cp
 from .camera import CameraDriver

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from odsplat.manifest import Viewpoint
+from odsplat.spine.manifest import Viewpoint
 
 from .session import TakeOutcome
 from .trigger import TriggeredRecord

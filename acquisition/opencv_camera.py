@@ -25,8 +25,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from odsplat.errors import InputError, OdsplatError
-from odsplat.manifest import CameraInfo
+from odsplat.spine.errors import InputError, OdsplatError
+from odsplat.spine.manifest import CameraInfo
 
 from .camera import CameraTimeout, Frame, RecordingStatus, TriggerSettings
 

@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from odsplat.errors import InputError, OdsplatError
-from odsplat.io.mraw import unpack_12bit
-from odsplat.manifest import CameraInfo
+from odsplat.spine.errors import InputError, OdsplatError
+from odsplat.spine.io.mraw import unpack_12bit
+from odsplat.spine.manifest import CameraInfo
 
 from .camera import CameraTimeout, Frame, RecordingStatus, TriggerSettings
 

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odsplat.errors import InputError
-from odsplat.geometry import (
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import (
     camera_center_m,
     look_at,
     rotation_angle_deg,
@@ -17,7 +17,7 @@ from odsplat.geometry import (
     spherical_eye,
     viewing_angle_deg,
 )
-from odsplat.manifest import Viewpoint
+from odsplat.spine.manifest import Viewpoint
 
 GOLDEN_ANGLE_DEG = 180.0 * (3.0 - math.sqrt(5.0))  # 137.507...: successive spiral points never line up
 COVERAGE_SAMPLES = 2000  # directions sampling the band in `coverage`

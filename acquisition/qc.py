@@ -11,12 +11,12 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from odsplat.checks import MAX_FORCE_N, Range, check_fields, maybe
-from odsplat.contract import check, describe
-from odsplat.errors import InputError
-from odsplat.impulse import impact_onsets
-from odsplat.manifest import QC_KIND, QC_SCHEMA, from_plain, load_json
-from odsplat.store import Capture, QCInfo, TakeReader, atomic_write_text
+from odsplat.spine.checks import MAX_FORCE_N, Range, check_fields, maybe
+from odsplat.spine.contract import check, describe
+from odsplat.spine.errors import InputError
+from odsplat.spine.impulse import impact_onsets
+from odsplat.spine.manifest import QC_KIND, QC_SCHEMA, from_plain, load_json
+from odsplat.spine.store import Capture, QCInfo, TakeReader, atomic_write_text
 
 from .daq import DAQChannel
 from .trigger import TriggeredRecord
@@ -58,7 +58,7 @@ class HitQC:
     reasons: tuple[str, ...]
     details: tuple[str, ...]
     peak_force_n: float
-    impact_times_s: tuple[float, ...]  # each impact's onset (odsplat.impulse), relative to the trigger sample
+    impact_times_s: tuple[float, ...]  # each impact's onset (odsplat.spine.impulse), relative to the trigger sample
     accel_peak: Mapping[str, float] = field(default_factory=dict)  # m/s^2
     lost_samples: int = 0
     dropped_frames: tuple[int, ...] = ()

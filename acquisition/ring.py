@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from odsplat.errors import OdsplatError
+from odsplat.spine.errors import OdsplatError
 
 
 class SampleRing:

@@ -20,10 +20,10 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from odsplat.errors import InputError
-from odsplat.manifest import CameraInfo, Manifest, TagLayout, Viewpoint
-from odsplat.store import Capture, QCInfo, TriggerInfo, atomic_open
-from odsplat.tags import camera_pose_from_tags, detect_tags
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import CameraInfo, Manifest, TagLayout, Viewpoint
+from odsplat.spine.store import Capture, QCInfo, TriggerInfo, atomic_open
+from odsplat.spine.tags import camera_pose_from_tags, detect_tags
 
 from .camera import CameraDriver, CameraTimeout, TriggerSettings
 from .can_nodes import CANAccelerometers, CANError, CANRecord, CANSetup, record_window

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 from . import daqproto as dp
 from .daq import DAQError, SerialDAQ

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from odsplat.checks import (
+from odsplat.spine.checks import (
     DURATION_S,
     FRACTION,
     FREQUENCY_HZ,
@@ -27,10 +27,11 @@ from odsplat.checks import (
     maybe,
     shown,
 )
-from odsplat.contract import describe, plain
-from odsplat.errors import InputError
-from odsplat.manifest import utc_now
-from odsplat.store import Capture, atomic_write_text
+from odsplat.spine.contract import describe, plain
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import utc_now
+from odsplat.spine.store import Capture, atomic_write_text
+from odsplat.sync import load_sync
 
 from .band import band_notes, default_band_hz, frf_peaks
 from .correlation import correlate
@@ -237,7 +238,6 @@ def _band(frf: FRFResult, s: AnalyzeSettings) -> tuple[float, float]:
 def _sync_force(capture: Capture, force: str, poles: np.ndarray) -> np.ndarray:
     """F(lambda_r) of the hammer pulse on the impact-locked timeline, averaged over the synced takes (scaled as
     sync scaled each take's motion when it normalised the impulses)."""
-    from odsplat.sync import load_sync
 
     sync = load_sync(capture)
     vals = []

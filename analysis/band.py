@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import find_peaks
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 from .frf import FRFResult
 

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 
 def _shapes(a, name: str) -> np.ndarray:

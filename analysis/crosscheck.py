@@ -8,8 +8,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odsplat.errors import InputError
-from odsplat.store import Capture
+from odsplat.reconstruction import PoseResult
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
+from odsplat.sync import AlignedTake, load_sync
 
 from .ods import SurfaceMotion
 from .tracking import project_displacement, track_points
@@ -43,7 +45,6 @@ def _poses(capture: Capture) -> dict[str, dict] | None:
     """The pose stage's cameras by take name (read through its contract, `PoseResult.read`); None when the capture
     has no poses.json. A poses file that is there but unreadable, damaged or another capture's is refused with its
     one line, never taken for no poses."""
-    from odsplat.reconstruction import PoseResult
 
     if not capture.paths.poses_json.exists():
         return None
@@ -157,7 +158,6 @@ def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int 
                      method: str = "gradient", k: int = 16, outlier_factor: float | None = 2.0) -> list[ViewCheck]:
     """check_view on up to max_views synced takes spread over the capture (those with aligned frames and a
     pose); none when the capture has no aligned frames or no poses.json (one that is there must read)."""
-    from odsplat.sync import AlignedTake, load_sync
 
     poses = _poses(capture)
     if poses is None:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import solve_triangular
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 from .frf import correct_poles
 

@@ -56,10 +56,10 @@ import h5py
 import numpy as np
 import pyuff
 
-from odsplat.contract import CAPTURE_KEY, check_capture
-from odsplat.errors import InputError, OdsplatError, SchemaError
-from odsplat.space import writing_h5
-from odsplat.store import atomic_path
+from odsplat.spine.contract import CAPTURE_KEY, check_capture
+from odsplat.spine.errors import InputError, OdsplatError, SchemaError
+from odsplat.spine.space import writing_h5
+from odsplat.spine.store import atomic_path
 
 log = logging.getLogger(__name__)
 

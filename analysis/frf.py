@@ -9,9 +9,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike
 
-from odsplat.checks import DURATION_S, FORCE_N, FREQUENCY_HZ, Range, check_fields, maybe
-from odsplat.errors import InputError
-from odsplat.impulse import fit_pulse
+from odsplat.spine.checks import DURATION_S, FORCE_N, FREQUENCY_HZ, Range, check_fields, maybe
+from odsplat.spine.errors import InputError
+from odsplat.spine.impulse import fit_pulse
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +115,7 @@ def check_frf_hit(force: ArrayLike, sample_rate_hz: float, *, overload_n: float 
     the force has returned below 5 % of the peak; more than one is a double hit. Rejected also: a peak over
     `overload_n`, force samples at or over `full_scale_n` (clipped), response samples at or over
     `response_full_scale` (in the response's unit), and a record with no pulse above the noise. The onset
-    is every stage's (`odsplat.impulse.fit_pulse`): the start of the half sine fitted to the first pulse."""
+    is every stage's (`odsplat.spine.impulse.fit_pulse`): the start of the half sine fitted to the first pulse."""
     f = _as_finite(force, "check_frf_hit: force", ndim=1)
     _check_positive("check_frf_hit: sample_rate_hz", sample_rate_hz)
     if not 0.0 < double_hit_ratio < 1.0:
@@ -165,7 +165,7 @@ def check_frf_hit(force: ArrayLike, sample_rate_hz: float, *, overload_n: float 
 
 def _onset(g: np.ndarray, start: int, stop: int, sample_rate_hz: float) -> float:
     """The onset (fractional sample) of the pulse in g[start:stop] (baseline removed): the one definition,
-    `odsplat.impulse.fit_pulse`, the half sine's start."""
+    `odsplat.spine.impulse.fit_pulse`, the half sine's start."""
     peak = start + int(np.argmax(g[start:stop]))
     return fit_pulse(g, sample_rate_hz, peak_index=peak, source="force").onset_sample
 

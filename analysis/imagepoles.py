@@ -24,8 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odsplat.errors import InputError
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
+from odsplat.sync import AlignedTake, load_sync
 
 from .ods import default_ranks, stable_poles
 
@@ -80,7 +81,6 @@ def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] | No
     the pencil's default for the frames after t_min_s (`default_ranks`)."""
     from tqdm import tqdm
 
-    from odsplat.sync import AlignedTake, load_sync
 
     if not capture.paths.sync_json.exists():   # one that is there must read: load_sync refuses a bad one
         log.info("no image poles: %s not found", capture.paths.sync_json)

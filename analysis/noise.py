@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 from .ema import mean_phase_rad, pole_freq_hz
 from .ods import DecayFit, decay_design

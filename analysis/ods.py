@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from odsplat.errors import InputError
+from odsplat.reconstruction import MotionRecord
+from odsplat.spine.errors import InputError
 
 from .ema import pole_damping, pole_freq_hz
 
@@ -47,7 +48,6 @@ class SurfaceMotion:
         """From a reconstruction's trajectories.npz (or measured_motion.npz), keeping Gaussians at least
         `min_opacity` opaque (the translucent ones fill gaps and carry little of the image, so their motion is
         weakly observed). Given the capture's id, a file of another capture is refused (`MotionRecord.read`)."""
-        from odsplat.reconstruction import MotionRecord  # the file's owner reads it
 
         m = MotionRecord.read(path, capture_id)
         times, rest, disp, alpha = m.times_s, m.means_rest_m, np.asarray(m.displacement_m, float), m.source_alpha

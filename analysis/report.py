@@ -22,11 +22,13 @@ import jinja2
 import numpy as np
 from markupsafe import Markup
 
-from odsplat.contract import check
-from odsplat.errors import InputError
-from odsplat.guard import check_inside
-from odsplat.manifest import load_json
-from odsplat.store import Capture, atomic_write_text
+from odsplat.reconstruction import PoseResult
+from odsplat.spine.contract import check
+from odsplat.spine.errors import InputError
+from odsplat.spine.guard import check_inside
+from odsplat.spine.manifest import load_json
+from odsplat.spine.store import Capture, atomic_write_text
+from odsplat.sync import load_sync
 
 from .analyze import KIND, SCHEMA
 
@@ -517,7 +519,6 @@ def capture_setup(capture: Capture) -> dict:
     if m.camera.fps:
         out["camera"] = f"{m.camera.fps:g} fps, {m.camera.width_px}x{m.camera.height_px} px, {m.camera.bit_depth} bit"
     try:
-        from odsplat.sync import load_sync
 
         sync = load_sync(capture)
         res = [abs(t.residual_frames) for t in sync.ok if t.residual_frames is not None]
@@ -526,7 +527,6 @@ def capture_setup(capture: Capture) -> dict:
     except InputError:
         pass
     try:
-        from odsplat.reconstruction import PoseResult
 
         poses = PoseResult.read(capture)
         takes = [v for v in poses.views if v.kind == "take"]

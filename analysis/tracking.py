@@ -12,7 +12,7 @@ import numpy as np
 from scipy.ndimage import correlate1d, spline_filter1d
 from tqdm import tqdm
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -55,7 +55,6 @@ from spread import run_seeds, spread, targets_on_worst  # noqa: E402
 from odsplat.analysis.analyze import AnalysisResult, AnalyzeSettings, analyze_capture  # noqa: E402
 from odsplat.analysis.correlation import mac, modal_scale_factor  # noqa: E402
 from odsplat.analysis.ods import SurfaceMotion, stable_poles  # noqa: E402
-from odsplat.errors import InputError  # noqa: E402
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
 from odsplat.hil_sim.camera import SimCameraConfig  # noqa: E402
 from odsplat.hil_sim.rig import RigConfig, SimRig, TakeTruth, truth_path  # noqa: E402
@@ -67,7 +66,8 @@ from odsplat.reconstruction.modal import ModalSettings  # noqa: E402
 from odsplat.reconstruction.model import ReconstructSettings, default_source, reconstruct  # noqa: E402
 from odsplat.reconstruction.poses import estimate_poses  # noqa: E402
 from odsplat.reconstruction.views import select_frames  # noqa: E402
-from odsplat.store import Capture  # noqa: E402
+from odsplat.spine.errors import InputError  # noqa: E402
+from odsplat.spine.store import Capture  # noqa: E402
 from odsplat.sync import SyncSettings, load_sync, sync_capture  # noqa: E402
 
 log = logging.getLogger("bench.analysis")

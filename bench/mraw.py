@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import pyMRAW
 
-from odsplat.io.video import open_video
+from odsplat.spine.io.video import open_video
 
 log = logging.getLogger("bench.mraw")
 

@@ -63,7 +63,7 @@ from odsplat.reconstruction.modal import ModalSettings  # noqa: E402
 from odsplat.reconstruction.model import ReconstructSettings, pose_camera, train  # noqa: E402
 from odsplat.reconstruction.poses import PoseResult, compare_poses, estimate_poses  # noqa: E402
 from odsplat.reconstruction.views import load_views  # noqa: E402
-from odsplat.store import Capture  # noqa: E402
+from odsplat.spine.store import Capture  # noqa: E402
 from odsplat.sync import SyncSettings, sync_capture  # noqa: E402
 
 log = logging.getLogger("bench.reconstruct")

@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 import pyMRAW
 
-from odsplat.manifest import CameraInfo, Manifest
-from odsplat.store import Capture, TakeReader
+from odsplat.spine.manifest import CameraInfo, Manifest
+from odsplat.spine.store import Capture, TakeReader
 
 log = logging.getLogger("bench.store")
 

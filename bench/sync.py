@@ -28,7 +28,7 @@ sys.path.insert(0, str(REPO))
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture  # noqa: E402
 from odsplat.hil_sim.camera import SimCameraConfig  # noqa: E402
 from odsplat.hil_sim.rig import TakeTruth, truth_path  # noqa: E402
-from odsplat.store import Capture  # noqa: E402
+from odsplat.spine.store import Capture  # noqa: E402
 from odsplat.sync import SyncSettings, sync_capture  # noqa: E402
 from odsplat.sync.resample import fractional_shift  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""Benchmark of the viewer's 3D view: frames/s of `odsplat.viewer.render_view` at 640x480 on a capture's
+"""Benchmark of the viewer's 3D view: frames/s of `odsplat.app.viewer.render_view` at 640x480 on a capture's
 reconstruction, against the straightforward baseline, `DynamicScene.render` (the training rasterizer, `rasterize`,
 run under no_grad), in the same run.
 
@@ -56,8 +56,8 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from odsplat.viewer import default_state, load_viewer, render_view
-    from odsplat.viewer.model import best_threads, camera_for
+    from odsplat.app.viewer import default_state, load_viewer, render_view
+    from odsplat.app.viewer.model import best_threads, camera_for
 
     t0 = time.perf_counter()
     data = load_viewer(args.capture)

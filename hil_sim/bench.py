@@ -27,18 +27,22 @@ from odsplat.acquisition import (
     CANAccelerometers,
     CANHammerLink,
     CANSetup,
+    CaptureSession,
     Feedback,
+    HammerTrigger,
     HitQC,
+    PlanSettings,
     QCLimits,
     SerialDAQ,
     SerialHammerLink,
     SessionReport,
+    SessionSettings,
     TriggeredRecord,
     view_eye_m,
 )
-from odsplat.errors import InputError
-from odsplat.geometry import spherical_eye, viewing_angle_deg
-from odsplat.manifest import Viewpoint
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import spherical_eye, viewing_angle_deg
+from odsplat.spine.manifest import Viewpoint
 
 from .camera import SimCamera, SimCameraConfig
 from .can_nodes import SimAccelNode
@@ -282,7 +286,6 @@ def simulate_capture(out: str | Path, *, n_views: int = 27, n_frames: int = 100,
     `limits`: the session's QC limits (e.g. `QCLimits(min_tags=0)` where the floor tags are too small to find).
     `feedback`: what the session tells as it goes (e.g. `TextFeedback(print)`, as the command line does); None: the
     log only."""
-    from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
 
     with SimBench(rig, settings, faults=faults, hammer=hammer_link if hammer is not None else None) as bench:
         session = SessionSettings(name=Path(out).name, plan=PlanSettings(n_views=n_views), n_frames=n_frames,

@@ -17,8 +17,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from odsplat.acquisition import CameraTimeout, Frame, RecordingStatus, TriggerSettings
-from odsplat.errors import InputError, OdsplatError
-from odsplat.manifest import CameraInfo, Intrinsics
+from odsplat.spine.errors import InputError, OdsplatError
+from odsplat.spine.manifest import CameraInfo, Intrinsics
 
 from .render import PinholeCamera, RenderResult, expose, render
 from .scene import RigScene

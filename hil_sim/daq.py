@@ -13,7 +13,7 @@ import numpy as np
 import serial
 
 from odsplat.acquisition import daqproto as dp
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 from .pty import PtyDevice, parse_bool, split_url_options
 

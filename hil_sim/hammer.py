@@ -16,7 +16,7 @@ import can
 import numpy as np
 
 from odsplat.acquisition import hammerproto as hp
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 from .daq import register_url_handler
 from .pty import PtyDevice, parse_bool, split_url_options

@@ -17,7 +17,7 @@ from urllib.parse import parse_qsl
 import serial
 from serial.serialutil import SerialException
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -12,8 +12,8 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from odsplat.errors import InputError
-from odsplat.geometry import look_at
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import look_at
 
 log = logging.getLogger(__name__)
 

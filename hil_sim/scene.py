@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from odsplat.errors import InputError
-from odsplat.manifest import TagLayout, TagPlacement
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import TagLayout, TagPlacement
 
 from .render import TexturedMesh, lambert_shade
 from .structure import ModalStructure, PlateStructure

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 # Euler-Bernoulli cantilever eigenvalues beta_n*L and the sigma_n of their mode functions.
 _CANTILEVER = {1: (1.875104069, 0.734095514), 2: (4.694091133, 1.018467319)}

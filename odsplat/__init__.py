@@ -1,7 +1,8 @@
 """odsplat: motion-magnified 3D operational deflection shapes from impact tests.
 
-The spine: the capture store (the contract between the stages), configuration, the pipeline and the command
-line. Each stage lives in its own subpackage, `odsplat.<stage>`, with its entry `run`.
+Three layers (docs/architecture.md): the spine, `odsplat.spine` (the capture store, the contract between the
+stages, and the numerics they share); the stages, each its own subpackage `odsplat.<stage>` with its entry `run`;
+and the application, `odsplat.app` (configuration, the pipeline, the command line, batch, demo, viewer).
 
 In a notebook::
 
@@ -19,9 +20,9 @@ import importlib
 __version__ = "0.1.0"
 
 _EXPORTS = {
-    "Capture": "store", "DerivedPaths": "paths", "Provenance": "contract",
-    "Config": "config", "load_config": "config", "STAGES": "config",
-    "run": "pipeline", "run_stage": "pipeline", "status": "pipeline", "PipelineResult": "pipeline",
+    "Capture": "spine.store", "DerivedPaths": "spine.paths", "Provenance": "spine.contract",
+    "Config": "app.config", "load_config": "app.config", "STAGES": "app.config",
+    "run": "app.pipeline", "run_stage": "app.pipeline", "status": "app.pipeline", "PipelineResult": "app.pipeline",
     "QCSettings": "acquisition", "SyncSettings": "sync", "MagnifySettings": "processing",
     "PoseSettings": "reconstruction", "ReconstructSettings": "reconstruction", "AnalyzeSettings": "analysis",
 }

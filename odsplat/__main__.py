@@ -1,4 +1,4 @@
 """`python -m odsplat`: the command line."""
-from .cli import main
+from odsplat.app.cli import main
 
 main(prog_name="odsplat")

@@ -11,8 +11,8 @@ from abc import ABC, abstractmethod
 
 import torch
 
-from odsplat.checks import MAGNIFICATION, check_number
-from odsplat.errors import InputError
+from odsplat.spine.checks import MAGNIFICATION, check_number
+from odsplat.spine.errors import InputError
 
 # NTSC YIQ: luminance first. Phase and linear methods magnify Y and carry I, Q along.
 _RGB2YIQ = torch.tensor([[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]])
@@ -29,7 +29,7 @@ def yiq_to_rgb(x: torch.Tensor) -> torch.Tensor:
 
 
 def check_alpha(alpha: float) -> float:
-    """The magnification as a float, refused outside MAGNIFICATION (the settings' range, odsplat.checks)."""
+    """The magnification as a float, refused outside MAGNIFICATION (the settings' range, odsplat.spine.checks)."""
     check_number("alpha", alpha, MAGNIFICATION)
     return float(alpha)
 

@@ -13,9 +13,9 @@ import logging
 import torch
 import torch.nn.functional as F
 
-from odsplat.errors import InputError
 from odsplat.processing.filters import TemporalFilter
 from odsplat.processing.streaming import StreamingMagnifier
+from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from scipy.signal import butter, firwin
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 KINDS = ("ideal", "fir", "butter", "diff_iir", "none")
 

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .eulerian import level_gains, level_wavelength_px
+
 log = logging.getLogger(__name__)
 
 MOTION_PERCENTILE = 99.0      # of the textured pixels' motion, in the frame where it is largest
@@ -108,7 +110,6 @@ def check_limit(method: str, alpha: float, motion: float, options: dict, band_hz
         fits = limit / motion if motion > 0 else None
         return MotionLimit(method, alpha, motion, limit, lam, "alpha x motion < lambda/4", fits,
                            alpha > 1.0 and alpha * motion > limit, band_hz)
-    from .eulerian import level_gains, level_wavelength_px
 
     levels = int(options.get("levels", 4))
     cutoff = float(options.get("cutoff_wavelength_px", 16.0))

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from odsplat.checks import (
+from odsplat.spine.checks import (
     BLUR_PX,
     CHUNK_FRAMES,
     FRACTION,
@@ -41,9 +41,9 @@ from odsplat.checks import (
     maybe,
     shown,
 )
-from odsplat.contract import check, describe
-from odsplat.errors import InputError, OdsplatError
-from odsplat.framefile import (
+from odsplat.spine.contract import check, describe
+from odsplat.spine.errors import InputError, OdsplatError
+from odsplat.spine.framefile import (
     MAGNIFIED_KIND,
     FrameFile,
     atomic_h5,
@@ -53,13 +53,17 @@ from odsplat.framefile import (
     prune_outputs,
     to_stored,
 )
-from odsplat.manifest import load_json, utc_now
-from odsplat.mp4 import Mp4Writer, display_range, to_8bit
-from odsplat.store import Capture, atomic_write_text
+from odsplat.spine.manifest import load_json, utc_now
+from odsplat.spine.mp4 import Mp4Writer, display_range, to_8bit
+from odsplat.spine.store import Capture, atomic_write_text
+from odsplat.sync import AlignedTake, load_sync
 
 from .base import Magnifier
+from .eulerian import LinearMagnifier
 from .filters import KINDS, check_band, make_filter
+from .learned.magnifier import LearnedMagnifier
 from .limits import check_limit, motion_px, sample_indices
+from .phase import PhaseMagnifier
 
 log = logging.getLogger(__name__)
 
@@ -127,14 +131,11 @@ def parse_options(items) -> tuple[tuple[str, Any], ...]:
 
 def _magnifier_class(method: str) -> type[Magnifier]:
     if method == "phase":
-        from .phase import PhaseMagnifier
 
         return PhaseMagnifier
     if method == "linear":
-        from .eulerian import LinearMagnifier
 
         return LinearMagnifier
-    from .learned.magnifier import LearnedMagnifier
 
     return LearnedMagnifier
 
@@ -188,14 +189,11 @@ def make_magnifier(settings: MagnifySettings, fps: float) -> Magnifier:
     options = dict(s.options)
     try:
         if s.method == "phase":
-            from .phase import PhaseMagnifier
 
             return PhaseMagnifier(s.alpha, temporal, **options)
         if s.method == "linear":
-            from .eulerian import LinearMagnifier
 
             return LinearMagnifier(s.alpha, temporal, **options)
-        from .learned.magnifier import LearnedMagnifier
 
         return LearnedMagnifier(s.alpha, temporal, mode=s.mode, **options)
     except TypeError as e:  # an option the method does not have
@@ -267,7 +265,6 @@ class _Source:
     def __init__(self, capture: Capture, name: str, aligned_file: str | None, sync_generation: str | None = None):
         self.name = name
         if aligned_file:
-            from odsplat.sync import AlignedTake
 
             self._r = AlignedTake(Path(aligned_file), sync_generation, capture.id)
             self.kind = "aligned"
@@ -404,7 +401,6 @@ def _inputs(capture: Capture, s: MagnifySettings) -> tuple[list[tuple[str, str |
     synced = None
     sync_json = capture.paths.sync_json
     if s.source in ("auto", "aligned") and sync_json.exists():
-        from odsplat.sync import load_sync
 
         sync = load_sync(capture)
         synced = {t.name: str(capture.paths.listed(t.aligned_file)) for t in sync.ok if t.aligned_file}

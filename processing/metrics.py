@@ -7,7 +7,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from odsplat.similarity import ssim_map
+from odsplat.spine.similarity import ssim_map
 
 
 def _as_nchw(x: torch.Tensor) -> torch.Tensor:

@@ -17,10 +17,10 @@ from collections.abc import Iterator
 import torch
 import torch.nn.functional as F
 
-from odsplat.errors import InputError
 from odsplat.processing.filters import TemporalFilter
 from odsplat.processing.pyramid import ComplexSteerablePyramid, SteerableCoeffs
 from odsplat.processing.streaming import StreamingMagnifier
+from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 

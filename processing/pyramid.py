@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -9,9 +9,9 @@ from typing import Any
 
 import torch
 
-from odsplat.errors import InputError
 from odsplat.processing.base import Magnifier, check_alpha, check_frames, rgb_to_yiq, yiq_to_rgb
 from odsplat.processing.filters import TemporalFilter
+from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
 """Any take's frames as an mp4 to watch (`odsplat export-video`): the raw take, sync's aligned frames or a
-magnified take, through the one mp4 writer (`odsplat.mp4`) with the magnify stage's 8-bit mapping."""
+magnified take, through the one mp4 writer (`odsplat.spine.mp4`) with the magnify stage's 8-bit mapping."""
 from __future__ import annotations
 
 import logging
@@ -9,9 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
-from odsplat.errors import InputError
-from odsplat.mp4 import Mp4Info, Mp4Writer, display_range, to_8bit
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.mp4 import Mp4Info, Mp4Writer, display_range, to_8bit
+from odsplat.spine.store import Capture
+from odsplat.sync import AlignedTake, load_sync
 
 from .magnify import METHODS, MagnifiedVideo, MagnifyResult, video_comment
 
@@ -43,7 +44,6 @@ def _open(capture: Capture, take: str, source: str):
             raise InputError("--take", f"take {take!r} has no frames")
         return reader, reader.fps, None
     if source == "sync":
-        from odsplat.sync import AlignedTake, load_sync
 
         sync = load_sync(capture)
         files = {t.name: t.aligned_file for t in sync.ok if t.aligned_file}
@@ -71,7 +71,6 @@ def source_takes(capture: Capture, source: str) -> list[str]:
     if source == "raw":
         return [t.name for t in capture.manifest.takes if t.n_frames > 0]
     if source == "sync":
-        from odsplat.sync import load_sync
 
         return [t.name for t in load_sync(capture).ok if t.aligned_file]
     return [t.name for t in MagnifyResult.read(capture, source.partition("/")[2]).takes]

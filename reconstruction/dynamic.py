@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from odsplat.checks import (
+from odsplat.spine.checks import (
     FRACTION,
     ITERATIONS,
     LEARNING_RATE,
@@ -32,7 +32,7 @@ from odsplat.checks import (
     check_fields,
     maybe,
 )
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 from .gaussians import Gaussians
 from .losses import Neighbours, image_loss

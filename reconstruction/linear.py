@@ -43,9 +43,19 @@ from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
-from odsplat.checks import BLUR_PX, CHUNK_FRAMES, FRACTION, LENGTH_M, NEIGHBOURS, WEIGHT, Range, check_fields, maybe
-from odsplat.errors import InputError
-from odsplat.store import Capture
+from odsplat.spine.checks import (
+    BLUR_PX,
+    CHUNK_FRAMES,
+    FRACTION,
+    LENGTH_M,
+    NEIGHBOURS,
+    WEIGHT,
+    Range,
+    check_fields,
+    maybe,
+)
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
 
 from .dynamic import render
 from .gaussians import Gaussians

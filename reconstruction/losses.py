@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from odsplat.similarity import ssim_map
+from odsplat.spine.similarity import ssim_map
 
 from .quaternion import quat_conjugate, quat_multiply, quat_normalize, quat_to_matrix
 

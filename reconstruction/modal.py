@@ -37,7 +37,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from odsplat.checks import (
+from odsplat.spine.checks import (
     BLUR_PX,
     CHUNK_FRAMES,
     ITERATIONS,
@@ -49,7 +49,7 @@ from odsplat.checks import (
     check_choice,
     check_fields,
 )
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 from .dynamic import Trajectory, render
 from .gaussians import Gaussians

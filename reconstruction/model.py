@@ -19,18 +19,29 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from odsplat.checks import FRAME_INDEX, MAX_FRAMES, WIDTH_PX, WORKERS, Range, check_choice, check_fields, maybe, shown
-from odsplat.contract import CAPTURE_KEY, check, describe, numeric, plain, read_npz
-from odsplat.errors import InputError
-from odsplat.geometry import look_at
-from odsplat.manifest import load_json, utc_now
-from odsplat.mp4 import write_mp4
-from odsplat.store import Capture, atomic_path, atomic_write_text
+from odsplat.spine.checks import (
+    FRAME_INDEX,
+    MAX_FRAMES,
+    WIDTH_PX,
+    WORKERS,
+    Range,
+    check_choice,
+    check_fields,
+    maybe,
+    shown,
+)
+from odsplat.spine.contract import CAPTURE_KEY, check, describe, numeric, plain, read_npz
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import look_at
+from odsplat.spine.manifest import load_json, utc_now
+from odsplat.spine.mp4 import write_mp4
+from odsplat.spine.store import Capture, atomic_path, atomic_write_text
 
 from .dynamic import FitSettings, Trajectory, fit_dynamic, fit_static, render
 from .gaussians import Gaussians, save_ply
 from .linear import LinearSettings, NodeMotion, fit_linear
 from .modal import ModalMotion, ModalSettings, fit_modal
+from .poses import PoseResult
 from .quaternion import quat_conjugate, quat_from_rotvec, quat_multiply, quat_normalize, quat_to_rotvec
 from .views import Camera, SceneFrame, ViewSet, load_views, pose_camera
 
@@ -103,7 +114,6 @@ class ReconstructSettings:
 
 
 def _poses(capture: Capture):
-    from .poses import PoseResult  # the pose stage's saved result
 
     return PoseResult.read(capture)
 
@@ -281,7 +291,7 @@ class MotionRecord:
     def write(self, path: Path, capture_id: str | None = None) -> None:
         """A modal model's motion is written as its basis and shapes (in `extra`), not as the (T, N, 3) field they
         multiply out to: on the demo 22k Gaussians x 247 timesteps, 159 MB with the quaternions against 6-7 MB.
-        `capture_id`: the capture's, recorded in the file (`odsplat.contract.CAPTURE_KEY`)."""
+        `capture_id`: the capture's, recorded in the file (`odsplat.spine.contract.CAPTURE_KEY`)."""
         arrays = dict(times_s=np.asarray(self.times_s, float), means_rest_m=self.means_rest_m,
                       opacity_logits=self.opacity_logits, source_alpha=self.source_alpha, **self.extra)
         if not {"basis", "shapes_m"} <= self.extra.keys():

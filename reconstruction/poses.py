@@ -20,15 +20,15 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from odsplat._deps import import_pycolmap
-from odsplat.checks import FRAME_INDEX, SEED, WORKERS, Range, check_choice, check_fields, maybe
-from odsplat.contract import CAPTURE_KEY, check, describe, numeric, plain, read_npz
-from odsplat.errors import InputError, OdsplatError
-from odsplat.geometry import camera_center_m, rotation_angle_deg
-from odsplat.manifest import TagLayout, load_json, load_toml
-from odsplat.space import check_free
-from odsplat.store import TAKE_SELECTIONS, Capture, atomic_open, atomic_write_text
-from odsplat.tags import TagDetection, camera_pose_from_tags, detect_tags
+from odsplat.spine._deps import import_pycolmap
+from odsplat.spine.checks import FRAME_INDEX, SEED, WORKERS, Range, check_choice, check_fields, maybe
+from odsplat.spine.contract import CAPTURE_KEY, check, describe, numeric, plain, read_npz
+from odsplat.spine.errors import InputError, OdsplatError
+from odsplat.spine.geometry import camera_center_m, rotation_angle_deg
+from odsplat.spine.manifest import TagLayout, load_json, load_toml
+from odsplat.spine.space import check_free
+from odsplat.spine.store import TAKE_SELECTIONS, Capture, atomic_open, atomic_write_text
+from odsplat.spine.tags import TagDetection, camera_pose_from_tags, detect_tags
 
 log = logging.getLogger(__name__)
 

@@ -47,7 +47,7 @@ import numpy as np
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 from .quaternion import quat_to_matrix
 from .raster_cpu import composite_numba, image_numba, project_numba

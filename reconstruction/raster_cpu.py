@@ -51,7 +51,7 @@ import torch
 from numba import njit, prange
 from torch.autograd.function import once_differentiable
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 

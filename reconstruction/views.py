@@ -15,10 +15,12 @@ import cv2
 import numpy as np
 import torch
 
-from odsplat.errors import InputError
-from odsplat.framefile import ALIGNED_KIND, MAGNIFIED_KIND, FrameFile
-from odsplat.geometry import camera_center_m
-from odsplat.store import Capture
+from odsplat.processing import MagnifyResult
+from odsplat.spine.errors import InputError
+from odsplat.spine.framefile import ALIGNED_KIND, MAGNIFIED_KIND, FrameFile
+from odsplat.spine.geometry import camera_center_m
+from odsplat.spine.store import Capture
+from odsplat.sync import load_sync
 
 log = logging.getLogger(__name__)
 
@@ -33,10 +35,8 @@ class SourceFrames(FrameFile):
 def source_generation(capture: Capture, source: str) -> str:
     """The run id the source's index records (sync.json, magnify.json): its frame files must carry it."""
     if source == "sync":
-        from odsplat.sync import load_sync
 
         return load_sync(capture).generation
-    from odsplat.processing import MagnifyResult
 
     source_path(capture, source, "")  # checks the name
     return MagnifyResult.read(capture, source.split("/", 1)[1]).generation

@@ -24,14 +24,14 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from odsplat.checks import MAX_FORCE_N, WORKERS, Range, check_choice, check_fields, maybe
-from odsplat.contract import check, describe
-from odsplat.errors import InputError, OdsplatError
-from odsplat.framefile import begin_outputs, discard_outputs, prune_outputs
-from odsplat.impulse import find_impacts, fit_pulse
-from odsplat.manifest import CameraInfo, TagLayout, load_json, utc_now
-from odsplat.store import TAKE_SELECTIONS, Capture, TakeReader, atomic_write_text
-from odsplat.tags import detect_tags
+from odsplat.spine.checks import MAX_FORCE_N, WORKERS, Range, check_choice, check_fields, maybe
+from odsplat.spine.contract import check, describe
+from odsplat.spine.errors import InputError, OdsplatError
+from odsplat.spine.framefile import begin_outputs, discard_outputs, prune_outputs
+from odsplat.spine.impulse import find_impacts, fit_pulse
+from odsplat.spine.manifest import CameraInfo, TagLayout, load_json, utc_now
+from odsplat.spine.store import TAKE_SELECTIONS, Capture, TakeReader, atomic_write_text
+from odsplat.spine.tags import detect_tags
 
 from .aligned import write_aligned
 from .image import DisplacementBasis, fit_frame_times, motion_gram, noise_sd

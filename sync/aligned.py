@@ -1,5 +1,5 @@
 """Aligned take files, `derived/sync/NAME.h5`: a take's frames resampled onto the capture's common
-impact-locked time grid, in the spine's derived frame-file layout (`odsplat.framefile`). Written band by
+impact-locked time grid, in the spine's derived frame-file layout (`odsplat.spine.framefile`). Written band by
 band (rows), read frame by frame; never whole in memory. `times_s` holds each frame's mid-exposure time
 after the impact onset; attributes name the take, its offset, method and impulse scale.
 """
@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from odsplat.framefile import ALIGNED_KIND, FrameFile, atomic_h5, create_frames, to_stored
+from odsplat.spine.framefile import ALIGNED_KIND, FrameFile, atomic_h5, create_frames, to_stored
 
 
 @contextlib.contextmanager

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 from scipy.integrate import cumulative_trapezoid
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 

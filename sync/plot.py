@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from odsplat.impulse import half_sine
-from odsplat.store import Capture
+from odsplat.spine.impulse import half_sine
+from odsplat.spine.store import Capture
 
 from .align import SyncResult, force_channel
 

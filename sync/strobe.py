@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ import pytest
 
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.camera import SimCameraConfig
-from odsplat.store import Capture
+from odsplat.spine.store import Capture
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -132,7 +132,7 @@ def small_piped_capture(out: Path, *, n_views: int = 8, seed: int = 1) -> Path:
     from click.testing import CliRunner
 
     from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
-    from odsplat.cli import main
+    from odsplat.app.cli import main
     from odsplat.hil_sim import SimBench
 
     session = SessionSettings(name="cap", plan=PlanSettings(n_views=n_views), n_frames=24, pretrigger_frames=4,

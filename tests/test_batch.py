@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
-from odsplat.config import STAGES
+from odsplat.app.config import STAGES
 from odsplat.hil_sim import SimBench, SimBenchSettings
-from odsplat.store import Capture
+from odsplat.spine.store import Capture
 
 N_VIEWS = 3
 # Test-sized, like tests/test_pipeline.py's: 48 px Gaussians, few iterations, a low LSCF order for 24-frame takes.

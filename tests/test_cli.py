@@ -8,12 +8,12 @@ import sys
 import numpy as np
 import pytest
 
-from odsplat.manifest import ChannelInfo, Manifest
-from odsplat.store import Capture
+from odsplat.spine.manifest import ChannelInfo, Manifest
+from odsplat.spine.store import Capture
 
 
 def odsplat(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "odsplat.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "odsplat", *args], capture_output=True, text=True, timeout=120)
 
 
 @pytest.mark.parametrize("sub", [[], ["info"], ["import"], ["recover"]])

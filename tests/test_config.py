@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import pytest
 
-from odsplat.config import Config, load_config, parse_set
-from odsplat.errors import InputError
+from odsplat.app.config import Config, load_config, parse_set
+from odsplat.spine.errors import InputError
 
 
 def test_layers_override_in_order_and_automatic_settings_stay_automatic(tmp_path):

@@ -1,12 +1,12 @@
-"""How derived files describe themselves (odsplat.contract) and the registry of their paths (Capture.paths)."""
+"""How derived files describe themselves (odsplat.spine.contract) and the registry of their paths (Capture.paths)."""
 from __future__ import annotations
 
 import pytest
 
-from odsplat.contract import check, describe, digest
-from odsplat.errors import InputError
-from odsplat.manifest import Manifest
-from odsplat.store import Capture
+from odsplat.spine.contract import check, describe, digest
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import Manifest
+from odsplat.spine.store import Capture
 from odsplat.sync import SyncSettings
 
 

@@ -18,9 +18,9 @@ import h5py
 import pytest
 from click.testing import CliRunner
 
-from odsplat.batch import _captures
-from odsplat.cli import main
-from odsplat.store import Capture
+from odsplat.app.batch import _captures
+from odsplat.app.cli import main
+from odsplat.spine.store import Capture
 
 from .conftest import small_piped_capture
 
@@ -174,8 +174,8 @@ def test_a_take_attribute_that_leads_out_is_refused(piped, tmp_path):
 
 HOLD = """
 import sys, time
-from odsplat.lock import capture_lock
-from odsplat.store import Capture
+from odsplat.spine.lock import capture_lock
+from odsplat.spine.store import Capture
 with capture_lock(Capture.open(sys.argv[1])):
     print("held", flush=True)
     time.sleep(float(sys.argv[2]))
@@ -342,7 +342,7 @@ def test_a_folder_that_is_no_capture_fails_alone_in_a_batch(piped, tmp_path):
 
 
 def test_storage_errors_are_one_line_naming_the_file():
-    from odsplat.errors import StorageError, storage_error
+    from odsplat.spine.errors import StorageError, storage_error
 
     err = storage_error(OSError(errno.ENOSPC, "No space left on device", "/x/derived/sync/v00_000.h5"))
     assert isinstance(err, StorageError) and str(err).startswith("/x/derived/sync/v00_000.h5: no space left")

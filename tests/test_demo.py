@@ -13,10 +13,19 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from odsplat.cli import main
-from odsplat.demo import BEAM_NAME, CAPTURE_DEFAULTS, MARKER, QUICK, SHARED_DATA_ENV, SIM_NAME, check_out, demo_settings
-from odsplat.errors import InputError
+from odsplat.app.cli import main
+from odsplat.app.demo import (
+    BEAM_NAME,
+    CAPTURE_DEFAULTS,
+    MARKER,
+    QUICK,
+    SHARED_DATA_ENV,
+    SIM_NAME,
+    check_out,
+    demo_settings,
+)
 from odsplat.hil_sim.structure import make_structure
+from odsplat.spine.errors import InputError
 
 REPO = Path(__file__).resolve().parents[1]
 BEAM_FIRST_MODE_HZ = 695.8   # the LADISK beam's first bending mode (docs/analysis.md: 695.74 Hz)
@@ -161,7 +170,7 @@ def test_quick_settings_lie_over_the_demos():
 
 def test_the_demos_capture_is_odsplat_capture_sim_autos():
     """The demo records what `odsplat capture --sim --auto` would with its defaults (views, frames, faults aside)."""
-    from odsplat.cli import capture
+    from odsplat.app.cli import capture
 
     defaults = {p.name: p.default for p in capture.params}
     assert defaults["size"] == "{}x{}".format(*CAPTURE_DEFAULTS["size"])

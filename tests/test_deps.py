@@ -12,7 +12,7 @@ SOURCES = [p for d in ("odsplat", "acquisition", "sync", "processing", "reconstr
 
 def test_pycolmap_loads_after_cv2_and_png_writing_works(tmp_path):
     code = (
-        "import sys; from odsplat._deps import import_pycolmap; pc = import_pycolmap();"
+        "import sys; from odsplat.spine._deps import import_pycolmap; pc = import_pycolmap();"
         "mods = list(sys.modules); assert mods.index('cv2') < mods.index('pycolmap'), 'order';"
         "import cv2, numpy as np;"
         f"assert cv2.imwrite({str(tmp_path / 'x.png')!r}, np.arange(64, dtype=np.uint8).reshape(8, 8));"

@@ -19,12 +19,12 @@ import pytest
 from plyfile import PlyData, PlyElement
 
 from odsplat.analysis import read_analysis, read_results_h5
-from odsplat.config import load_config
-from odsplat.errors import InputError
-from odsplat.pipeline import is_current
+from odsplat.app.config import load_config
+from odsplat.app.pipeline import is_current
 from odsplat.processing import MagnifiedVideo, MagnifyResult
 from odsplat.reconstruction import DynamicScene, MotionRecord, PoseResult, ReconstructResult, load_ply
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
 from odsplat.sync import AlignedTake, load_sync
 
 from .conftest import small_piped_capture

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 from click.testing import CliRunner
 
-from odsplat.cli import main
-from odsplat.pipeline import run_stage
+from odsplat.app.cli import main
+from odsplat.app.pipeline import run_stage
 from odsplat.reconstruction import PoseResult
-from odsplat.store import Capture
+from odsplat.spine.store import Capture
 from odsplat.sync import load_sync
 
 

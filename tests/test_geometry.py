@@ -1,4 +1,4 @@
-"""odsplat.geometry: look-at poses identical to hil_sim's camera, camera centres, rotation and viewing angles,
+"""odsplat.spine.geometry: look-at poses identical to hil_sim's camera, camera centres, rotation and viewing angles,
 spherical camera positions."""
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from odsplat.errors import InputError
-from odsplat.geometry import (
+from odsplat.hil_sim.render import PinholeCamera
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import (
     camera_center_m,
     direction,
     look_at,
@@ -18,7 +19,6 @@ from odsplat.geometry import (
     spherical_eye,
     viewing_angle_deg,
 )
-from odsplat.hil_sim.render import PinholeCamera
 
 
 def _eyes(n: int, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:

@@ -1,6 +1,7 @@
 """The house rules as checks (`make lint` runs the same two): ruff on the whole tree, and the import contracts in
-pyproject.toml ([tool.importlinter]: the stages import only the spine and each other's package __init__; the spine
-imports no stage), checked by tools/lint_imports.py on a copy laid out as installed. Nothing is written to the repo."""
+pyproject.toml ([tool.importlinter]: the layers, spine < stages in pipeline order < the simulated rig < the
+application, every module in one; and the stages' rooms, entered only through a package's __init__), checked by
+tools/lint_imports.py on a copy laid out as installed. Nothing is written to the repo."""
 from __future__ import annotations
 
 import importlib.util
@@ -14,6 +15,9 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 LINT_IMPORTS = REPO / "tools" / "lint_imports.py"
 SOURCE_FOLDERS = ("odsplat", "acquisition", "sync", "processing", "reconstruction", "analysis", "hil_sim")
+
+LAYERS = "layers: application > simulated rig > stages in pipeline order > spine"
+APP = "the application (odsplat.app) uses only the stages' __init__"
 
 needs_ruff = pytest.mark.skipif(importlib.util.find_spec("ruff") is None, reason="ruff is not installed")
 needs_import_linter = pytest.mark.skipif(importlib.util.find_spec("importlinter") is None,
@@ -55,13 +59,20 @@ def tree(tmp_path) -> Path:
      "analysis imports only the spine and the other stages' __init__"),
     ("hil_sim/_bad.py", "def f():\n    from odsplat.acquisition.session import CaptureSession",  # in a function too
      "hil_sim imports only the spine and the other stages' __init__"),
-    ("odsplat/units.py", "from odsplat.sync import SyncSettings", "the spine imports no stage"),
-    ("odsplat/pipeline.py", "def f():\n    from odsplat.processing.magnify import magnify_capture",
-     "the CLI, pipeline, batch, viewer and demo use only the stages' __init__"),
-    ("odsplat/viewer/model.py", "from odsplat.reconstruction.raster import rasterize_image",
-     "the CLI, pipeline, batch, viewer and demo use only the stages' __init__"),
-    ("odsplat/demo.py", "def f():\n    from odsplat.hil_sim.bench import simulate_capture",
-     "the CLI, pipeline, batch, viewer and demo use only the stages' __init__"),
+    # upward: against the layers (spine < acquisition < sync < processing < reconstruction < analysis < hil_sim < app)
+    ("odsplat/spine/units.py", "from odsplat.sync import SyncSettings", LAYERS),
+    ("odsplat/spine/store.py", "def f():\n    from odsplat.app.config import load_config", LAYERS),
+    ("sync/_bad.py", "from odsplat.analysis import AnalyzeSettings", LAYERS),
+    ("acquisition/_bad.py", "from odsplat.processing import MagnifySettings", LAYERS),
+    ("reconstruction/_bad.py", "from odsplat.hil_sim import SimBench", LAYERS),
+    ("analysis/_bad.py", "from odsplat.app.pipeline import run", LAYERS),
+    ("odsplat/_stray.py", "X = 1", LAYERS),      # every module in a layer (exhaustive)
+    ("odsplat/app/pipeline.py", "def f():\n    from odsplat.processing.magnify import magnify_capture",
+     APP),
+    ("odsplat/app/viewer/model.py", "from odsplat.reconstruction.raster import rasterize_image",
+     APP),
+    ("odsplat/app/demo.py", "def f():\n    from odsplat.hil_sim.bench import simulate_capture",
+     APP),
 ])
 def test_a_forbidden_import_breaks_its_contract(tree, path, line, contract):
     with open(tree / path, "a") as f:

@@ -24,9 +24,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from odsplat.errors import InputError, OdsplatError
-from odsplat.importer import import_capture
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError, OdsplatError
+from odsplat.spine.importer import import_capture
+from odsplat.spine.store import Capture
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="the per-input timeout uses SIGALRM")
 

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from odsplat.errors import InputError
-from odsplat.importer import import_capture
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.importer import import_capture
+from odsplat.spine.store import Capture
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -282,7 +282,7 @@ def test_bit_depth_is_detected_from_the_data(tmp_path, caplog, peak, detected):
     np.save(tmp_path / "take.npy", frames)
     rig = tmp_path / "rig.toml"
     rig.write_text('name = "depth"\n[[takes]]\nname = "t"\nvideo = "take.npy"\nfps = 100\n')
-    with caplog.at_level("INFO", logger="odsplat.importer"):
+    with caplog.at_level("INFO", logger="odsplat.spine.importer"):
         cap = import_capture(rig, tmp_path / "cap")
     assert cap.manifest.camera.bit_depth == detected
     with cap.open_take("t") as r:
@@ -388,7 +388,7 @@ def test_a_take_name_that_would_leave_the_capture_is_refused(tmp_path, name):
 
 
 def test_the_store_checks_take_names_too(tmp_path):
-    from odsplat.manifest import Manifest
+    from odsplat.spine.manifest import Manifest
 
     cap = Capture.create(tmp_path / "cap", Manifest(name="x"))
     for name in ("../x", "a/b", "a\0b", "x" * 300):

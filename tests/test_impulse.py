@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from odsplat.errors import InputError
-from odsplat.impulse import find_impacts, fit_pulse, half_sine
+from odsplat.spine.errors import InputError
+from odsplat.spine.impulse import find_impacts, fit_pulse, half_sine
 from odsplat.sync.align import _lag
 from odsplat.sync.resample import fractional_shift
 
@@ -58,9 +58,9 @@ def test_real_hits_lock_to_their_fitted_onsets(shared_data):
 
 def test_every_stage_takes_the_same_onset():
     """Hit QC, the FRF's per-hit check, its segmentation of a long record and sync's timing all use
-    odsplat.impulse: on noisy half sines with a baseline offset, their onsets agree and match the truth."""
+    odsplat.spine.impulse: on noisy half sines with a baseline offset, their onsets agree and match the truth."""
     from odsplat.analysis import check_frf_hit, split_hits
-    from odsplat.impulse import impact_onsets
+    from odsplat.spine.impulse import impact_onsets
 
     rng = np.random.default_rng(4)
     fs = 25_600.0

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from odsplat.cli import main
-from odsplat.errors import InputError
+from odsplat.app.cli import main
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
-from odsplat.store import Capture, TakeReader
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture, TakeReader
 
 from .test_store_can import NODE, _manifest
 

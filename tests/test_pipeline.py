@@ -17,13 +17,13 @@ from click.testing import CliRunner
 
 import odsplat
 from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
-from odsplat.cli import main
-from odsplat.config import STAGES, load_config
-from odsplat.errors import InputError
+from odsplat.app.cli import main
+from odsplat.app.config import STAGES, load_config
+from odsplat.app.pipeline import is_current, status
 from odsplat.hil_sim import SimBench, SimBenchSettings
-from odsplat.pipeline import is_current, status
 from odsplat.processing import MagnifyResult
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
 from odsplat.sync import AlignedTake, SyncSettings, load_sync
 
 from .conftest import SMALL_PIPELINE_CONFIG

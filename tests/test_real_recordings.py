@@ -10,12 +10,12 @@ from click.testing import CliRunner
 
 from odsplat.analysis import estimate_frf, fit_modes
 from odsplat.analysis.band import band_notes, default_band_hz, force_band_hz, frf_peaks
-from odsplat.cli import main
-from odsplat.errors import InputError
-from odsplat.importer import import_capture
-from odsplat.pipeline import run, status
-from odsplat.sensors import read_geometry
-from odsplat.store import Capture
+from odsplat.app.cli import main
+from odsplat.app.pipeline import run, status
+from odsplat.spine.errors import InputError
+from odsplat.spine.importer import import_capture
+from odsplat.spine.sensors import read_geometry
+from odsplat.spine.store import Capture
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -15,7 +15,9 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from odsplat.checks import (
+from odsplat.app.cli import main
+from odsplat.app.config import Config, load_config, settings_types
+from odsplat.spine.checks import (
     MAX_FREQUENCY_HZ,
     MAX_MAGNIFICATION,
     MAX_VIDEO_FREQUENCY_HZ,
@@ -23,12 +25,10 @@ from odsplat.checks import (
     check_number,
     shown,
 )
-from odsplat.cli import main
-from odsplat.config import Config, load_config, settings_types
-from odsplat.errors import InputError
-from odsplat.io.limits import FRAME_RATE_HZ, SAMPLE_RATE_HZ
-from odsplat.manifest import ChannelInfo, Manifest
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.io.limits import FRAME_RATE_HZ, SAMPLE_RATE_HZ
+from odsplat.spine.manifest import ChannelInfo, Manifest
+from odsplat.spine.store import Capture
 
 REPO = Path(__file__).resolve().parents[1]
 LONGEST_LINE = 1000   # characters: an error quotes a hostile value cut short (and may list the fields there are)

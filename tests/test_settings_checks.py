@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from odsplat.checks import POSITIVE, Range, check_number, maybe
-from odsplat.cli import main
-from odsplat.errors import InputError
+from odsplat.app.cli import main
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
-from odsplat.manifest import ChannelInfo, Manifest
-from odsplat.store import Capture
+from odsplat.spine.checks import POSITIVE, Range, check_number, maybe
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import ChannelInfo, Manifest
+from odsplat.spine.store import Capture
 
 
 def _refused(root, *args, field: str) -> str:

@@ -14,9 +14,9 @@ import h5py
 import numpy as np
 import pytest
 
-from odsplat.errors import IncompleteTakeError, InputError, SchemaError
-from odsplat.manifest import CameraInfo, ChannelInfo, Manifest
-from odsplat.store import Capture, QCInfo, TakeReader, TriggerInfo
+from odsplat.spine.errors import IncompleteTakeError, InputError, SchemaError
+from odsplat.spine.manifest import CameraInfo, ChannelInfo, Manifest
+from odsplat.spine.store import Capture, QCInfo, TakeReader, TriggerInfo
 
 CHANNELS = [
     ChannelInfo("force", "force", "N", sensitivity_v_per_unit=2.25e-3, position_m=[0.1, 0.0, 0.5],
@@ -172,7 +172,7 @@ _WRITER = textwrap.dedent(
     import sys, numpy as np
     sys.path.insert(0, {tests!r})
     from test_store import _frame, _manifest
-    from odsplat.store import Capture
+    from odsplat.spine.store import Capture
     cap = Capture.create({root!r}, _manifest())
     for t in range(2):
         with cap.new_take(f"done{{t}}", view=t, frame_shape=(48, 64), dtype=np.uint16, bit_depth=12) as w:

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from odsplat.acquisition import CANNode, CANSetup
-from odsplat.errors import InputError
-from odsplat.manifest import ChannelInfo, Manifest
-from odsplat.store import Capture, TakeReader
-from odsplat.timebase import resample_onto
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import ChannelInfo, Manifest
+from odsplat.spine.store import Capture, TakeReader
+from odsplat.spine.timebase import resample_onto
 
 DAQ_RATE_HZ = 10240.0
 CAN_RATE_HZ = 500.0
@@ -110,7 +110,7 @@ _WRITER = textwrap.dedent(
     import sys, numpy as np
     sys.path.insert(0, {tests!r})
     from test_store_can import _manifest
-    from odsplat.store import Capture
+    from odsplat.spine.store import Capture
     cap = Capture.create({root!r}, _manifest())
     w = cap.new_take("dying", frame_shape=(16, 16), dtype=np.uint8)
     for k in range(1000000):

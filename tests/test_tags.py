@@ -5,11 +5,11 @@ import cv2
 import numpy as np
 import pytest
 
-from odsplat.errors import InputError
 from odsplat.hil_sim.render import PinholeCamera, expose, render
 from odsplat.hil_sim.scene import FLOOR_TAG, build_scene
-from odsplat.manifest import TagLayout
-from odsplat.tags import (
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import TagLayout
+from odsplat.spine.tags import (
     AUTO_ORDER,
     REFINEMENTS,
     CameraPose,
@@ -348,7 +348,7 @@ def test_small_tags_are_found_with_accurate_corners(small_tags, size_px):
 
 def test_auto_leaves_out_corners_that_do_not_read_as_the_tag(scene, views):
     """The check behind "auto": true corners pass, corners off by half a cell or turned by one corner do not."""
-    from odsplat.tags import _check_corners, _to_gray_u8
+    from odsplat.spine.tags import _check_corners, _to_gray_u8
 
     cam, img, visible = views[0]
     gray = _to_gray_u8(img)

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import torch
 
-from odsplat.errors import InputError
 from odsplat.processing.base import Magnifier, check_alpha, check_frames
 from odsplat.processing.filters import TemporalFilter
 from odsplat.processing.learned.network import MagNet, crop_to, from_net, load_magnet, pad_to_multiple, to_net
+from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -28,11 +28,11 @@ from odsplat.acquisition.hammer import (
 )
 from odsplat.acquisition.lab import load_lab_config
 from odsplat.acquisition.session import AutoHammerSettings
-from odsplat.errors import InputError
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.hammer import HammerFaults, SimAutoHammer, SimHammerCAN, SimHammerSerial, SimHammerSettings
 from odsplat.hil_sim.rig import SimRig, TakeTruth, truth_path
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
 
 REPO = Path(__file__).resolve().parents[2]
 _CHANNELS = itertools.count()
@@ -260,7 +260,7 @@ def test_27_view_session_with_the_automatic_hammer(tmp_path):
 def test_cli_sim_auto_fires_the_automatic_hammer_by_default(tmp_path):
     out = tmp_path / "cap"
     env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
-    cmd = [sys.executable, "-m", "odsplat.cli", "capture", str(out), "--sim", "--auto", "--no-window", "--views", "2",
+    cmd = [sys.executable, "-m", "odsplat", "capture", str(out), "--sim", "--auto", "--no-window", "--views", "2",
            "--frames", "12", "--pretrigger-frames", "3", "--record-s", "0.1", "--size", "320x240",
            "--hammer-force-n", "150", "--hammer-link", "can", "--sim-faults", "0:rebound"]
     run = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=REPO, timeout=120)

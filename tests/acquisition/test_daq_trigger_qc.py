@@ -9,11 +9,11 @@ import pytest
 from odsplat.acquisition.daq import DAQChannel, DAQError, SerialDAQ
 from odsplat.acquisition.qc import QCLimits, check_hit
 from odsplat.acquisition.trigger import HammerTrigger, NoTrigger, TriggeredRecord, first_crossing, wait_for_hit
-from odsplat.errors import InputError
 from odsplat.hil_sim.daq import register_url_handler
 from odsplat.hil_sim.rig import RigConfig, SimRig
 from odsplat.hil_sim.structure import Hammer
-from odsplat.impulse import find_impacts
+from odsplat.spine.errors import InputError
+from odsplat.spine.impulse import find_impacts
 
 pytestmark = pytest.mark.timeout(60)
 FS = 25_600

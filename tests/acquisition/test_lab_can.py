@@ -19,14 +19,14 @@ from click.testing import CliRunner
 
 from odsplat.acquisition import CANNode, CANSetup, load_lab_config
 from odsplat.acquisition import canproto as cp
-from odsplat.cli import main
-from odsplat.errors import InputError
+from odsplat.app.cli import main
 from odsplat.hil_sim.can_nodes import sim_nodes
 from odsplat.hil_sim.daq import register_source, register_url_handler
 from odsplat.hil_sim.hammer import hammer_url
 from odsplat.hil_sim.rig import DEFAULT_CAN_NODES, RigConfig, SimRig
 from odsplat.hil_sim.structure import Impact
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -200,7 +200,7 @@ def test_a_missing_t0_is_refused_and_the_cli_says_so_in_one_line(tmp_path):
     del section["nodes"][1]["t0_daq_s"]
     lab = tmp_path / "lab.toml"
     lab.write_text(_lab_text("/dev/ttyACM0", tmp_path / "x.avi", "/dev/ttyUSB1", section))
-    run = subprocess.run([sys.executable, "-m", "odsplat.cli", "capture", str(tmp_path / "c"), "--config", str(lab)],
+    run = subprocess.run([sys.executable, "-m", "odsplat", "capture", str(tmp_path / "c"), "--config", str(lab)],
                          capture_output=True, text=True, cwd=REPO, timeout=60)
     assert run.returncode == 2
     assert run.stderr == f"odsplat: error: {lab}: can.nodes[1].t0_daq_s: required field is missing\n"

@@ -11,7 +11,7 @@ import pytest
 
 from odsplat.acquisition.camera import CameraDriver, CameraTimeout, TriggerSettings
 from odsplat.acquisition.opencv_camera import OpenCVCamera
-from odsplat.errors import InputError, OdsplatError
+from odsplat.spine.errors import InputError, OdsplatError
 
 N_FILE = 120       # frames in the test video
 FILE_FPS = 200.0   # its frame rate: 5 ms a frame when played in real time

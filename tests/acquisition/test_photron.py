@@ -33,7 +33,7 @@ from odsplat.acquisition.photron import (
     unpack_12bit,
     unpack_frame,
 )
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 # -------------------------------------------------------------------- no SDK
 

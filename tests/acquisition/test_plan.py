@@ -20,9 +20,9 @@ from odsplat.acquisition.plan import (
     view_eye_m,
     view_pose,
 )
-from odsplat.errors import InputError
-from odsplat.geometry import camera_center_m, look_at, spherical_eye
-from odsplat.manifest import Viewpoint
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import camera_center_m, look_at, spherical_eye
+from odsplat.spine.manifest import Viewpoint
 
 SETTINGS = PlanSettings()
 

@@ -20,10 +20,10 @@ from odsplat.acquisition.plan import PlanSettings, plan_views
 from odsplat.acquisition.qc import HitQC
 from odsplat.acquisition.session import TakeOutcome
 from odsplat.acquisition.trigger import TriggeredRecord
-from odsplat.errors import InputError
 from odsplat.hil_sim.rig import TakeTruth, truth_path
-from odsplat.store import Capture
-from odsplat.tags import detect_tags
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
+from odsplat.spine.tags import detect_tags
 
 REPO = Path(__file__).resolve().parents[2]
 SMALL = ["--frames", "16", "--pretrigger-frames", "4", "--record-s", "0.3", "--size", "400x300"]
@@ -33,7 +33,7 @@ EXPECTED_FLAG = {"double_hit": "double_hit", "overload": "accel_overload", "drop
 
 
 def _capture_cmd(out: Path, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "odsplat.cli", "capture", str(out), "--sim", "--auto", "--no-window", *SMALL, *extra]
+    return [sys.executable, "-m", "odsplat", "capture", str(out), "--sim", "--auto", "--no-window", *SMALL, *extra]
 
 
 def _env() -> dict[str, str]:
@@ -137,7 +137,7 @@ def test_resume_with_another_plan_is_refused_and_static_photos(tmp_path):
 
 
 def test_cli_refuses_inconsistent_modes(tmp_path):
-    run = subprocess.run([sys.executable, "-m", "odsplat.cli", "capture", str(tmp_path / "c"), "--auto"],
+    run = subprocess.run([sys.executable, "-m", "odsplat", "capture", str(tmp_path / "c"), "--auto"],
                          capture_output=True, text=True, cwd=REPO, timeout=60)
     assert run.returncode == 2 and "give exactly one of --sim or --config" in run.stderr
 

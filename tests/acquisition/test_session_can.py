@@ -14,8 +14,8 @@ from odsplat.analysis.analyze import AnalyzeSettings, analyze_capture
 from odsplat.hil_sim.bench import SimBench, SimBenchSettings
 from odsplat.hil_sim.rig import DEFAULT_CAN_NODES, RigConfig, SimRig, TakeTruth, truth_path
 from odsplat.hil_sim.structure import Impact
-from odsplat.impulse import fit_pulse
-from odsplat.store import Capture
+from odsplat.spine.impulse import fit_pulse
+from odsplat.spine.store import Capture
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -18,8 +18,8 @@ from odsplat.analysis.ema import (
     select_poles,
     stabilisation,
 )
-from odsplat.errors import InputError
 from odsplat.hil_sim.structure import ModalStructure
+from odsplat.spine.errors import InputError
 
 STRUCTURE = ModalStructure()
 FREQ_HZ = np.arange(2001) * 0.25  # 0-500 Hz

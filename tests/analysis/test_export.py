@@ -17,7 +17,7 @@ from odsplat.analysis.export import (
     write_results_h5,
     write_uff,
 )
-from odsplat.errors import InputError, OdsplatError
+from odsplat.spine.errors import InputError, OdsplatError
 
 DT_S = 1 / 51200          # not representable in the 6 digits of a UFF 58 header: exercises its rounding
 T0_S = -0.002

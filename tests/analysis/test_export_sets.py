@@ -23,7 +23,7 @@ from odsplat.analysis.export import (
     write_uff,
 )
 from odsplat.analysis.outputs import sensor_lines, surface_lines
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 FREQ_HZ = 0.5 * np.arange(401)
 MODES_HZ = ((12.5, 0.02), (31.0, 0.01), (77.0, 0.015))

@@ -17,8 +17,8 @@ from odsplat.analysis.frf import (
     force_window,
     split_hits,
 )
-from odsplat.errors import InputError
 from odsplat.hil_sim.structure import Impact, ModalStructure
+from odsplat.spine.errors import InputError
 
 FS = 5120.0
 PULSE_S = 2e-3      # 10 samples a pulse: a 5-sample pulse's rectangle-rule spectrum is ~1 % off the continuous one
@@ -279,7 +279,7 @@ def test_pyfrf_five_real_hits(shared_data):
 
 
 def test_ladisk_beam_one_hit(shared_data):
-    from odsplat.io.signals import read_signals
+    from odsplat.spine.io.signals import read_signals
 
     sig = read_signals(shared_data / "ladisk-imaging-tutorial" / "acceleration.lvm")
     acc = next(c for c in sig.channels if c.unit == "m/s^2").values

@@ -9,7 +9,7 @@ from odsplat.analysis.imagepoles import image_poles, pixel_channels, textured_pi
 from odsplat.analysis.ods import stable_poles
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.structure import ModalStructure
-from odsplat.store import Capture
+from odsplat.spine.store import Capture
 from odsplat.sync import SyncSettings, sync_capture
 
 F0 = np.array([23.5, 31.0, 86.0, 262.0])

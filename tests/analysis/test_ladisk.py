@@ -8,7 +8,7 @@ import pytest
 
 from odsplat.analysis.ema import fit_modes, lsfd
 from odsplat.analysis.frf import FRFSettings, estimate_frf
-from odsplat.io.signals import read_signals
+from odsplat.spine.io.signals import read_signals
 
 FOLDER = "ladisk-imaging-tutorial"
 KNOWN_HZ = np.array([695.8, 1898.0, 3671.2])  # sdypy-EMA LSCF, from the data's README

@@ -18,8 +18,8 @@ from odsplat.analysis.ods import (
     receptance,
     stable_poles,
 )
-from odsplat.errors import InputError
 from odsplat.hil_sim.structure import Impact, ModalStructure
+from odsplat.spine.errors import InputError
 
 IMPACT_POINT = (0.46, 0.03, 0.6)
 IMPACT_DIR = (0.0, 0.0, -1.0)

@@ -18,11 +18,11 @@ from odsplat.analysis.ods import receptance
 from odsplat.analysis.plots import ODS_SCALE, plot_frf, plot_mac, plot_ods, write_plots
 from odsplat.analysis.report import write_report
 from odsplat.analysis.result import AnalysisResult, Sensor, VideoModes
-from odsplat.contract import describe
-from odsplat.errors import InputError
 from odsplat.hil_sim.structure import ModalStructure
-from odsplat.manifest import Manifest
-from odsplat.store import Capture
+from odsplat.spine.contract import describe
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import Manifest
+from odsplat.spine.store import Capture
 
 STRUCTURE = ModalStructure()
 FREQ_HZ = np.arange(1001) * 0.5  # 0-500 Hz

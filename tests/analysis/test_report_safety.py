@@ -14,10 +14,10 @@ import pytest
 from PIL import Image
 
 from odsplat.analysis.report import render_video, write_report
-from odsplat.contract import describe
-from odsplat.errors import InputError
-from odsplat.manifest import Manifest
-from odsplat.store import Capture
+from odsplat.spine.contract import describe
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import Manifest
+from odsplat.spine.store import Capture
 
 PAYLOADS = ("<script>alert(1)</script>", '"><img src=x onerror=alert(1)>')
 # The fields the contract and read_analysis check before anything is shown: poisoned, the report is refused.

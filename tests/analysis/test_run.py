@@ -19,14 +19,14 @@ from odsplat.analysis.export import read_results_h5
 from odsplat.analysis.noise import FLOOR_SIGMAS, MAX_LOST
 from odsplat.analysis.ods import decay_design
 from odsplat.analysis.outputs import FORCE_NODE, NO_NODE, records
-from odsplat.cli import main
-from odsplat.errors import InputError
+from odsplat.app.cli import main
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.rig import TakeTruth, truth_path
 from odsplat.hil_sim.structure import ModalStructure
 from odsplat.reconstruction import PoseResult
 from odsplat.reconstruction.poses import ViewPose
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
 from odsplat.sync import SyncSettings, load_sync, sync_capture
 
 ALPHA = 25.0

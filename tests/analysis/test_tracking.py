@@ -9,11 +9,11 @@ import pytest
 from scipy.ndimage import binary_erosion
 
 from odsplat.analysis.tracking import DEFAULT_METHOD, METHODS, Tracks, good_points, project_displacement, track_points
-from odsplat.errors import InputError
-from odsplat.geometry import look_at
 from odsplat.hil_sim.render import PinholeCamera, expose, render
 from odsplat.hil_sim.scene import build_scene
-from odsplat.io.video import open_video
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import look_at
+from odsplat.spine.io.video import open_video
 
 AMPLITUDES_PX = (0.02, 0.2, 2.0)  # peak image displacement of the fastest tracked point
 N_FRAMES = 24

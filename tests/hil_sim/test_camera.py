@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 
 from odsplat.acquisition.camera import CameraDriver, CameraTimeout, TriggerSettings
-from odsplat.errors import InputError, OdsplatError
 from odsplat.hil_sim.camera import SimCamera, SimCameraConfig
 from odsplat.hil_sim.render import PinholeCamera
 from odsplat.hil_sim.scene import STRUCTURE, build_scene
 from odsplat.hil_sim.structure import Impact
+from odsplat.spine.errors import InputError, OdsplatError
 
 TIP = (0.45, 0.0, 0.60)
 

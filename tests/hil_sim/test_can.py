@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from odsplat.acquisition import canproto as cp
-from odsplat.errors import InputError
 from odsplat.hil_sim.can_nodes import CANFaults, SimAccelNode, SineSource, sim_nodes
+from odsplat.spine.errors import InputError
 
 pytestmark = pytest.mark.timeout(30)
 

@@ -11,8 +11,8 @@ import pytest
 import serial
 
 from odsplat.acquisition import daqproto as dp
-from odsplat.errors import InputError
 from odsplat.hil_sim.daq import CLOCK_HZ, DAQFaults, SimDAQDevice, SineSource, register_source, register_url_handler
+from odsplat.spine.errors import InputError
 from tests.hil_sim.daqhost import DAQHost as _Host
 from tests.hil_sim.daqhost import channels as _channels
 from tests.hil_sim.daqhost import open_port as _open

@@ -15,7 +15,7 @@ import pytest
 from odsplat.acquisition import canproto as cp
 from odsplat.acquisition import daqproto as dp
 from odsplat.acquisition import hammerproto as hp
-from odsplat.errors import InputError
+from odsplat.spine.errors import InputError
 
 pytestmark = pytest.mark.timeout(30)
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from odsplat.errors import InputError
 from odsplat.hil_sim.render import PinholeCamera, TexturedMesh, expose, lambert_shade, render, render_reference, to_mono
+from odsplat.spine.errors import InputError
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -11,14 +11,14 @@ from scipy.signal import find_peaks
 
 from odsplat.acquisition import canproto as cp
 from odsplat.acquisition import daqproto as dp
-from odsplat.errors import InputError
 from odsplat.hil_sim.camera import SimCameraConfig
 from odsplat.hil_sim.can_nodes import CANFaults, sim_nodes
 from odsplat.hil_sim.daq import register_url_handler
 from odsplat.hil_sim.render import PinholeCamera
 from odsplat.hil_sim.rig import RigConfig, SimRig, TakeTruth, truth_path
-from odsplat.manifest import Manifest
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import Manifest
+from odsplat.spine.store import Capture
 from tests.hil_sim.daqhost import DAQHost, channels, open_port
 
 pytestmark = pytest.mark.timeout(60)

@@ -10,15 +10,15 @@ from scipy import ndimage
 from odsplat.acquisition import QCLimits
 from odsplat.analysis import AnalyzeSettings
 from odsplat.analysis import run as run_analysis
-from odsplat.errors import InputError
-from odsplat.geometry import spherical_eye
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.camera import SimCameraConfig
 from odsplat.hil_sim.render import PinholeCamera, render
 from odsplat.hil_sim.rig import TakeTruth, make_rig, truth_path
 from odsplat.hil_sim.scene import FLOOR_TAG, SceneSettings
 from odsplat.hil_sim.structure import DEFAULT_MODES, PlateStructure
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import spherical_eye
+from odsplat.spine.store import Capture
 from odsplat.sync import SyncSettings, sync_capture
 
 FPS = 2000.0
@@ -161,7 +161,7 @@ def test_small_12_bit_capture_with_small_tags_syncs_every_take(small_capture):
     res = sync_capture(cap, SyncSettings(camera_trigger_delay_s=TRIGGER_DELAY_S, write_frames=False), progress=False)
     assert len(res.ok) == len(res.takes) == 4, res.summary()
     # A take that shows no tag of the layout is synced and flagged, not excluded (which one shows none depends on
-    # the detector: with the refiner fallback of odsplat.tags every view here may see one)
+    # the detector: with the refiner fallback of odsplat.spine.tags every view here may see one)
     assert all("no_tags_visible" in t.flags for t in res.ok if not t.tags_seen)
     assert all("no_tags_visible" not in t.flags for t in res.ok if t.tags_seen)
     for t in res.ok:

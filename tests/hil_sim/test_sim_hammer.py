@@ -16,7 +16,6 @@ import pytest
 import serial
 
 from odsplat.acquisition import hammerproto as hp
-from odsplat.errors import InputError
 from odsplat.hil_sim.hammer import (
     HammerFaults,
     SimAutoHammer,
@@ -27,6 +26,7 @@ from odsplat.hil_sim.hammer import (
 )
 from odsplat.hil_sim.rig import SimRig
 from odsplat.hil_sim.structure import Impact
+from odsplat.spine.errors import InputError
 
 pytestmark = pytest.mark.timeout(30)
 

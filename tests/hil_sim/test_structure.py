@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from odsplat.errors import InputError
 from odsplat.hil_sim.structure import Hammer, Impact, ModalStructure, _half_sine_response
+from odsplat.spine.errors import InputError
 
 TIP = (0.45, 0.0, 0.60)
 SENSOR = (0.30, -0.03, 0.57)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from cine_reader import Cine
 
-from odsplat.errors import InputError
-from odsplat.io.video import open_video
+from odsplat.spine.errors import InputError
+from odsplat.spine.io.video import open_video
 
 SAMPLE = "pyidi-samples/data_small_cine.cine"
 FRAMES = (0, 1, 117, 233, 234)

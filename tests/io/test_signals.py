@@ -1,4 +1,5 @@
-"""Tests of odsplat.io.signals: real LVM and UFF recordings, and CSV/LVM/UFF files written here with known values."""
+"""Tests of odsplat.spine.io.signals: real LVM and UFF recordings, and CSV/LVM/UFF files written here with
+known values."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -7,9 +8,9 @@ import numpy as np
 import pytest
 import pyuff
 
-from odsplat.errors import InputError
-from odsplat.io.signals import read_signals
-from odsplat.units import STANDARD_GRAVITY_M_S2 as G
+from odsplat.spine.errors import InputError
+from odsplat.spine.io.signals import read_signals
+from odsplat.spine.units import STANDARD_GRAVITY_M_S2 as G
 
 # --- real recordings ---------------------------------------------------------------------------------------
 
@@ -331,7 +332,7 @@ def test_csv_time_column_by_its_common_names(tmp_path: Path, heading: str, scale
 
 def test_seven_digit_time_stamps_give_one_rate_to_a_part_in_a_million(tmp_path: Path):
     """20480 Hz printed to 7 significant digits: two takes read 20479.99808 and 20479.9994 Hz; the importer
-    takes them as one clock (odsplat.importer.RATE_TOLERANCE)."""
+    takes them as one clock (odsplat.spine.importer.RATE_TOLERANCE)."""
     rates = []
     for n in (20480, 20000):
         path = tmp_path / f"take{n}.csv"

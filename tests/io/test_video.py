@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from odsplat.errors import InputError
-from odsplat.io.video import open_video
+from odsplat.spine.errors import InputError
+from odsplat.spine.io.video import open_video
 
 pyMRAW = pytest.importorskip("pyMRAW")
 

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 import torch
 
-from odsplat.errors import InputError
 from odsplat.processing.base import rgb_to_yiq
 from odsplat.processing.eulerian import LinearMagnifier, collapse, laplacian_pyramid, level_gains, max_levels
 from odsplat.processing.filters import make_filter
+from odsplat.spine.errors import InputError
 
 from .motion import (
     BAND_HZ,

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import torch
 
-from odsplat.errors import InputError
 from odsplat.processing.filters import KINDS, make_filter
+from odsplat.spine.errors import InputError
 
 FPS = 2000.0
 BAND = (100.0, 300.0)

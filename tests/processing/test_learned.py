@@ -7,13 +7,13 @@ import math
 import pytest
 import torch
 
-from odsplat.errors import InputError
 from odsplat.processing.filters import make_filter
 from odsplat.processing.learned.magnifier import DEFAULT_WEIGHTS, LearnedMagnifier
 from odsplat.processing.learned.network import MagNet, from_net, load_magnet, to_net
 from odsplat.processing.learned.synth import SynthConfig, make_batch, make_sample
 from odsplat.processing.learned.train import TrainConfig, losses, train
 from odsplat.processing.metrics import estimate_translation, psnr, ssim
+from odsplat.spine.errors import InputError
 
 # One textured plane moving rigidly, no noise: the displacement is known exactly.
 PLANE = SynthConfig(size=64, objects=(0, 0), p_background_moves=1.0, p_noise=0.0, p_gray=0.0,
@@ -253,11 +253,11 @@ def test_cli_train_mm_runs_a_few_steps(tmp_path):
     import sys
 
     out = tmp_path / "w.pt"
-    run = subprocess.run([sys.executable, "-m", "odsplat.cli", "train-mm", "-o", str(out), "--steps", "3",
+    run = subprocess.run([sys.executable, "-m", "odsplat", "train-mm", "-o", str(out), "--steps", "3",
                           "--batch-size", "2", "--crop", "32", "--channels", "8"], capture_output=True, text=True,
                          timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "3 steps in" in run.stdout and out.stat().st_size > 10_000
-    bad = subprocess.run([sys.executable, "-m", "odsplat.cli", "train-mm", "-o", str(out), "--crop", "30"],
+    bad = subprocess.run([sys.executable, "-m", "odsplat", "train-mm", "-o", str(out), "--crop", "30"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "crop" in bad.stderr

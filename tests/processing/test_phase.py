@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from odsplat.errors import InputError
 from odsplat.processing.base import rgb_to_yiq
 from odsplat.processing.filters import make_filter
 from odsplat.processing.phase import PhaseMagnifier, measure_shift_px, shift_image_px, spline_sample
+from odsplat.spine.errors import InputError
 
 from .motion import (
     BAND_HZ,

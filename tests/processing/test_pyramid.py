@@ -6,8 +6,8 @@ import math
 import pytest
 import torch
 
-from odsplat.errors import InputError
 from odsplat.processing.pyramid import ComplexSteerablePyramid, max_scales
+from odsplat.spine.errors import InputError
 
 
 def _grating(h: int, w: int, cycles_x: float, cycles_y: float) -> torch.Tensor:

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from odsplat.errors import InputError
 from odsplat.processing.magnify import MagnifiedVideo, MagnifySettings, magnify_capture, parse_options
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
 from odsplat.sync import AlignedTake, SyncSettings, load_sync, sync_capture
 from odsplat.sync.image import DisplacementBasis
 
@@ -94,11 +94,11 @@ def test_method_options_from_the_command_line():
 
 
 def test_cli_magnify(synced):
-    run = subprocess.run([sys.executable, "-m", "odsplat.cli", "magnify", str(synced.root), "--method", "linear",
+    run = subprocess.run([sys.executable, "-m", "odsplat", "magnify", str(synced.root), "--method", "linear",
                           "--alpha", "5", "--band", "15", "400", "--take", "v03_000", "--workers", "1"],
                          capture_output=True, text=True, cwd=REPO, timeout=180)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "1 view(s) magnified by 5 with linear, band 15-400 Hz (butter)" in run.stdout
-    bad = subprocess.run([sys.executable, "-m", "odsplat.cli", "magnify", str(synced.root), "--alpha", "-1"],
+    bad = subprocess.run([sys.executable, "-m", "odsplat", "magnify", str(synced.root), "--alpha", "-1"],
                          capture_output=True, text=True, cwd=REPO, timeout=60)
     assert bad.returncode == 2 and "MagnifySettings.alpha" in bad.stderr

@@ -12,11 +12,11 @@ import cv2
 import numpy as np
 import pytest
 
-from odsplat.importer import import_capture
-from odsplat.mp4 import count_frames, display_range, read_comment, to_8bit
-from odsplat.pipeline import Stamp, run_stage
+from odsplat.app.pipeline import Stamp, run_stage
 from odsplat.processing import MagnifiedVideo, MagnifyResult, MagnifySettings, export_video, magnify_capture
-from odsplat.store import Capture
+from odsplat.spine.importer import import_capture
+from odsplat.spine.mp4 import count_frames, display_range, read_comment, to_8bit
+from odsplat.spine.store import Capture
 from odsplat.sync import SyncSettings, sync_capture
 
 from ..conftest import TRIGGER_DELAY_S
@@ -107,7 +107,7 @@ def test_export_video_from_each_source(synced, source, tmp_path):
         magnify_capture(synced, MagnifySettings(method="linear", alpha=4.0, takes=(TAKE,), workers=1, video=False),
                         progress=False)
     out = tmp_path / "x.mp4"
-    run = subprocess.run([sys.executable, "-m", "odsplat.cli", "export-video", str(synced.root), "--take", TAKE,
+    run = subprocess.run([sys.executable, "-m", "odsplat", "export-video", str(synced.root), "--take", TAKE,
                           "--source", source, "-o", str(out), "--fps", "25"],
                          capture_output=True, text=True, cwd=REPO, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
@@ -134,7 +134,7 @@ def test_export_video_bad_input_is_one_line(synced, tmp_path, args, message):
     existing.write_bytes(b"keep")
     args = [str(existing) if a == "EXISTING" else a for a in args]
     before = sorted(p for p in synced.paths.root.rglob("*"))
-    run = subprocess.run([sys.executable, "-m", "odsplat.cli", "export-video", str(synced.root), *args],
+    run = subprocess.run([sys.executable, "-m", "odsplat", "export-video", str(synced.root), *args],
                          capture_output=True, text=True, cwd=REPO, timeout=60)
     assert run.returncode == 2 and message in run.stderr, run.stderr
     assert len(run.stderr.strip().splitlines()) == 1

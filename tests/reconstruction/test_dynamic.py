@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 import torch
 
-from odsplat.errors import InputError
-from odsplat.geometry import spherical_eye
 from odsplat.hil_sim.render import PinholeCamera, render
 from odsplat.hil_sim.scene import build_scene
 from odsplat.reconstruction.dynamic import FitSettings, fit_dynamic, fit_static
 from odsplat.reconstruction.dynamic import render as render_gaussians
 from odsplat.reconstruction.gaussians import Gaussians
 from odsplat.reconstruction.views import Camera, SceneFrame, TrainView
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import spherical_eye
 
 TARGET = np.array([0.1, 0.0, 0.35])
 TIP_MOTION_M = 0.03  # the most moving vertex at the last timestep: about 1.5 px at the training size (64 px)

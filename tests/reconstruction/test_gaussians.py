@@ -5,11 +5,11 @@ import numpy as np
 import pytest
 import torch
 
-from odsplat.errors import InputError, SchemaError
 from odsplat.processing.metrics import ssim as metric_ssim
 from odsplat.reconstruction.gaussians import SH_C0, Gaussians, load_ply, save_ply
 from odsplat.reconstruction.losses import Neighbours, image_loss, ssim
 from odsplat.reconstruction.quaternion import quat_multiply, quat_to_matrix
+from odsplat.spine.errors import InputError, SchemaError
 
 
 def _cloud(n=200, seed=0):
@@ -189,7 +189,7 @@ def test_ssim_and_image_loss():
     assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-9)
     b = (a + 0.1 * torch.as_tensor(rng.standard_normal(a.shape))).clamp(0, 1)
     # Away from the zero-padded border the loss's SSIM is the metric's (valid region, no padding).
-    from odsplat.similarity import ssim_map
+    from odsplat.spine.similarity import ssim_map
     inner = ssim_map(a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None], pad=True)[..., 5:-5, 5:-5].mean()
     assert float(inner) == pytest.approx(metric_ssim(a[..., 0], b[..., 0]), abs=1e-12)
     assert 0.85 < float(ssim(a, b)) < 0.97

@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 import torch
 
-from odsplat.errors import InputError
-from odsplat.geometry import look_at
-from odsplat.manifest import Manifest
 from odsplat.reconstruction.dynamic import render
 from odsplat.reconstruction.gaussians import Gaussians
 from odsplat.reconstruction.linear import LinearSettings, NodeGraph, fit_linear
 from odsplat.reconstruction.model import ReconstructSettings
 from odsplat.reconstruction.poses import PoseResult, ViewPose
 from odsplat.reconstruction.views import Camera, load_views
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import look_at
+from odsplat.spine.manifest import Manifest
+from odsplat.spine.store import Capture
 from odsplat.sync import SyncResult
 from odsplat.sync.aligned import write_aligned
 

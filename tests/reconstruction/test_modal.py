@@ -8,8 +8,6 @@ import numpy as np
 import pytest
 import torch
 
-from odsplat.errors import InputError
-from odsplat.geometry import spherical_eye
 from odsplat.hil_sim.render import PinholeCamera, render
 from odsplat.hil_sim.scene import build_scene
 from odsplat.reconstruction.dynamic import FitSettings, fit_static
@@ -18,6 +16,8 @@ from odsplat.reconstruction.modal import ModalMotion, ModalSettings, fit_modal
 from odsplat.reconstruction.model import DynamicScene
 from odsplat.reconstruction.quaternion import quat_conjugate, quat_from_rotvec, quat_multiply, quat_to_rotvec
 from odsplat.reconstruction.views import Camera, ViewSet
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import spherical_eye
 
 from .test_dynamic import TARGET, _train_views, surface_points
 

@@ -15,14 +15,14 @@ from click.testing import CliRunner
 from odsplat.acquisition.plan import PlanSettings
 from odsplat.acquisition.session import CaptureSession, SessionSettings
 from odsplat.acquisition.trigger import HammerTrigger
-from odsplat.cli import main
-from odsplat.errors import InputError
-from odsplat.geometry import camera_center_m
+from odsplat.app.cli import main
 from odsplat.hil_sim.bench import SimBench, SimBenchSettings
 from odsplat.hil_sim.rig import TakeTruth, truth_path
 from odsplat.hil_sim.structure import ModalStructure
 from odsplat.reconstruction.poses import PoseResult, PoseSettings, compare_poses, estimate_poses, fit_sim3
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.geometry import camera_center_m
+from odsplat.spine.store import Capture
 
 N_VIEWS = 12  # golden-angle spiral over 15-60 deg elevation: nearest neighbours about 30 deg apart
 FLOOR_HALF_M = 0.75  # hil_sim.scene.build_scene's floor

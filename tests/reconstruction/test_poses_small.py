@@ -14,15 +14,15 @@ from click.testing import CliRunner
 from odsplat.acquisition.plan import PlanSettings
 from odsplat.acquisition.session import CaptureSession, SessionSettings
 from odsplat.acquisition.trigger import HammerTrigger
-from odsplat.cli import main
-from odsplat.config import load_config
-from odsplat.geometry import camera_center_m
+from odsplat.app.cli import main
+from odsplat.app.config import load_config
+from odsplat.app.pipeline import run_stage
 from odsplat.hil_sim.bench import SimBench, SimBenchSettings
 from odsplat.hil_sim.rig import TakeTruth, truth_path
-from odsplat.pipeline import run_stage
 from odsplat.reconstruction.poses import PoseResult, PoseSettings, compare_poses, estimate_poses
-from odsplat.store import Capture
-from odsplat.tags import detect_tags
+from odsplat.spine.geometry import camera_center_m
+from odsplat.spine.store import Capture
+from odsplat.spine.tags import detect_tags
 
 N_VIEWS = 12
 WIDTH, HEIGHT = 256, 192  # fov 50 deg, 1.6 m from the target: the 0.12 m floor tags are 12 to 25 px across

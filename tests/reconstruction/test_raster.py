@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from odsplat.errors import InputError
 from odsplat.reconstruction.raster import RasterOutput, rasterize, rasterize_image, rasterize_reference
+from odsplat.spine.errors import InputError
 
 OUTPUTS = ("image", "alpha", "depth", "extras")
 TILED = ("torch", "numba")  # the back ends that bin into tiles; "reference" is what they are checked against

@@ -7,9 +7,9 @@ import sys
 import pytest
 import torch
 
-from odsplat.errors import InputError
 from odsplat.reconstruction import raster
 from odsplat.reconstruction.raster import gsplat_available, rasterize
+from odsplat.spine.errors import InputError
 
 from .test_raster import random_scene
 

@@ -14,13 +14,13 @@ from click.testing import CliRunner
 from odsplat.acquisition.plan import PlanSettings
 from odsplat.acquisition.session import CaptureSession, SessionSettings
 from odsplat.acquisition.trigger import HammerTrigger
-from odsplat.cli import main
-from odsplat.errors import InputError
+from odsplat.app.cli import main
 from odsplat.hil_sim.bench import SimBench, SimBenchSettings
 from odsplat.reconstruction.gaussians import load_ply
 from odsplat.reconstruction.model import DynamicScene, ReconstructSettings, parse_times
 from odsplat.reconstruction.views import select_frames
-from odsplat.store import Capture
+from odsplat.spine.errors import InputError
+from odsplat.spine.store import Capture
 
 
 def _ok(args):

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from odsplat.errors import InputError
 from odsplat.hil_sim.camera import SimCamera, SimCameraConfig
 from odsplat.hil_sim.render import PinholeCamera
+from odsplat.spine.errors import InputError
 from odsplat.sync.strobe import fit_strobe, strobe_edges
 
 FS = 25_600.0

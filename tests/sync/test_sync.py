@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from odsplat.hil_sim.rig import TakeTruth, truth_path
-from odsplat.store import Capture
+from odsplat.spine.store import Capture
 from odsplat.sync import AlignedTake, SyncResult, SyncSettings, load_sync, sync_capture
 from odsplat.sync.image import DisplacementBasis, fit_frame_times, motion_gram, noise_sd
 
@@ -151,7 +151,7 @@ def test_no_hit_is_excluded_not_guessed_and_no_tags_is_a_flag(sim_capture, tmp_p
     for tag in m.tags.tags:
         tag.id += 1000
     cap.save_manifest()
-    run = subprocess.run([sys.executable, "-m", "odsplat.cli", "sync", str(cap.root), "--no-frames", "--all-takes"],
+    run = subprocess.run([sys.executable, "-m", "odsplat", "sync", str(cap.root), "--no-frames", "--all-takes"],
                          capture_output=True, text=True, cwd=REPO, timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
     after = load_sync(cap)
@@ -163,14 +163,14 @@ def test_no_hit_is_excluded_not_guessed_and_no_tags_is_a_flag(sim_capture, tmp_p
 
 def test_cli_sync_writes_json_and_plot(sim_capture, tmp_path):
     cap = _copy(sim_capture, tmp_path / "cap")
-    run = subprocess.run([sys.executable, "-m", "odsplat.cli", "sync", str(cap.root), "--no-frames",
+    run = subprocess.run([sys.executable, "-m", "odsplat", "sync", str(cap.root), "--no-frames",
                           "--trigger-delay-s", str(TRIGGER_DELAY_S)], capture_output=True, text=True, cwd=REPO,
                          timeout=120)
     assert run.returncode == 0, run.stderr[-2000:]
     assert "4/4 takes synced" in run.stdout
     assert (cap.derived_dir / "sync.png").stat().st_size > 10_000
     assert not (cap.derived_dir / "sync").exists()
-    bad = subprocess.run([sys.executable, "-m", "odsplat.cli", "sync", str(cap.root), "--method", "strobe"],
+    bad = subprocess.run([sys.executable, "-m", "odsplat", "sync", str(cap.root), "--method", "strobe"],
                          capture_output=True, text=True, cwd=REPO, timeout=60)
     assert bad.returncode == 2 and "strobe" in bad.stderr
 

@@ -13,7 +13,7 @@ from odsplat.analysis import AnalyzeSettings, analyze_capture
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.structure import ModalStructure
 from odsplat.reconstruction import DynamicScene, Gaussians, SceneFrame
-from odsplat.store import Capture
+from odsplat.spine.store import Capture
 from odsplat.sync import SyncSettings, load_sync, sync_capture
 
 from ..analysis.test_run import _surface_points as surface_points

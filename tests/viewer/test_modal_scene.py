@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from odsplat.app.viewer.model import _scene
 from odsplat.reconstruction import DynamicScene, Gaussians, SceneFrame
 from odsplat.reconstruction.model import modal_quats
-from odsplat.viewer.model import _scene
 
 
 def test_a_modal_models_motion_and_turns_reach_the_viewer(captures, tmp_path):

@@ -11,11 +11,11 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image, ImageSequence
 
-from odsplat.cli import main
+from odsplat.app.cli import main
+from odsplat.app.viewer import default_state, load_viewer, render_view
+from odsplat.app.viewer.app import ViewerWindow, alpha_to_slider
 from odsplat.hil_sim.structure import ModalStructure
-from odsplat.mp4 import count_frames
-from odsplat.viewer import default_state, load_viewer, render_view
-from odsplat.viewer.app import ViewerWindow, alpha_to_slider
+from odsplat.spine.mp4 import count_frames
 
 pytestmark = pytest.mark.filterwarnings("ignore::DeprecationWarning")
 
@@ -53,7 +53,7 @@ def _shift_px(a: np.ndarray, b: np.ndarray, box) -> float:
 
 def _tip_box(data, state, half_px: int = 40):
     """A box in the view's pixels around the arm's free end (the structure's Gaussian that moves most)."""
-    from odsplat.viewer.model import _project, camera_for
+    from odsplat.app.viewer.model import _project, camera_for
 
     sc = data.scene
     i = int(np.argmax(np.linalg.norm(sc.displacement_m, axis=2).max(axis=0)))
@@ -178,7 +178,7 @@ def test_an_exported_mp4_has_the_requested_frames(data, window, tmp_path):
 
 
 def test_snap_to_a_capture_camera_looks_through_it(data, window):
-    from odsplat.viewer.model import camera_for
+    from odsplat.app.viewer.model import camera_for
 
     window.camera_combo.setCurrentIndex(2)
     window.camera_combo.activated.emit(2)
@@ -280,7 +280,7 @@ def test_playback_runs_at_the_speed_asked_and_loops(data, window):
 
 
 def test_the_dragged_box_and_the_colour_scale(data, window):
-    from odsplat.viewer.model import colour_scale, visible
+    from odsplat.app.viewer.model import colour_scale, visible
 
     window.set_state(mode=None, structure_only=False, box_m=None)
     sc = data.scene

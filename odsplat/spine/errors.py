@@ -1,0 +1,119 @@
+"""Exceptions that carry the file, field or device at fault, so a user sees one clear line."""
+from __future__ import annotations
+
+import errno
+import os
+import re
+import shutil
+from os import PathLike
+
+
+class OdsplatError(Exception):
+    """Base class of every error odsplat raises on purpose."""
+
+
+class InputError(OdsplatError, ValueError):
+    """Bad input: names the source (file, field or device) and what was expected."""
+
+    def __init__(self, source: str | PathLike, problem: str):
+        self.source = str(source)
+        self.problem = problem
+        super().__init__(f"{self.source}: {problem}")
+
+    def __reduce__(self):  # raised in a worker process, it must cross back with both fields
+        return type(self), (self.source, self.problem)
+
+
+class SchemaError(InputError):
+    """A file written by a newer, unknown or foreign schema."""
+
+
+class StorageError(InputError):
+    """The machine refused to store: a full disk, a read-only or forbidden folder (not the input's fault)."""
+
+
+class IncompleteTakeError(InputError):
+    """A take that was never finalised (its writer died); it must be recovered explicitly."""
+
+
+def one_line(exc: BaseException) -> str:
+    """An error in one line: odsplat's own as they are (they name their culprit), others with their type."""
+    text = " ".join(str(exc).split())
+    return text if isinstance(exc, OdsplatError) else f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+# What the machine refuses rather than the input: a full disk, a read-only or forbidden folder.
+_STORAGE = {errno.ENOSPC: "no space left", errno.EDQUOT: "disk quota exceeded", errno.EFBIG: "file too large for "
+            "this file system or limit", errno.EROFS: "read-only file system", errno.EACCES: "permission denied",
+            errno.EPERM: "operation not permitted"}
+_H5_ERRNO = re.compile(r"errno = (\d+)")
+_H5_NAME = re.compile(r"(?:file)?name = '([^']*)'")
+_NEEDS = {errno.ENOSPC: "free some space or write elsewhere (a stage: --derived DIR)",
+          errno.EDQUOT: "free some space or write elsewhere (a stage: --derived DIR)",
+          errno.EFBIG: "write elsewhere (a stage: --derived DIR)",
+          errno.EROFS: "odsplat writes its results under derived/: copy the capture to a writable disk, or give "
+                       "--derived DIR",
+          errno.EACCES: "odsplat needs to write there: fix the permissions, or give --derived DIR",
+          errno.EPERM: "odsplat needs to write there: fix the permissions, or give --derived DIR"}
+
+
+def free_bytes(path: str | PathLike) -> int | None:
+    """The bytes free on the file system `path` is on (or would be: its nearest folder that exists), None where
+    that cannot be read."""
+    folder = os.path.abspath(path)
+    while not os.path.isdir(folder) and os.path.dirname(folder) != folder:
+        folder = os.path.dirname(folder)
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return None
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB"):
+        if abs(n) < 1000 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
+        n /= 1000
+    return f"{n} B"
+
+
+def storage_error(exc: BaseException) -> StorageError | None:
+    """The storage problem behind `exc` (itself, or what it was raised from or during) as one line naming the file:
+    a full disk, a read-only or forbidden folder, an HDF5 write that failed on one of them. None for anything else."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        code, name = (exc.errno, exc.filename) if isinstance(exc, OSError) else (None, None)
+        if isinstance(exc, (OSError, RuntimeError)):
+            if code is None:   # h5py puts the C library's errno and the file's name in its message
+                text = str(exc)
+                found = _H5_ERRNO.search(text)
+                code = int(found[1]) if found else None
+                named = _H5_NAME.search(text)
+                name = named[1] if named else None
+                if code is None and "No space left" in text:
+                    code = errno.ENOSPC
+            if code in _STORAGE:
+                where = str(name) if name else "a file odsplat was writing"
+                free = free_bytes(name) if name and code in (errno.ENOSPC, errno.EDQUOT) else None
+                free = f", {human_bytes(free)} free" if free is not None else ""
+                return StorageError(where, f"{_STORAGE[code]}{free}: {_NEEDS[code]}")
+        if isinstance(exc, StorageError):
+            return exc
+        if isinstance(exc, OdsplatError):   # already one line naming its culprit
+            return None
+        exc = exc.__cause__ or (None if exc.__suppress_context__ else exc.__context__)
+    return None
+
+
+def exit_if_hdf5_unclosed() -> None:
+    """Before exiting on a storage error: a file whose close failed even with the space reserve given back
+    (`odsplat.spine.space`) makes the HDF5 library crash at the interpreter's exit, when it closes what is still open.
+    The process then ends at once (its error line written, its streams flushed), skipping that exit."""
+    import sys
+
+    space = sys.modules.get("odsplat.spine.space")
+    if space is not None and space._leaked:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(2)
