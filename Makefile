@@ -22,6 +22,13 @@ install: $(STAMP)
 test: $(STAMP) lint
 	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest
 
+# `make test`'s pytest on a busy machine: tools/busy.py starts one busy loop per core, runs the suite beside them and
+# stops them after (on Ctrl-C too), to check that no test depends on how fast the machine is (about 30 min on two
+# cores). Speed is bench/'s to measure.
+.PHONY: test-busy
+test-busy: $(STAMP)
+	$(BIN)/python tools/busy.py
+
 # The house rules as checks: ruff ([tool.ruff] in pyproject.toml) and the import contracts ([tool.importlinter]: the
 # stages import only the spine and each other's package __init__, the spine no stage). lint-imports runs on a copy
 # laid out as installed (tools/lint_imports.py), since grimp cannot follow the editable install's package-dir mapping.

@@ -12,8 +12,8 @@ channels = [
 ]
 
 [camera]
-driver = "opencv"               # "opencv" (source = device index or video file) or "photron" (ip = "...")
-source = 0
+driver = "opencv"               # a back end of backends.BACKENDS: "opencv" (source = device index or video file),
+source = 0                      # "photron" (ip = "...", library) or "sim" (the simulated rig, below)
 intrinsics = { fx_px = 1000.0, fy_px = 1000.0, cx_px = 639.5, cy_px = 399.5 }   # optional: enables the pose check
 
 [hammer]                        # optional: an automatic hammer (docs/hammer-protocol.md), fired on every take
@@ -48,6 +48,11 @@ family = "tag36h11"
 size_m = 0.12
 tags = [ { id = 0, corners_m = [[...], [...], [...], [...]] } ]
 ```
+
+With `driver = "sim"` the file runs the simulated rig (hil_sim), which brings its own DAQ, tags, hammer and CAN
+nodes: [daq], [tags] and [can] are left out, [hammer] gives only the hammer's settings (force_n, tolerance,
+fire_timeout_s), and an optional `[camera.sim]` table sets the rig (`backends.SimRigSettings`: size_px, fps,
+bit_depth, seed, structure, texture, floor_tag_m, faults, hammer_link).
 """
 from __future__ import annotations
 
@@ -64,6 +69,7 @@ from odsplat.spine.manifest import Intrinsics, TagLayout, from_plain, load_toml
 from odsplat.spine.units import STANDARD_GRAVITY_M_S2
 
 from . import canproto as cp
+from .backends import SimRigSettings, check_backend, open_camera
 from .camera import CameraDriver
 from .can_nodes import CANAccelerometers, CANNode, CANSetup
 from .daq import DAQChannel
@@ -86,6 +92,7 @@ class _Camera:
     fps: float | None = None
     library: str | None = None
     intrinsics: Intrinsics | None = None
+    sim: SimRigSettings | None = None           # driver = "sim": the simulated rig's settings
 
 
 @dataclass(frozen=True)
@@ -123,7 +130,7 @@ _AXIS = re.compile(r"^([+-]?)([XYZ])$", re.IGNORECASE)
 
 @dataclass(frozen=True)
 class LabConfig:
-    daq_url: str
+    daq_url: str | None                         # None with the simulated rig (driver = "sim"): it brings its DAQ
     sample_rate_hz: float
     channels: tuple[DAQChannel, ...]
     camera: _Camera
@@ -131,6 +138,11 @@ class LabConfig:
     hammer: _Hammer | None = None
     can: CANSetup | None = None                 # the [can] nodes, as the session records them
     can_bus: dict[str, Any] | None = None       # can.Bus keywords from [can] (interface, channel, bitrate, options)
+
+    @property
+    def simulated(self) -> bool:
+        """The simulated rig (driver = "sim"): camera, DAQ, hammer and CAN nodes all hil_sim's."""
+        return self.camera.driver == "sim"
 
     def hammer_settings(self) -> AutoHammerSettings | None:
         h = self.hammer
@@ -159,19 +171,10 @@ class LabConfig:
                                       range_m_s2=self.can.range_m_s2)
 
     def open_camera(self) -> CameraDriver:
+        """The camera of [camera], by its back end (backends.BACKENDS), opened with the section's keys."""
         c = self.camera
-        if c.driver == "opencv":
-            from .opencv_camera import OpenCVCamera
-
-            cam = OpenCVCamera(c.source if c.source is not None else 0, fps=c.fps)
-        elif c.driver == "photron":
-            from .photron import PhotronCamera
-
-            if not c.ip:
-                raise InputError("camera.ip", "the photron driver needs the camera's IP address")
-            cam = PhotronCamera(c.ip, library=c.library)
-        else:
-            raise InputError("camera.driver", f"expected 'opencv' or 'photron', got {c.driver!r}")
+        options = {k: getattr(c, k) for k in ("source", "ip", "fps", "library") if getattr(c, k) is not None}
+        cam = open_camera(c.driver, options)
         if c.intrinsics is not None:
             _describe = cam.describe
             cam.describe = lambda: replace(_describe(), intrinsics=c.intrinsics)  # calibration from the lab file
@@ -181,20 +184,52 @@ class LabConfig:
 def load_lab_config(path: str | Path) -> LabConfig:
     path = Path(path)
     data = load_toml(path, missing="lab configuration not found")
-    for section in ("daq", "camera"):
-        if section not in data:
-            raise InputError(str(path), f"missing section [{section}]")
+    if "camera" not in data:
+        raise InputError(str(path), "missing section [camera]")
+    camera = from_plain(_Camera, _driver(data["camera"], f"{path}: camera"), f"{path}: camera")
+    check_backend(camera.driver, f"{path}: camera.driver")
+    hammer = from_plain(_Hammer, data["hammer"], f"{path}: hammer") if "hammer" in data else None
+    if camera.driver == "sim":
+        return _simulated_lab(data, camera, hammer, path)
+    if camera.sim is not None:
+        raise InputError(f"{path}: camera.sim", f"the simulated rig's settings, for driver = \"sim\" only; the driver "
+                                                f"is {camera.driver!r}")
+    if "daq" not in data:
+        raise InputError(str(path), "missing section [daq]")
     daq = from_plain(_DAQ, data["daq"], f"{path}: daq")
     if not daq.channels:
         raise InputError(f"{path}: daq.channels", "at least one channel is needed (the hammer's force)")
     channels = tuple(from_plain(DAQChannel, c, f"{path}: daq.channels[{i}]") for i, c in enumerate(daq.channels))
-    camera = from_plain(_Camera, data["camera"], f"{path}: camera")
     tags = from_plain(TagLayout, data["tags"], f"{path}: tags") if "tags" in data else None
-    hammer = from_plain(_Hammer, data["hammer"], f"{path}: hammer") if "hammer" in data else None
     if hammer is not None and (hammer.url is None) == (hammer.can is None):
         raise InputError(f"{path}: hammer", "give exactly one of url (serial) or can = { interface, channel, ... }")
     can, can_bus = _load_can(data["can"], f"{path}: can") if "can" in data else (None, None)
     return LabConfig(daq.url, daq.sample_rate_hz, channels, camera, tags, hammer, can, can_bus)
+
+
+def _driver(section: Any, where: str) -> Any:
+    """[camera] with `backend`, the back end's other name, read as `driver`."""
+    if not isinstance(section, dict) or "backend" not in section:
+        return section
+    if "driver" in section:
+        raise InputError(f"{where}.backend", "give driver or backend (the same key), not both")
+    return {("driver" if k == "backend" else k): v for k, v in section.items()}
+
+
+def _simulated_lab(data: dict[str, Any], camera: _Camera, hammer: _Hammer | None, path: Path) -> LabConfig:
+    """A lab file for the simulated rig: it brings its DAQ, tags and CAN nodes; [hammer] sets its hammer's level."""
+    given = [s for s in ("daq", "tags", "can") if s in data]
+    if given:
+        raise InputError(f"{path}: [{given[0]}]", "the simulated rig (driver = \"sim\") brings its own DAQ, tags and "
+                                                 "CAN nodes: leave the section out")
+    if hammer is not None and (hammer.url is not None or hammer.can is not None):
+        raise InputError(f"{path}: hammer", "the simulated rig's hammer is reached over camera.sim.hammer_link: "
+                                            "leave url and can out")
+    stray = [k for k in ("source", "ip", "fps", "library") if getattr(camera, k) is not None]
+    if stray:
+        raise InputError(f"{path}: camera.{stray[0]}", "the simulated rig's camera is set in [camera.sim] (size_px, "
+                                                     "fps, bit_depth, ...)")
+    return LabConfig(None, 0.0, (), replace(camera, sim=camera.sim or SimRigSettings()), None, hammer)
 
 
 def _load_can(data: Any, where: str) -> tuple[CANSetup, dict[str, Any]]:

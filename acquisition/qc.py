@@ -5,18 +5,20 @@ with any reason is rejected; rejected takes are kept and marked, never deleted.
 """
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from odsplat.spine.checks import MAX_FORCE_N, Range, check_fields, maybe
-from odsplat.spine.contract import check, describe
+from odsplat.spine.contract import plain
 from odsplat.spine.errors import InputError
-from odsplat.spine.impulse import impact_onsets
-from odsplat.spine.manifest import QC_KIND, QC_SCHEMA, from_plain, load_json
-from odsplat.spine.store import Capture, QCInfo, TakeReader, atomic_write_text
+from odsplat.spine.impulse import ImpactDetector, ImpactSettings
+from odsplat.spine.manifest import from_plain
+from odsplat.spine.qcfile import QCFile, TakeQC
+from odsplat.spine.store import Capture
+from odsplat.spine.take_reader import TakeReader
+from odsplat.spine.take_writer import QCInfo
 
 from .daq import DAQChannel
 from .trigger import TriggeredRecord
@@ -37,7 +39,7 @@ REASONS = {
 @dataclass(frozen=True)
 class QCLimits:
     force_band_n: tuple[float, float] = (20.0, 2000.0)  # planned peak force
-    double_hit_fraction: float = 0.05  # a second pulse counts when it rises this much (of the peak) above its dip
+    impacts: ImpactSettings = field(default_factory=ImpactSettings)  # what an impact is (more than one: double hit)
     overload_fraction: float = 0.999  # a sample this close to full scale counts as clipped
     min_tags: int = 2  # floor tags that must be visible for the pose
 
@@ -47,8 +49,6 @@ class QCLimits:
             raise InputError("QCLimits.force_band_n", f"expected 0 <= low < high, got {self.force_band_n}")
         if isinstance(self.min_tags, bool) or not isinstance(self.min_tags, int) or self.min_tags < 0:
             raise InputError("QCLimits.min_tags", f"expected a whole number >= 0, got {self.min_tags!r}")
-        if not 0 < self.double_hit_fraction < 1:
-            raise InputError("QCLimits.double_hit_fraction", f"expected (0, 1), got {self.double_hit_fraction}")
 
 
 @dataclass(frozen=True)
@@ -80,11 +80,12 @@ class HitQC:
                 f"{tags}: {verdict}")
 
 
-def check_hit(record: TriggeredRecord, channels: Sequence[DAQChannel], *, limits: QCLimits = QCLimits(),
+def check_hit(record: TriggeredRecord, channels: Sequence[DAQChannel], *, limits: QCLimits | None = None,
               force_channel: str = "force", clipped: set[str] | frozenset[str] = frozenset(),
               dropped_frames: Sequence[int] = (), tags_seen: Sequence[int] | None = None) -> HitQC:
     """Run every check on a triggered record. `clipped`: channels the DAQ flagged as clipped during the take;
-    `tags_seen`: floor tag ids found in the take's frame (None: not checked)."""
+    `tags_seen`: floor tag ids found in the take's frame (None: not checked); `limits`: default `QCLimits()`."""
+    limits = limits or QCLimits()
     reasons: list[str] = []
     details: list[str] = []
 
@@ -96,7 +97,7 @@ def check_hit(record: TriggeredRecord, channels: Sequence[DAQChannel], *, limits
     by_name = {c.name: c for c in channels}
     force = record.channel(force_channel)
     peak = float(np.nanmax(force)) if np.isfinite(force).any() else 0.0
-    impacts = impact_onsets(force, record.sample_rate_hz, fraction=limits.double_hit_fraction)
+    impacts = ImpactDetector(limits.impacts).detect(force, record.sample_rate_hz, source=force_channel).pulses
     times = tuple((p.onset_sample + record.first_sample - record.trigger_sample) / record.sample_rate_hz
                   for p in impacts)
     if len(impacts) > 1:
@@ -140,35 +141,16 @@ class QCSettings:
     """The pipeline's qc stage: every take's hit checked again from its file."""
 
     force_band_n: tuple[float, float] | None = None  # the planned peak force (N); None: any
-    double_hit_fraction: float = 0.05
+    impacts: ImpactSettings = field(default_factory=ImpactSettings)  # what an impact is (more than one: double hit)
 
     def __post_init__(self) -> None:
-        check_fields(self, {"force_band_n": maybe(Range(at_least=0, at_most=MAX_FORCE_N)),
-                            "double_hit_fraction": Range(above=0, below=1)})
+        check_fields(self, {"force_band_n": maybe(Range(at_least=0, at_most=MAX_FORCE_N))})
         if self.force_band_n is not None and not self.force_band_n[0] < self.force_band_n[1]:
             raise InputError("QCSettings.force_band_n", f"expected LOW < HIGH in N, got {list(self.force_band_n)}")
 
     def limits(self) -> QCLimits:
         band = self.force_band_n if self.force_band_n is not None else (0.0, float("inf"))
-        return QCLimits(force_band_n=band, double_hit_fraction=self.double_hit_fraction)
-
-
-@dataclass(frozen=True)
-class TakeQC:
-    """One take's verdicts: the one recorded with it (at capture or import) and the one from its file now."""
-
-    name: str
-    recorded: str                  # the manifest's: accepted, rejected or unchecked
-    checked: str                   # from the file: accepted or rejected
-    reasons: tuple[str, ...]
-    details: tuple[str, ...]
-    peak_force_n: float | None
-    n_impacts: int
-
-    @property
-    def status(self) -> str:
-        """The verdict that stands: the recorded one, or the check's where none was recorded."""
-        return self.checked if self.recorded == "unchecked" else self.recorded
+        return QCLimits(force_band_n=band, impacts=self.impacts)
 
 
 @dataclass(frozen=True)
@@ -189,22 +171,14 @@ class QCReport:
         return "\n".join(lines)
 
     def write(self, capture: Capture) -> None:
-        prov = describe(capture.id, QC_KIND, QC_SCHEMA, self.settings)
-        doc = {**prov.header(), "takes": [{**asdict(t), "status": t.status} for t in self.takes]}
-        path = capture.paths.qc_json
-        capture.paths.ensure(path.parent)
-        atomic_write_text(path, json.dumps(doc, indent=1, allow_nan=False, default=str) + "\n")
+        """derived/qc.json (its format: odsplat.spine.qcfile)."""
+        QCFile(self.takes, plain(self.settings)).write(capture.paths.qc_json, capture.id)
 
     @classmethod
     def read(cls, capture: Capture) -> QCReport:
         path = capture.paths.qc_json
-        doc = load_json(path, missing="no QC result (run `odsplat run CAPTURE --to qc` first)")
-        prov = check(doc, path, kind=QC_KIND, schema_version=QC_SCHEMA, capture_id=capture.id)
-        takes = []
-        for i, t in enumerate(doc.get("takes") or []):
-            t = {k: v for k, v in t.items() if k != "status"} if isinstance(t, dict) else t
-            takes.append(from_plain(TakeQC, t, f"{path}: takes[{i}]"))
-        return cls(tuple(takes), from_plain(QCSettings, prov.settings, f"{path}: settings"))
+        doc = QCFile.read(path, capture.id)
+        return cls(doc.takes, from_plain(QCSettings, dict(doc.settings), f"{path}: settings"))
 
 
 def check_take(reader: TakeReader, limits: QCLimits) -> HitQC:
@@ -217,7 +191,7 @@ def check_take(reader: TakeReader, limits: QCLimits) -> HitQC:
     reasons, details = [], []
     peak = float(np.nanmax(force)) if np.isfinite(force).any() else 0.0
     fs = reader.sample_rate_hz
-    impacts = impact_onsets(force, fs, fraction=limits.double_hit_fraction)
+    impacts = ImpactDetector(limits.impacts).detect(force, fs, source=f"{reader.path}: {names[0]}").pulses
     times = tuple(p.onset_s for p in impacts)
     if len(impacts) == 0:
         reasons.append("force_low")

@@ -20,10 +20,12 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from odsplat.spine.atomic import atomic_open
 from odsplat.spine.errors import InputError
 from odsplat.spine.manifest import CameraInfo, Manifest, TagLayout, Viewpoint
-from odsplat.spine.store import Capture, QCInfo, TriggerInfo, atomic_open
+from odsplat.spine.store import Capture
 from odsplat.spine.tags import camera_pose_from_tags, detect_tags
+from odsplat.spine.take_writer import QCInfo, TriggerInfo
 
 from .camera import CameraDriver, CameraTimeout, TriggerSettings
 from .can_nodes import CANAccelerometers, CANError, CANRecord, CANSetup, record_window

@@ -6,6 +6,7 @@ saved to derived/analysis/) and `write_report(capture)` (derived/analysis/report
 made of for use on their own."""
 from .analyze import AnalyzeSettings, analyze_capture, structure_mask
 from .correlation import Correlation, comac, correlate, mac, modal_scale_factor
+from .document import AnalysisDocument, read_analysis
 from .ema import LSFDResult, ModalFit, StabilisationChart, fit_modes, lscf, lsfd, select_poles, stabilisation
 from .export import (
     CoherenceRecord,
@@ -16,10 +17,6 @@ from .export import (
     ShapeRecord,
     StabilisationRecord,
     TimeSeries,
-    read_results_h5,
-    read_uff,
-    write_results_h5,
-    write_uff,
 )
 from .frf import FRFResult, FRFSettings, HitCheck, check_frf_hit, estimate_frf, split_hits
 from .ods import (
@@ -32,9 +29,11 @@ from .ods import (
     receptance,
     stable_poles,
 )
-from .report import read_analysis, write_report
+from .report import write_report
 from .result import AnalysisResult, Sensor, VideoModes
+from .results_h5 import read_results_h5, write_results_h5
 from .tracking import Tracks, good_points, project_displacement, track_points
+from .uff import read_uff, write_uff
 
 run = analyze_capture  # the analyze stage's entry
 
@@ -45,4 +44,4 @@ __all__ = ["AnalysisResult", "AnalyzeSettings", "CoherenceRecord", "Correlation"
            "fit_modes", "force_transform", "good_points", "lscf", "lsce_poles", "lsfd", "mac", "modal_scale_factor",
            "pencil_poles", "project_displacement", "read_analysis", "read_results_h5", "read_uff", "receptance", "run",
            "select_poles", "split_hits", "stabilisation", "stable_poles", "structure_mask", "track_points",
-           "write_report", "write_results_h5", "write_uff"]
+           "write_report", "write_results_h5", "write_uff", "AnalysisDocument"]

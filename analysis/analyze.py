@@ -4,7 +4,6 @@ from the dynamic Gaussians with the accelerometer poles, their correlation, and 
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,16 +29,27 @@ from odsplat.spine.checks import (
 from odsplat.spine.contract import describe, plain
 from odsplat.spine.errors import InputError
 from odsplat.spine.manifest import utc_now
-from odsplat.spine.store import Capture, atomic_write_text
+from odsplat.spine.store import Capture
 from odsplat.sync import load_sync
 
-from .band import band_notes, default_band_hz, frf_peaks
-from .correlation import correlate
+from .band import default_band_hz, frf_peaks
+from .correlation import Correlation, correlate
 from .crosscheck import crosscheck_views, views_seeing
+from .document import KIND, SCHEMA
 from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_frf_hit, estimate_frf
-from .imagepoles import image_poles
+from .imagepoles import ImagePoles, image_poles
 from .noise import noise_floor, real_modes
+from .notes import (
+    BelowNoiseFloor,
+    ComplexMode,
+    ModesAboveVideoBand,
+    Note,
+    OdsCarriedByNoise,
+    UnplacedSensors,
+    WindowTooShort,
+    band_findings,
+)
 from .ods import (
     POLE_MIN_SIGNIFICANCE,
     SurfaceMotion,
@@ -51,12 +61,10 @@ from .ods import (
 )
 from .outputs import write_outputs
 from .result import AnalysisResult, Sensor, VideoModes
-from .verdict import crosscheck_verdict, mac_verdict
+from .verdict import Verdict, crosscheck_verdict, mac_verdict
 
 log = logging.getLogger(__name__)
 
-KIND = "odsplat.analysis"
-SCHEMA = 2
 VIDEO_BAND = 0.45     # the camera's poles are sought below this fraction of its frame rate
 
 
@@ -66,14 +74,6 @@ MIN_CYCLES = 0.5    # below this share of a mode's period in the video's window 
 # the demo two nodes on the floor's tag boards (2-3 cm up, half a metre from the structure) floated in the figures.
 ISOLATED_K = 3
 ISOLATED_FACTOR = 5.0
-
-
-def _length(x_m: float) -> str:
-    """A length in the unit that reads best: 3 significant digits in nm, µm, mm or m."""
-    for unit, scale in (("nm", 1e-9), ("µm", 1e-6), ("mm", 1e-3)):
-        if abs(x_m) < 1000 * scale:
-            return f"{x_m / scale:.3g} {unit}"
-    return f"{x_m:.3g} m"
 
 
 @dataclass(frozen=True)
@@ -200,7 +200,7 @@ def _hit_segments(capture: Capture, takes: list[str], force: str, sensors, s: An
             rate = fs
             f = r.channel(force).astype(float)
             x = np.stack([r.channel(sn.name).astype(float) for sn in sensors])
-        onset = check_frf_hit(f, fs).onset_index
+        onset = check_frf_hit(f, fs, impacts=s.frf.impacts).onset_index
         if not np.isfinite(onset):
             raise InputError(f"takes/{name}.h5: {force}", "no hammer impact found in the force channel")
         records.append((name, f, x, int(np.floor(onset))))
@@ -402,105 +402,164 @@ def _nearest(f_ref: np.ndarray, f: np.ndarray, tol: float) -> np.ndarray:
     return out
 
 
+@dataclass(frozen=True)
+class _Inputs:
+    """What the analysis reads of the capture: the channels, and every take's hit cut to one length."""
+
+    force: str
+    sensors: tuple[Sensor, ...]
+    takes: tuple[str, ...]
+    force_n: np.ndarray        # (H, n)
+    response: np.ndarray       # (H, S, n) m/s^2
+    rate_hz: float
+    reference: Sensor          # the hammer, where the manifest places it
+
+
+@dataclass(frozen=True)
+class _Comparison:
+    """The video against the accelerometers: MAC, the ODS lines (m/N) and the verdicts."""
+
+    ods_freq_hz: np.ndarray
+    ods_accel: np.ndarray                                   # (L, S) measured H1
+    ods_video: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), complex))      # (L, S) synthesised
+    ods_surface: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 3), complex))  # (L, N, 3)
+    correlation: Correlation | None = None
+    mac_verdict: Verdict | None = None
+    crosscheck_verdict: Verdict | None = None
+
+
+def _read_inputs(capture: Capture, s: AnalyzeSettings) -> _Inputs:
+    force, sensors = _channels(capture, s)
+    takes = _take_names(capture, s)
+    F, X, rate = _hit_segments(capture, takes, force, sensors, s)
+    return _Inputs(force, sensors, tuple(takes), F, X, rate, _reference(capture, force))
+
+
+def _accelerometers(inputs: _Inputs, s: AnalyzeSettings) -> tuple[FRFResult, ModalFit, list[Note]]:
+    """The FRFs, the modes fitted in the band, and what the FRFs say of the band and the poles."""
+    names = [sn.name for sn in inputs.sensors]
+    frf = estimate_frf(inputs.force_n, inputs.response, inputs.rate_hz, s.frf, input_name=inputs.force,
+                       output_names=names, output_unit="m/s^2")
+    log.info("FRFs from %d of %d hits, %d lines", frf.n_averages, len(inputs.takes), len(frf.freq_hz))
+    fmin, fmax = _band(frf, s)
+    peaks = frf_peaks(frf, fmin, fmax)
+    modes = fit_modes(frf.freq_hz, frf.h1, frf_kind="accelerance", fmin_hz=fmin, fmax_hz=fmax,
+                      max_order=s.max_order, approx_freq_hz=s.approx_freq_hz, output_names=names,
+                      peaks_hz=[p.freq_hz for p in peaks])
+    if frf.exp_tau_s:
+        modes = modes.with_corrected_damping(frf.exp_tau_s)
+    log.info("modes: %s Hz", ", ".join(f"{f:.2f}" for f in modes.freq_hz))
+    findings = band_findings(frf, (fmin, fmax), modes.freq_hz, inside=peaks,
+                             given=s.fmax_hz is not None or s.fmin_hz is not None)
+    return frf, modes, findings
+
+
+def _below_floor(video: VideoModes) -> np.ndarray:
+    """(R,) bool: the video's modes below its noise floor (none where it has none)."""
+    return video.noise.below if video.noise is not None else np.zeros(len(video.mode_index), bool)
+
+
+def _compare(frf: FRFResult, modes: ModalFit, video: VideoModes | None, image: ImagePoles | None,
+             s: AnalyzeSettings) -> _Comparison:
+    """The ODS lines of the accelerometers and, with a video side, the video's; its shapes' MAC against the
+    accelerometers' (each video residue was fitted with that accelerometer pole: paired as given) and the
+    verdicts."""
+    ods_f = np.asarray(s.ods_freq_hz if s.ods_freq_hz is not None else modes.freq_hz, float)
+    rec = frf.to_receptance()
+    lines = np.clip(np.searchsorted(rec.freq_hz, ods_f), 0, len(rec.freq_hz) - 1)
+    ods_accel = rec.h1[lines]
+    if video is None:
+        return _Comparison(ods_f, ods_accel)
+    f_acc = modes.freq_hz[video.mode_index]
+    # the camera's frequency of each mode: from the raw frames (the whole take) where found, else from the
+    # reconstruction's window
+    f_cam = _nearest(f_acc, image.freq_hz, 0.05) if image is not None else np.full(len(f_acc), np.nan)
+    f_cam = np.where(np.isnan(f_cam), _nearest(f_acc, video.freq_hz, 0.05), f_cam)
+    corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc, freq_b_hz=f_cam,
+                     paired=True)
+    paired = [j for _, j in corr.pairs]
+    return _Comparison(ods_f, ods_accel, receptance(video.sensor_residues, video.poles_rad_s, ods_f),
+                       receptance(video.surface_residues, video.poles_rad_s, ods_f), corr,
+                       mac_verdict(f_acc[paired], corr.pair_mac, _below_floor(video)[paired]),
+                       crosscheck_verdict(video.crosscheck))
+
+
+def _image(capture: Capture, s: AnalyzeSettings) -> ImagePoles | None:
+    """Poles from the raw frames of every synced take, where the capture has a camera and they are asked for."""
+    fps = capture.manifest.camera.fps
+    if not (s.video and s.image_poles and fps):
+        return None
+    return image_poles(capture, fmax_hz=VIDEO_BAND * fps, ranks=s.image_ranks, pixel_fraction=s.image_pixel_fraction)
+
+
 def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | None = None) -> AnalysisResult:
     """The whole analysis, written to derived/analysis/ (results.h5, analysis.uff, analysis.json, plots)."""
     capture = capture if isinstance(capture, Capture) else Capture.open(capture)
     s = settings or AnalyzeSettings()
-    force, sensors = _channels(capture, s)
-    takes = _take_names(capture, s)
-    F, X, rate = _hit_segments(capture, takes, force, sensors, s)
-    frf = estimate_frf(F, X, rate, s.frf, input_name=force, output_names=[sn.name for sn in sensors],
-                       output_unit="m/s^2")
-    log.info("FRFs from %d of %d hits, %d lines", frf.n_averages, len(takes), len(frf.freq_hz))
-    fmin, fmax = _band(frf, s)
-    peaks = frf_peaks(frf, fmin, fmax)
-    modes = fit_modes(frf.freq_hz, frf.h1, frf_kind="accelerance", fmin_hz=fmin, fmax_hz=fmax,
-                      max_order=s.max_order, approx_freq_hz=s.approx_freq_hz,
-                      output_names=[sn.name for sn in sensors], peaks_hz=[p.freq_hz for p in peaks])
-    if frf.exp_tau_s:
-        modes = modes.with_corrected_damping(frf.exp_tau_s)
-    log.info("modes: %s Hz", ", ".join(f"{f:.2f}" for f in modes.freq_hz))
-    notes = band_notes(frf, (fmin, fmax), modes.freq_hz, given=s.fmax_hz is not None or s.fmin_hz is not None)
-    unplaced = [sn.name for sn in sensors if not sn.placed]
+    inputs = _read_inputs(capture, s)
+    frf, modes, findings = _accelerometers(inputs, s)
+    unplaced = tuple(sn.name for sn in inputs.sensors if not sn.placed)
     if unplaced:
-        notes.append(f"no position or direction for {', '.join(unplaced)}: frequencies and damping only; shapes "
-                     "need them (`odsplat geometry CAPTURE FILE`)")
-    video = video_modes(capture, modes, sensors, force, s) if not unplaced else None
-    image = None
-    fps = capture.manifest.camera.fps
-    if s.video and s.image_poles and fps:
-        image = image_poles(capture, fmax_hz=VIDEO_BAND * fps, ranks=s.image_ranks,
-                            pixel_fraction=s.image_pixel_fraction)
-    if video is not None and len(video.mode_index) < modes.n_modes:
-        above = [f"{f:.0f}" for i, f in enumerate(modes.freq_hz) if i not in set(video.mode_index.tolist())]
-        notes.append(f"modes at {', '.join(above)} Hz are above the video's band: no video shape")
-    corr = verdict = xverdict = None
-    ods_f = np.asarray(s.ods_freq_hz if s.ods_freq_hz is not None else modes.freq_hz, float)
-    rec = frf.to_receptance()
-    lines = np.clip(np.searchsorted(rec.freq_hz, ods_f), 0, len(rec.freq_hz) - 1)
-    ods_accel = rec.h1[lines]                                                       # (L, S)
-    ods_video = np.zeros((0, 0), complex)
-    ods_surface = np.zeros((0, 0, 3), complex)
-    if video is not None:
-        f_acc = modes.freq_hz[video.mode_index]
-        # the camera's frequency of each mode: from the raw frames (the whole take) where found, else from the
-        # reconstruction's window
-        f_cam = _nearest(f_acc, image.freq_hz, 0.05) if image is not None else np.full(len(f_acc), np.nan)
-        f_cam = np.where(np.isnan(f_cam), _nearest(f_acc, video.freq_hz, 0.05), f_cam)
-        corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc, freq_b_hz=f_cam,
-                         paired=True)      # each video residue was fitted with that accelerometer pole
-        ods_video = receptance(video.sensor_residues, video.poles_rad_s, ods_f)
-        below = video.noise.below if video.noise is not None else np.zeros(len(f_acc), bool)
-        window_s = float(np.ptp(video.times_s)) if len(video.times_s) > 1 else 0.0
-        rm = video.real_modes
-        for r in np.flatnonzero(below):
-            cycles = window_s * f_acc[r]
-            if cycles < MIN_CYCLES:
-                # Then the fit's amplitude and its floor are both ill-conditioned (metres for micrometres): the
-                # cause, not the numbers, is what the engineer can act on.
-                notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): the video's window "
-                             f"({1e3 * window_s:.1f} ms) holds {cycles:.2f} of its cycles, too few to read its shape "
-                             f"apart from the other modes (MAC and scale not judged); reconstruct at least "
-                             f"{1e3 * MIN_CYCLES / f_acc[r]:.0f} ms ([reconstruct] n_timesteps)")
-                continue
-            real = rm is not None and bool(rm.real[r])
-            notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): below the video's noise floor "
-                         f"({_length(video.noise.mode_amplitude_m[r])} against "
-                         f"{_length(video.noise.mode_floor_m[r])} at the sensors): the noise alone allows its "
-                         f"{'complex ' if real else ''}shape a MAC of {video.noise.expected_mac[r]:.2f}"
-                         f"{' (its real mode keeps half that noise)' if real else ''}, too little to judge (MAC and "
-                         "scale not judged)")
-        for r in np.flatnonzero(~rm.real if rm is not None else np.zeros(0, bool)):
-            notes.append(f"mode {int(video.mode_index[r]) + 1} ({f_acc[r]:.1f} Hz): a complex mode in the video "
-                         f"(MPC {rm.mpc[r]:.2f}; {100 * rm.lost[r]:.0f} % of its shape out of phase, "
-                         f"{rm.quadrature_ratio[r]:.1f} x what the noise puts there): its shape is left complex, with "
-                         "the noise's full power; a time shift between views or non-proportional damping does this")
-        if below.any() and len(ods_f):
-            # An ODS line is the sum of every mode's term: where the terms of modes below the floor carry most of
-            # it at the sensors, the video's ODS there is their noise too.
-            noisy = receptance(video.sensor_residues[below], video.poles_rad_s[below], ods_f)
-            share = np.linalg.norm(noisy.reshape(len(ods_f), -1), axis=1) / np.maximum(
-                np.linalg.norm(ods_video.reshape(len(ods_f), -1), axis=1), 1e-300)
-            for li in np.flatnonzero(share > 0.5):
-                notes.append(f"ODS line {li + 1} ({ods_f[li]:.1f} Hz): the video's ODS there is carried by modes below "
-                             f"its noise floor (their terms sum to {min(share[li], 99.0):.2g} x its size at the "
-                             "sensors); read it from the accelerometers")
-        verdict = mac_verdict(f_acc[[j for _, j in corr.pairs]], corr.pair_mac, below[[j for _, j in corr.pairs]])
-        xverdict = crosscheck_verdict(video.crosscheck)
-        ods_surface = receptance(video.surface_residues, video.poles_rad_s, ods_f)             # (L, N, 3)
-    for note in notes:
-        log.info("note: %s", note)
-    result = AnalysisResult(frf, modes, sensors, tuple(takes), video, corr, ods_f, ods_accel, ods_video,
-                            ods_surface, image, notes=tuple(notes), mac_verdict=verdict, crosscheck_verdict=xverdict,
-                            reference=_reference(capture, force))
+        findings.append(UnplacedSensors(unplaced))
+    video = video_modes(capture, modes, inputs.sensors, inputs.force, s) if not unplaced else None
+    image = _image(capture, s)
+    cmp = _compare(frf, modes, video, image, s)
+    findings += _video_findings(modes, video, cmp)
+    for note in findings:
+        log.info("note: %s", note.text)
+    result = AnalysisResult(frf, modes, inputs.sensors, inputs.takes, video, cmp.correlation, cmp.ods_freq_hz,
+                            cmp.ods_accel, cmp.ods_video, cmp.ods_surface, image, findings=tuple(findings),
+                            mac_verdict=cmp.mac_verdict, crosscheck_verdict=cmp.crosscheck_verdict,
+                            reference=inputs.reference)
     return _write(capture, result, s)
 
+
+# ---------------------------------------------------------------------------------------------- the notes
+
+def _video_findings(modes: ModalFit, video: VideoModes | None, cmp: _Comparison) -> list[Note]:
+    """What the video's numbers cannot show (analysis/notes.py words each): modes above its band, modes below its
+    noise floor (for want of cycles in its window, or of amplitude), complex shapes, and ODS lines those modes
+    carry."""
+    if video is None:
+        return []
+    out: list[Note] = []
+    if len(video.mode_index) < modes.n_modes:
+        fitted = set(video.mode_index.tolist())
+        out.append(ModesAboveVideoBand(tuple(float(f) for i, f in enumerate(modes.freq_hz) if i not in fitted)))
+    f_acc = modes.freq_hz[video.mode_index]
+    below = _below_floor(video)
+    window_s = float(np.ptp(video.times_s)) if len(video.times_s) > 1 else 0.0
+    nf, rm = video.noise, video.real_modes
+    for r in np.flatnonzero(below):
+        mode, f = int(video.mode_index[r]) + 1, float(f_acc[r])
+        if window_s * f < MIN_CYCLES:
+            # Then the fit's amplitude and its floor are both ill-conditioned (metres for micrometres): the cause,
+            # not the numbers, is what the engineer can act on.
+            out.append(WindowTooShort(mode, f, window_s, MIN_CYCLES))
+            continue
+        out.append(BelowNoiseFloor(mode, f, float(nf.mode_amplitude_m[r]), float(nf.mode_floor_m[r]),
+                                   float(nf.expected_mac[r]), rm is not None and bool(rm.real[r])))
+    for r in np.flatnonzero(~rm.real if rm is not None else np.zeros(0, bool)):
+        out.append(ComplexMode(int(video.mode_index[r]) + 1, float(f_acc[r]), float(rm.mpc[r]), float(rm.lost[r]),
+                               float(rm.quadrature_ratio[r])))
+    ods_f = cmp.ods_freq_hz
+    if below.any() and len(ods_f):
+        # An ODS line is the sum of every mode's term: where the terms of modes below the floor carry most of it
+        # at the sensors, the video's ODS there is their noise too.
+        noisy = receptance(video.sensor_residues[below], video.poles_rad_s[below], ods_f)
+        share = np.linalg.norm(noisy.reshape(len(ods_f), -1), axis=1) / np.maximum(
+            np.linalg.norm(cmp.ods_video.reshape(len(ods_f), -1), axis=1), 1e-300)
+        out += [OdsCarriedByNoise(int(li) + 1, float(ods_f[li]), float(share[li]))
+                for li in np.flatnonzero(share > 0.5)]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- the outputs
 
 def _write(capture: Capture, result: AnalysisResult, s: AnalyzeSettings) -> AnalysisResult:
     dest = capture.paths.ensure(capture.paths.analysis_dir)
     files = write_outputs(dest, result, plots=s.plots, capture_id=capture.id)
-    summary = {**describe(capture.id, KIND, SCHEMA, s).header(), "capture": capture.root.name,
-               "created_utc": utc_now(), "settings": plain(s), **result.summary(), "files": files}
-    # Last: a reader that finds it finds the files it lists.
-    atomic_write_text(capture.paths.analysis_json, json.dumps(summary, indent=1, default=float))
+    document = result.document(describe(capture.id, KIND, SCHEMA, s), capture=capture.root.name,
+                               created_utc=utc_now(), settings=plain(s), files=files)
+    document.write(capture)      # last: a reader that finds it finds the files it lists
     return dataclasses.replace(result, files={**files, "summary": "analysis.json"})

@@ -106,29 +106,3 @@ def unmatched_peaks(peaks: list[FRFPeak], freq_hz: np.ndarray, df_hz: float, tol
     freq_hz = np.asarray(freq_hz, float)
     return [p for p in peaks
             if not len(freq_hz) or np.min(np.abs(freq_hz - p.freq_hz)) > max(tol * p.freq_hz, 3 * df_hz)]
-
-
-def band_notes(frf: FRFResult, band_hz: tuple[float, float], freq_hz: np.ndarray, *, given: bool) -> list[str]:
-    """What the result must say about its band and poles: clear peaks with no mode, and strong peaks outside
-    the band (`given`: whether the user chose the band)."""
-    fmin, fmax = band_hz
-    df = float(frf.freq_hz[1] - frf.freq_hz[0]) if len(frf.freq_hz) > 1 else 0.0
-    notes = []
-    inside = frf_peaks(frf, fmin, fmax)
-    missed = unmatched_peaks(inside, freq_hz, df)
-    if missed:
-        notes.append("clear FRF peaks with no mode: " + ", ".join(
-            f"{p.freq_hz:.1f} Hz ({p.height_db:+.0f} dB)" for p in sorted(missed, key=lambda p: p.freq_hz))
-            + "; pick them with --freq (analyze.approx_freq_hz) or raise max_order")
-    nyq = min(MAX_FRACTION_OF_RATE * frf.sample_rate_hz, float(frf.freq_hz[-1]))
-    everywhere = frf_peaks(frf, float(frf.freq_hz[0]), nyq, height_db=None) if nyq > frf.freq_hz[0] else []
-    if everywhere:   # heights relative to one reference: the highest clear peak below 0.4 x the rate
-        band_top = max((p.height_db for p in everywhere if fmin <= p.freq_hz <= fmax), default=-np.inf)
-        cut = [p for p in everywhere if not fmin <= p.freq_hz <= fmax and p.height_db >= band_top - CUT_PEAK_DB]
-        if cut:
-            why = ("the band was given" if given else
-                   f"the hammer's force is {FORCE_DROP_DB:g} dB down above {fmax:.0f} Hz")
-            notes.append(f"strong FRF peaks outside the fit band {fmin:.0f}-{fmax:.0f} Hz ({why}): " + ", ".join(
-                f"{p.freq_hz:.0f} Hz" for p in sorted(cut, key=lambda p: p.freq_hz))
-                + "; widen it with --fmax (analyze.fmax_hz); a harder hammer tip excites higher")
-    return notes

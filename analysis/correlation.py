@@ -79,19 +79,6 @@ class Correlation:
             return None
         return (self.freq_b_hz - self.freq_a_hz) / self.freq_a_hz
 
-    def summary(self) -> list[dict]:
-        """One plain dict per pair, for JSON and the report."""
-        rows = []
-        for k, (i, j) in enumerate(self.pairs):
-            row = {"a": i, "b": j, "mac": float(self.pair_mac[k]), "scale_factor_abs": float(abs(self.scale_factor[k])),
-                   "scale_factor_phase_deg": float(np.degrees(np.angle(self.scale_factor[k])))}
-            if self.freq_a_hz is not None and self.freq_b_hz is not None:
-                fin = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731  (JSON has no NaN)
-                row.update(freq_a_hz=fin(self.freq_a_hz[k]), freq_b_hz=fin(self.freq_b_hz[k]),
-                           freq_diff_rel=fin(self.freq_diff_rel[k]))
-            rows.append(row)
-        return rows
-
 
 def correlate(a, b, *, freq_a_hz=None, freq_b_hz=None, min_mac: float = 0.0, paired: bool = False) -> Correlation:
     """Pair the shapes of b with those of a one-to-one by maximum total MAC (Hungarian assignment), keeping pairs

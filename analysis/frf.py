@@ -4,20 +4,16 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from odsplat.spine.checks import DURATION_S, FORCE_N, FREQUENCY_HZ, Range, check_fields, maybe
 from odsplat.spine.errors import InputError
-from odsplat.spine.impulse import fit_pulse
+from odsplat.spine.impulse import ImpactDetector, ImpactSettings
 
 log = logging.getLogger(__name__)
-
-_DETECT_FRACTION = 0.05   # a pulse is "on" above 5 % of the peak (above the noise, whichever is higher)
-_NOISE_DETECT = 5.0       # ... and above 5 noise sigmas
-_NOISE_START = 3.0        # the onset is walked back to 3 noise sigmas above the baseline
 
 
 # ----------------------------------------------------------------------------------------------- windows
@@ -104,22 +100,17 @@ class HitCheck:
 
 
 def check_frf_hit(force: ArrayLike, sample_rate_hz: float, *, overload_n: float | None = None,
-              full_scale_n: float | None = None, double_hit_ratio: float = 0.1,
-              reject_double_hits: bool = True, responses: ArrayLike | None = None,
-              response_full_scale: float | None = None, output_names: Sequence[str] | None = None) -> HitCheck:
+                  full_scale_n: float | None = None, impacts: ImpactSettings | None = None,
+                  reject_double_hits: bool = True, responses: ArrayLike | None = None,
+                  response_full_scale: float | None = None, output_names: Sequence[str] | None = None) -> HitCheck:
     """Check one hit (force record (n_samples,), optional responses (n_outputs, n_samples)).
 
-    Baseline and noise (median and MAD) come from the pretrigger, the samples before the force first
-    exceeds 5 % of its peak, or from the whole record where that is noisier or the pretrigger too short.
-    An impact is a pulse that rises over `double_hit_ratio` of the largest peak (and 10 noise sigmas) after
-    the force has returned below 5 % of the peak; more than one is a double hit. Rejected also: a peak over
-    `overload_n`, force samples at or over `full_scale_n` (clipped), response samples at or over
-    `response_full_scale` (in the response's unit), and a record with no pulse above the noise. The onset
-    is every stage's (`odsplat.spine.impulse.fit_pulse`): the start of the half sine fitted to the first pulse."""
+    The impacts, their onsets and the baseline are every stage's (`odsplat.spine.impulse.ImpactDetector` with
+    `impacts`, default `ImpactSettings()`): more than one impact is a double hit, none a record with no pulse
+    above the noise. Rejected also: a peak over `overload_n`, force samples at or over `full_scale_n` (clipped)
+    and response samples at or over `response_full_scale` (in the response's unit)."""
     f = _as_finite(force, "check_frf_hit: force", ndim=1)
     _check_positive("check_frf_hit: sample_rate_hz", sample_rate_hz)
-    if not 0.0 < double_hit_ratio < 1.0:
-        raise InputError("check_frf_hit: double_hit_ratio", f"expected 0 < ratio < 1; got {double_hit_ratio}")
     reasons: list[str] = []
     if full_scale_n is not None and (n_clip := int(np.sum(np.abs(f) >= full_scale_n))):
         reasons.append(f"clipped: {n_clip} samples at full scale ({full_scale_n:g} N)")
@@ -130,69 +121,22 @@ def check_frf_hit(force: ArrayLike, sample_rate_hz: float, *, overload_n: float 
                 name = output_names[k] if output_names is not None else f"output {k}"
                 reasons.append(f"response overload: {name} has {n_over} samples at or over {response_full_scale:g}")
 
-    # The pulse fills few of the record's samples: its median and MAD are a first baseline and noise.
-    i_peak = int(np.argmax(f))
-    med, sigma = _median_mad(f)
-    first = int(np.argmax(f - med > max(_DETECT_FRACTION * (f[i_peak] - med), _NOISE_DETECT * sigma)))
-    pre = f[:max(first - 2, 0)]  # two samples of guard: the rise may begin below the detection level
-    baseline = med
-    if pre.size >= 4:
-        baseline, sigma_pre = _median_mad(pre)
-        sigma = max(sigma, sigma_pre)
-    g = f - baseline
-    peak = float(g[i_peak])
-    if peak <= max(10.0 * sigma, 0.0):
-        reasons.append(f"no impact: peak {peak:.3g} N is within the noise (sigma {sigma:.3g} N)")
-        return HitCheck(False, tuple(reasons), peak, np.nan, np.nan, np.nan, 0, baseline)
-
-    off = max(_DETECT_FRACTION * peak, _NOISE_DETECT * sigma)
-    pulses = _pulses(g, on=max(double_hit_ratio * peak, 10.0 * sigma, off), off=off)
-    lo = _NOISE_START * sigma
-    onsets = [_onset(g, start, stop, sample_rate_hz) for start, stop, _ in pulses]
-    onset = onsets[0]
-    end_first = _edge(g, pulses[0][1] - 1, +1, lo)
-    end_last = _edge(g, pulses[-1][1] - 1, +1, lo)
-    main = max(range(len(pulses)), key=lambda k: pulses[k][2])
-    for k, (_, _, p) in enumerate(pulses if reject_double_hits else []):
+    found = ImpactDetector(impacts or ImpactSettings()).detect(f, sample_rate_hz, source="check_frf_hit: force")
+    peak = found.peak_n
+    if not found.n:
+        reasons.append(f"no impact: peak {peak:.3g} N is within the noise (sigma {found.noise_n:.3g} N, "
+                       f"floor {found.floor_n:.3g} N)")
+        return HitCheck(False, tuple(reasons), peak, np.nan, np.nan, np.nan, 0, found.baseline_n)
+    onsets = [p.onset_sample for p in found.pulses]
+    main = found.main
+    for k, height in enumerate(found.heights_n if reject_double_hits else ()):
         if k != main:
             dt_ms = (onsets[k] - onsets[main]) / sample_rate_hz * 1e3
-            reasons.append(f"double hit at {dt_ms:+.1f} ms ({100 * p / peak:.0f} % of the peak)")
+            reasons.append(f"double hit at {dt_ms:+.1f} ms ({100 * height / peak:.0f} % of the peak)")
     if overload_n is not None and peak > overload_n:
         reasons.append(f"overload: peak {peak:.0f} N > {overload_n:g} N")
-    return HitCheck(not reasons, tuple(reasons), peak, onset, end_last, float(end_first - onset) / sample_rate_hz,
-                    len(pulses), baseline)
-
-
-def _onset(g: np.ndarray, start: int, stop: int, sample_rate_hz: float) -> float:
-    """The onset (fractional sample) of the pulse in g[start:stop] (baseline removed): the one definition,
-    `odsplat.spine.impulse.fit_pulse`, the half sine's start."""
-    peak = start + int(np.argmax(g[start:stop]))
-    return fit_pulse(g, sample_rate_hz, peak_index=peak, source="force").onset_sample
-
-
-def _pulses(g: np.ndarray, on: float, off: float) -> list[tuple[int, int, float]]:
-    """(first index over `on`, first index after it back under `off`, peak) of every pulse."""
-    out: list[tuple[int, int, float]] = []
-    i = 0
-    while (above := np.flatnonzero(g[i:] > on)).size:
-        start = i + int(above[0])
-        below = np.flatnonzero(g[start:] < off)
-        stop = start + int(below[0]) if below.size else g.size
-        out.append((start, stop, float(g[start:stop].max())))
-        i = stop
-    return out
-
-
-def _edge(g: np.ndarray, i: int, step: int, level: float) -> float:
-    """From sample i on a pulse's flank, walk outwards (step -1: back to the onset, +1: on to the end) while
-    the force keeps falling and stays above `level`, then extrapolate the last two samples to zero force."""
-    n = g.size
-    while 0 <= i + step < n and level < g[i + step] < g[i]:
-        i += step
-    j = i - step  # the sample one further into the pulse
-    if not 0 <= j < n or g[j] <= g[i]:
-        return float(i)
-    return float(i + step * np.clip(g[i] / (g[j] - g[i]), 0.0, 1.0))
+    return HitCheck(not reasons, tuple(reasons), peak, onsets[0], found.end_indices[-1],
+                    float(found.end_indices[0] - onsets[0]) / sample_rate_hz, found.n, found.baseline_n)
 
 
 # -------------------------------------------------------------------------------------------- the FRF
@@ -205,6 +149,8 @@ class FRFSettings:
         impact's onset to last impact's end), at least 2 ms, so the pulse and its filter ringing pass whole.
     exponential_end: value of the response window at the last sample; None: rectangular (no window).
     fmax_hz: keep lines up to this frequency; n_fft: FFT length (>= n_samples, zero padded).
+    impacts: what counts as an impact, so a double hit, in each hit's force (`odsplat.spine.impulse.ImpactSettings`,
+        every stage's rule; its rebound fraction defaults to `odsplat.spine.impulse.REBOUND_FRACTION`).
     """
 
     force_window_s: float | None = None
@@ -212,7 +158,7 @@ class FRFSettings:
     fmax_hz: float | None = None
     n_fft: int | None = None
     reject_double_hits: bool = True
-    double_hit_ratio: float = 0.1
+    impacts: ImpactSettings = field(default_factory=ImpactSettings)  # what an impact is (odsplat.spine.impulse)
     overload_n: float | None = None
     full_scale_n: float | None = None
     response_full_scale: float | None = None
@@ -223,7 +169,7 @@ class FRFSettings:
         check_fields(self, {
             "force_window_s": maybe(DURATION_S), "exponential_end": maybe(Range(above=0, below=1)),
             "fmax_hz": maybe(FREQUENCY_HZ), "n_fft": maybe(Range(at_least=1, at_most=2**24, integer=True)),
-            "double_hit_ratio": Range(above=0, below=1), "overload_n": maybe(FORCE_N),
+            "overload_n": maybe(FORCE_N),
             "full_scale_n": maybe(FORCE_N), "response_full_scale": maybe(Range(above=0, at_most=1e7))},
             name="estimate_frf: settings")
 
@@ -283,7 +229,7 @@ class FRFResult:
 
 
 def estimate_frf(force: ArrayLike, responses: ArrayLike, sample_rate_hz: float,
-                 settings: FRFSettings = FRFSettings(), *, input_name: str = "force",
+                 settings: FRFSettings | None = None, *, input_name: str = "force",
                  output_names: Sequence[str] | None = None, output_unit: str = "m/s^2") -> FRFResult:
     """H1 = Gfx/Gff, H2 = Gxx/Gxf and coherence |Gfx|^2/(Gff Gxx), the spectra averaged over accepted hits.
 
@@ -293,12 +239,13 @@ def estimate_frf(force: ArrayLike, responses: ArrayLike, sample_rate_hz: float,
     and the exponential window from the onset on (the pretrigger is untouched), applied to the force as well
     as the responses, so the FRF is that of the structure with every pole's decay rate raised by 1/exp_tau_s
     (correct_poles, correct_damping). All hits share one tau, from the latest onset. The force's baseline
-    (pretrigger median) is removed first. With one hit the coherence is 1 by construction.
+    (pretrigger median) is removed first. With one hit the coherence is 1 by construction. `settings`: default
+    `FRFSettings()`.
     """
     f, x = _hits_arrays(force, responses)
     n_hits, n_out, n = x.shape
     _check_positive("estimate_frf: sample_rate_hz", sample_rate_hz)
-    s = settings
+    s = settings or FRFSettings()
     n_fft = n if s.n_fft is None else int(s.n_fft)
     if n_fft < n:
         raise InputError("estimate_frf: settings.n_fft", f"expected >= n_samples = {n}; got {n_fft}")
@@ -312,8 +259,8 @@ def estimate_frf(force: ArrayLike, responses: ArrayLike, sample_rate_hz: float,
         raise InputError("estimate_frf: output_names", f"expected {n_out} names; got {len(names)}")
 
     checks = tuple(check_frf_hit(f[h], sample_rate_hz, overload_n=s.overload_n, full_scale_n=s.full_scale_n,
-                             double_hit_ratio=s.double_hit_ratio, reject_double_hits=s.reject_double_hits,
-                             responses=x[h], response_full_scale=s.response_full_scale, output_names=names)
+                                 impacts=s.impacts, reject_double_hits=s.reject_double_hits, responses=x[h],
+                                 response_full_scale=s.response_full_scale, output_names=names)
                    for h in range(n_hits))
     good = [h for h, c in enumerate(checks) if c.accepted]
     for h, c in enumerate(checks):
@@ -398,15 +345,17 @@ class HitSegments:
     responses: np.ndarray      # (n_hits, n_outputs, n_samples)
     start_index: np.ndarray    # (n_hits,) first sample of each segment in the record
     sample_rate_hz: float
+    n_impacts: np.ndarray      # (n_hits,) impacts in each hit (odsplat.spine.impulse): 2 or more, a double hit
 
 
 def split_hits(force: ArrayLike, responses: ArrayLike, sample_rate_hz: float, pretrigger_s: float,
-               length_s: float, min_gap_s: float | None = None, threshold_ratio: float = 0.1) -> HitSegments:
+               length_s: float, min_gap_s: float | None = None, impacts: ImpactSettings | None = None) -> HitSegments:
     """Find every impact in a continuous record (force (n,), responses (n_outputs, n) or (n,)) and cut
-    `length_s` from `pretrigger_s` before each onset. An impact is a rise above `threshold_ratio` of the
-    largest peak (and 10 noise sigmas); rises within `min_gap_s` (default `length_s`) of the last hit's
-    onset belong to that hit, so a double hit stays in one segment for check_frf_hit to find. Hits whose
-    segment would run off either end of the record are skipped (and logged)."""
+    `length_s` from `pretrigger_s` before each hit's onset. The impacts and onsets are every stage's
+    (`odsplat.spine.impulse.ImpactDetector` with `impacts`, default `ImpactSettings()`; the largest peak is the
+    record's). Impacts within `min_gap_s` (default `length_s`) of the last hit's onset belong to that hit (its
+    `n_impacts`), so a double hit stays in one segment for check_frf_hit to find. Hits whose segment would run
+    off either end of the record are skipped (and logged)."""
     f = _as_finite(force, "split_hits: force", ndim=1)
     x = _as_finite(responses, "split_hits: responses")
     x = x[None] if x.ndim == 1 else x
@@ -415,37 +364,34 @@ def split_hits(force: ArrayLike, responses: ArrayLike, sample_rate_hz: float, pr
     fs = _check_positive("split_hits: sample_rate_hz", sample_rate_hz)
     n_pre = int(round(_check_positive("split_hits: pretrigger_s", pretrigger_s, allow_zero=True) * fs))
     n_len = int(round(_check_positive("split_hits: length_s", length_s) * fs))
-    if not 0 < threshold_ratio < 1:
-        raise InputError("split_hits: threshold_ratio", f"expected 0 < ratio < 1; got {threshold_ratio}")
     if n_len <= n_pre:
         raise InputError("split_hits: length_s", f"expected longer than the pretrigger ({pretrigger_s:g} s)")
     gap = n_len if min_gap_s is None else int(round(_check_positive("split_hits: min_gap_s", min_gap_s) * fs))
-    # Over a long record the force is mostly quiet: its median and MAD are the baseline and noise.
-    med, sigma = _median_mad(f)
-    g = f - med
-    level = max(threshold_ratio * float(g.max()), 10.0 * sigma)
-    rises = np.flatnonzero((g[1:] > level) & (g[:-1] <= level)) + 1
-    onsets: list[float] = []
-    for i in rises:
-        if not onsets or i - onsets[-1] >= gap:
-            below = np.flatnonzero(g[i:] <= level)
-            onsets.append(_onset(g, int(i), int(i + below[0]) if below.size else g.size, fs))
-    if not onsets:
-        raise InputError("split_hits: force", f"no impact found (largest force {g.max():.3g} N over the baseline, "
-                         f"noise sigma {sigma:.3g} N)")
-    starts = []
-    for onset in onsets:
+    found = ImpactDetector(impacts or ImpactSettings()).detect(f, fs, source="split_hits: force")
+    if not found.n:
+        raise InputError("split_hits: force", f"no impact found (largest force {found.peak_n:.3g} N over the "
+                         f"baseline, noise sigma {found.noise_n:.3g} N)")
+    hits: list[list[float]] = []   # each hit's impact onsets
+    for p in found.pulses:
+        if hits and p.onset_sample - hits[-1][0] < gap:
+            hits[-1].append(p.onset_sample)
+        else:
+            hits.append([p.onset_sample])
+    starts, counts = [], []
+    for hit in hits:
+        onset = hit[0]
         start = int(round(onset)) - n_pre
         if start < 0 or start + n_len > f.size:
             log.warning("split_hits: skipped the hit at %.4f s: its segment (%d samples from %d) runs off the "
                         "record of %d samples", onset / fs, n_len, start, f.size)
         else:
             starts.append(start)
+            counts.append(len(hit))
     if not starts:
-        raise InputError("split_hits: length_s", f"found {len(onsets)} hit(s), but none has {pretrigger_s:g} s "
+        raise InputError("split_hits: length_s", f"found {len(hits)} hit(s), but none has {pretrigger_s:g} s "
                          f"before and {length_s - pretrigger_s:g} s after its onset inside the record")
     idx = np.asarray(starts)[:, None] + np.arange(n_len)
-    return HitSegments(f[idx], np.moveaxis(x[:, idx], 0, 1), np.asarray(starts), fs)
+    return HitSegments(f[idx], np.moveaxis(x[:, idx], 0, 1), np.asarray(starts), fs, np.asarray(counts))
 
 
 # ------------------------------------------------------------------------------------------- helpers
@@ -462,12 +408,6 @@ def _as_finite(a: ArrayLike, source: str, ndim: int | None = None) -> np.ndarray
     if not np.all(np.isfinite(arr)):
         raise InputError(source, f"{int(np.sum(~np.isfinite(arr)))} non-finite values (NaN or inf)")
     return arr
-
-
-def _median_mad(a: np.ndarray) -> tuple[float, float]:
-    """Median and the MAD scaled to a Gaussian sigma: baseline and noise, blind to a few outliers."""
-    med = float(np.median(a))
-    return med, 1.4826 * float(np.median(np.abs(a - med)))
 
 
 def _check_positive(source: str, value: float, allow_zero: bool = False) -> float:

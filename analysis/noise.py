@@ -75,18 +75,6 @@ class NoiseFloor:
         """(R, N) the amplitude each mode needs at each surface point, from the fit's per-mode gains."""
         return FLOOR_SIGMAS * np.outer(design_gain, self.point_sigma_m)
 
-    def summary(self, freq_hz: np.ndarray) -> dict:
-        fin = lambda v: float(v) if np.isfinite(v) else None  # noqa: E731  (JSON has no NaN)
-        return {"sigma_um": 1e6 * self.sigma_m, "static_sigma_um": fin(1e6 * self.static_sigma_m),
-                "n_static_points": self.n_static, "pre_impact_sigma_um": fin(1e6 * self.pre_impact_sigma_m),
-                "n_pre_impact": self.n_pre_impact, "sensor_sigma_um": (1e6 * self.sensor_sigma_m).tolist(),
-                "point_sigma_um_p10_p90": [float(1e6 * np.percentile(self.point_sigma_m, q)) for q in (10, 90)],
-                "floor_sigmas": FLOOR_SIGMAS, "floor_mac": FLOOR_MAC,
-                "modes": [{"freq_hz": float(f), "amplitude_um": float(1e6 * a), "floor_um": float(1e6 * fl),
-                           "spectrum_gain": float(g), "below_floor": bool(a < fl)}
-                          for f, a, fl, g in zip(freq_hz, self.mode_amplitude_m, self.mode_floor_m,
-                                                 self.spectrum_gain)]}
-
 
 def _dof_rms(resid: np.ndarray, n_params: int) -> np.ndarray:
     """Per column, the residual's rms with the fitted parameters' degrees of freedom given back."""
@@ -153,11 +141,6 @@ class RealModes:
         ph = np.exp(1j * self.phase_rad[self.real])[:, None]
         a[self.real] = ph * np.real(a[self.real] / ph)
         return a
-
-    def summary(self, freq_hz: np.ndarray) -> list[dict]:
-        return [{"freq_hz": float(f), "mpc": float(m), "quadrature_over_noise": float(q), "lost": float(x),
-                 "real": bool(r)} for f, m, q, x, r in zip(freq_hz, self.mpc, self.quadrature_ratio, self.lost,
-                                                           self.real)]
 
 
 def real_modes(fit: DecayFit, times_s, channels: np.ndarray, channel_sigma_m: np.ndarray,

@@ -18,10 +18,10 @@ from .export import (
     MACRecord,
     ShapeRecord,
     StabilisationRecord,
-    write_results_h5,
-    write_uff,
 )
 from .plots import write_plots
+from .results_h5 import write_results_h5
+from .uff import write_uff
 
 if TYPE_CHECKING:
     from .result import AnalysisResult

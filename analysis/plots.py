@@ -12,8 +12,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
+from odsplat.spine.atomic import atomic_open
 from odsplat.spine.errors import InputError
-from odsplat.spine.store import atomic_open
 
 from .animate import ods_gif
 from .correlation import mac

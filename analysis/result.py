@@ -6,12 +6,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from odsplat.spine.contract import Provenance
+
 from .correlation import Correlation, mac
 from .crosscheck import ViewCheck
+from .document import (
+    AnalysisDocument,
+    CorrelationSection,
+    ImagePolesSection,
+    ModeEntry,
+    NoiseFloorSection,
+    NoiseModeEntry,
+    OdsEntry,
+    PairEntry,
+    RealModeEntry,
+    RejectedHit,
+    VideoSection,
+)
 from .ema import ModalFit
 from .frf import FRFResult
 from .imagepoles import ImagePoles
-from .noise import NoiseFloor, RealModes
+from .noise import FLOOR_MAC, FLOOR_SIGMAS, NoiseFloor, RealModes
+from .notes import Note
 from .verdict import Verdict
 
 
@@ -67,6 +83,73 @@ def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None   # JSON has no NaN
 
 
+def _floats(x) -> tuple[float, ...]:
+    return tuple(float(v) for v in np.ravel(x))
+
+
+def _noise_section(nf: NoiseFloor, freq_hz: np.ndarray) -> NoiseFloorSection:
+    """The video's noise floor in micrometres, with each fitted mode (at freq_hz) against it."""
+    return NoiseFloorSection(
+        sigma_um=float(1e6 * nf.sigma_m), static_sigma_um=_finite(1e6 * nf.static_sigma_m),
+        n_static_points=int(nf.n_static), pre_impact_sigma_um=_finite(1e6 * nf.pre_impact_sigma_m),
+        n_pre_impact=int(nf.n_pre_impact), sensor_sigma_um=_floats(1e6 * nf.sensor_sigma_m),
+        point_sigma_um_p10_p90=(float(1e6 * np.percentile(nf.point_sigma_m, 10)),
+                                float(1e6 * np.percentile(nf.point_sigma_m, 90))),
+        floor_sigmas=float(FLOOR_SIGMAS), floor_mac=float(FLOOR_MAC),
+        modes=tuple(NoiseModeEntry(float(f), float(1e6 * a), float(1e6 * fl), float(g), bool(a < fl))
+                    for f, a, fl, g in zip(freq_hz, nf.mode_amplitude_m, nf.mode_floor_m, nf.spectrum_gain)))
+
+
+def _video_section(result: AnalysisResult) -> VideoSection:
+    v = result.video
+    freq = result.modes.freq_hz[v.mode_index]
+    gains, corrs = [c.gain for c in v.crosscheck], [c.correlation for c in v.crosscheck]
+    return VideoSection(
+        modes_fitted=tuple(int(i) for i in v.mode_index), sensor_r2=_floats(v.sensor_r2),
+        condition=float(v.condition), freq_hz=_floats(v.freq_hz), damping=_floats(v.damping),
+        window_s=(float(v.times_s[0]), float(v.times_s[-1])), n_surface_points=int(len(v.surface_points_m)),
+        shapes_from=v.shapes_from, n_background_points=int(v.n_background), structure_rule=v.structure_rule,
+        background_rms_um=_finite(1e6 * v.background_rms_m),
+        background_amplitude_um=_finite(1e6 * v.background_amplitude_m),
+        background_amplitude_ratio=_finite(v.background_ratio),
+        background_amplitude_ratio_all=_finite(v.background_ratio_all),
+        n_background_reference_points=int(v.n_background_reference), crosscheck=tuple(v.crosscheck),
+        noise_floor=_noise_section(v.noise, freq) if v.noise is not None else None,
+        real_modes=tuple(RealModeEntry(float(f), float(m), float(q), float(x), bool(r)) for f, m, q, x, r in zip(
+            freq, v.real_modes.mpc, v.real_modes.quadrature_ratio, v.real_modes.lost, v.real_modes.real))
+        if v.real_modes is not None else None,
+        crosscheck_verdict=result.crosscheck_verdict,
+        crosscheck_gain_median=float(np.median(gains)) if gains else None,
+        crosscheck_correlation_median=float(np.median(corrs)) if corrs else None)
+
+
+def _image_section(im: ImagePoles) -> ImagePolesSection:
+    return ImagePolesSection(freq_hz=_floats(im.freq_hz), damping=_floats(im.damping), n_views=int(im.n_views),
+                             n_pixels=int(im.n_pixels), window_s=(float(im.window_s[0]), float(im.window_s[1])),
+                             component_snr=_floats(im.snr))
+
+
+def _correlation_section(result: AnalysisResult) -> CorrelationSection:
+    """The pairs (each against the video's noise floor where it has one: b indexes the video's fitted modes), the
+    CoMAC and the MAC verdict."""
+    c = result.correlation
+    nf = result.video.noise if result.video is not None else None
+    freqs = c.freq_a_hz is not None and c.freq_b_hz is not None
+    pairs = []
+    for k, (i, j) in enumerate(c.pairs):
+        p = PairEntry(a=int(i), b=int(j), mac=float(c.pair_mac[k]), scale_factor_abs=float(abs(c.scale_factor[k])),
+                      scale_factor_phase_deg=float(np.degrees(np.angle(c.scale_factor[k]))))
+        if freqs:
+            p = dataclasses.replace(p, freq_a_hz=_finite(c.freq_a_hz[k]), freq_b_hz=_finite(c.freq_b_hz[k]),
+                                    freq_diff_rel=_finite(c.freq_diff_rel[k]))
+        if nf is not None:
+            p = dataclasses.replace(p, video_amplitude_um=float(1e6 * nf.mode_amplitude_m[j]),
+                                    noise_floor_um=float(1e6 * nf.mode_floor_m[j]), below_noise_floor=bool(nf.below[j]),
+                                    expected_mac=float(nf.expected_mac[j]))
+        pairs.append(p)
+    return CorrelationSection(pairs=tuple(pairs), comac=_floats(c.comac), verdict=result.mac_verdict)
+
+
 @dataclass(frozen=True)
 class AnalysisResult:
     frf: FRFResult
@@ -82,70 +165,39 @@ class AnalysisResult:
     #                                    video's ODS at every surface point (video.surface_points_m), synthesised
     image: ImagePoles | None = None      # poles from the raw frames of every synced take
     files: dict[str, str] = field(default_factory=dict)
-    notes: tuple[str, ...] = ()          # what the numbers cannot show: peaks with no mode, a band that cuts one,
-    #                                      modes below the video's noise floor
+    findings: tuple[Note, ...] = ()      # what the numbers cannot show: peaks with no mode, a band that cuts one,
+    #                                      modes below the video's noise floor (`notes`: in words)
     mac_verdict: Verdict | None = None         # MAC target over the modes above the video's noise floor
     crosscheck_verdict: Verdict | None = None  # the 2D cross-check's gain and correlation against thresholds
     reference: Sensor | None = None      # the hammer (the force channel): the impact point and the force's direction
     #                                      on the structure where the capture records them (exports: node 100)
 
-    def summary(self) -> dict:
-        """The key numbers, as plain JSON values."""
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """The findings in words (analysis/notes.py)."""
+        return tuple(n.text for n in self.findings)
+
+    def document(self, provenance: Provenance, *, capture: str, created_utc: str, settings: dict,
+                 files: dict[str, str]) -> AnalysisDocument:
+        """The key numbers as analysis.json holds them, under `provenance`'s header; `capture` is the capture's
+        folder name, `settings` the analysis's as plain data, `files` what it wrote."""
         m = self.modes
-        out = {
-            "takes": list(self.takes), "n_averages": self.frf.n_averages,
-            "rejected_hits": [{"take": t, "reasons": list(h.reasons)} for t, h in zip(self.takes, self.frf.hits)
-                              if not h.accepted],
-            "sensors": [s.name for s in self.sensors],
-            "exp_tau_s": self.frf.exp_tau_s,
-            "modes": [{"freq_hz": float(f), "damping": float(z)} for f, z in zip(m.freq_hz, m.damping)],
-            "band_hz": [float(b) for b in m.band_hz],
-            "notes": list(self.notes),
-        }
-        if self.video is not None:
-            v = self.video
-            out["video"] = {"modes_fitted": [int(i) for i in v.mode_index], "sensor_r2": v.sensor_r2.tolist(),
-                            "condition": v.condition, "freq_hz": v.freq_hz.tolist(), "damping": v.damping.tolist(),
-                            "window_s": [float(v.times_s[0]), float(v.times_s[-1])],
-                            "n_surface_points": int(len(v.surface_points_m)), "shapes_from": v.shapes_from,
-                            "n_background_points": v.n_background, "structure_rule": v.structure_rule,
-                            "background_rms_um": _finite(1e6 * v.background_rms_m),
-                            "background_amplitude_um": _finite(1e6 * v.background_amplitude_m),
-                            "background_amplitude_ratio": _finite(v.background_ratio),
-                            "background_amplitude_ratio_all": _finite(v.background_ratio_all),
-                            "n_background_reference_points": v.n_background_reference,
-                            "crosscheck": [dataclasses.asdict(c) for c in v.crosscheck]}
-            if v.noise is not None:
-                out["video"]["noise_floor"] = v.noise.summary(m.freq_hz[v.mode_index])
-            if v.real_modes is not None:
-                out["video"]["real_modes"] = v.real_modes.summary(m.freq_hz[v.mode_index])
-            if self.crosscheck_verdict is not None:
-                out["video"]["crosscheck_verdict"] = self.crosscheck_verdict.summary()
-            if v.crosscheck:
-                out["video"]["crosscheck_gain_median"] = float(np.median([c.gain for c in v.crosscheck]))
-                out["video"]["crosscheck_correlation_median"] = float(np.median([c.correlation
-                                                                                 for c in v.crosscheck]))
-        if self.image is not None:
-            im = self.image
-            out["image_poles"] = {"freq_hz": im.freq_hz.tolist(), "damping": im.damping.tolist(),
-                                  "n_views": im.n_views, "n_pixels": im.n_pixels, "window_s": list(im.window_s),
-                                  "component_snr": im.snr.tolist()}
-        if self.correlation is not None:
-            pairs = self.correlation.summary()
-            if self.video is not None and self.video.noise is not None:
-                nf = self.video.noise
-                for p in pairs:      # paired as fitted: b indexes the video's modes
-                    b = p["b"]
-                    p.update(video_amplitude_um=float(1e6 * nf.mode_amplitude_m[b]),
-                             noise_floor_um=float(1e6 * nf.mode_floor_m[b]), below_noise_floor=bool(nf.below[b]),
-                             expected_mac=float(nf.expected_mac[b]))
-            out["correlation"] = {"pairs": pairs, "comac": self.correlation.comac.tolist()}
-            if self.mac_verdict is not None:
-                out["correlation"]["verdict"] = self.mac_verdict.summary()
-        if len(self.ods_freq_hz) and self.ods_video.size:
-            out["ods"] = [{"freq_hz": float(f), "mac": float(mac(a, b)[0, 0])}
-                          for f, a, b in zip(self.ods_freq_hz, self.ods_accel, self.ods_video)]
-        return out
+        return AnalysisDocument(
+            provenance=provenance, capture=capture, created_utc=created_utc, settings=settings,
+            takes=tuple(self.takes), n_averages=int(self.frf.n_averages),
+            rejected_hits=tuple(RejectedHit(t, tuple(h.reasons)) for t, h in zip(self.takes, self.frf.hits)
+                                if not h.accepted),
+            sensors=tuple(s.name for s in self.sensors),
+            exp_tau_s=None if self.frf.exp_tau_s is None else float(self.frf.exp_tau_s),
+            modes=tuple(ModeEntry(float(f), float(z)) for f, z in zip(m.freq_hz, m.damping)),
+            band_hz=(float(m.band_hz[0]), float(m.band_hz[1])), notes=self.notes,
+            video=_video_section(self) if self.video is not None else None,
+            image_poles=_image_section(self.image) if self.image is not None else None,
+            correlation=_correlation_section(self) if self.correlation is not None else None,
+            ods=tuple(OdsEntry(float(f), float(mac(a, b)[0, 0]))
+                      for f, a, b in zip(self.ods_freq_hz, self.ods_accel, self.ods_video))
+            if len(self.ods_freq_hz) and self.ods_video.size else (),
+            files=dict(files))
 
     def text(self) -> str:
         """A few lines for the terminal."""

@@ -63,7 +63,7 @@ from odsplat.processing.magnify import MagnifySettings, magnify_capture, parse_o
 from odsplat.reconstruction.dynamic import FitSettings  # noqa: E402
 from odsplat.reconstruction.linear import LinearSettings  # noqa: E402
 from odsplat.reconstruction.modal import ModalSettings  # noqa: E402
-from odsplat.reconstruction.model import ReconstructSettings, default_source, reconstruct  # noqa: E402
+from odsplat.reconstruction.model import MotionRecord, ReconstructSettings, default_source, reconstruct  # noqa: E402
 from odsplat.reconstruction.poses import estimate_poses  # noqa: E402
 from odsplat.reconstruction.views import select_frames  # noqa: E402
 from odsplat.spine.errors import InputError  # noqa: E402
@@ -105,13 +105,13 @@ def record_and_process(out: Path, args, figures: dict, perfect: bool) -> Capture
         settings=SimBenchSettings(camera=SimCameraConfig(fps=2000.0), seed=args.seed),
         rig=SimRig(config=RigConfig(seed=args.seed))))      # the rig's seed: its DAQ, hammer and camera noise
     cap = Capture.open(out)
-    synced = (cap.derived_dir / "sync.json").exists() and (cap.derived_dir / "sync").is_dir()
+    synced = cap.paths.sync_json.exists() and cap.paths.aligned_dir.is_dir()
     stage(figures, "sync", synced,
           lambda: sync_capture(cap, SyncSettings(), progress=False))     # frames too: the image poles need them
     if perfect:
         return cap
     if args.motion == "timestep":                 # the paper's order: magnify in 2D, then fit the magnified views
-        stage(figures, "magnify", (cap.derived_dir / "magnified" / "phase").exists(),
+        stage(figures, "magnify", cap.paths.magnified_dir("phase").exists(),
               lambda: magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha,
                                                            options=parse_options(args.magnify_option)),
                                       progress=False))
@@ -122,7 +122,7 @@ def record_and_process(out: Path, args, figures: dict, perfect: bool) -> Capture
                                    motion=args.motion, width_px=args.width, n_timesteps=n, step=args.step,
                                    threads=args.threads, fit=fit, linear=LinearSettings(progress=False),
                                    modal=ModalSettings(seed=args.seed, progress=False))
-    stage(figures, "reconstruct", (cap.derived_dir / "reconstruction" / "reconstruction.json").exists(),
+    stage(figures, "reconstruct", cap.paths.reconstruction_json.exists(),
           lambda: reconstruct(cap, settings))
     return cap
 
@@ -173,8 +173,8 @@ def write_perfect(cap: Capture, n: int, step: int, alpha: float) -> None:
     disp = np.einsum("prc,rt->tpc", ModalStructure().mode_shapes(points), q)
     dest = cap.paths.trajectories_npz
     dest.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(dest, times_s=times, means_rest_m=points, displacement_m=(alpha * disp).astype(np.float32),
-             opacity_logits=np.full(len(points), 4.0), source_alpha=alpha, perfect=True)
+    MotionRecord(times, points, (alpha * disp).astype(np.float32), np.full(len(points), 4.0), alpha,
+                 {"perfect": np.array(True)}).write(dest, cap.id)
 
 
 def lsce_video_poles(cap: Capture) -> tuple[np.ndarray, float]:
@@ -272,13 +272,29 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float,
     f_true, z_true = np.asarray(truth.freqs_hz, float), np.asarray(truth.dampings, float)
     if not np.allclose(st.freqs_hz, f_true):
         raise InputError("bench.analysis", f"the take's modes {f_true} are not the default structure's")
-    m = res.modes
     pos = np.stack([s.position_m for s in res.sensors])
     dirs = np.stack([s.direction for s in res.sensors])
     phi_s = np.einsum("src,sc->rs", st.mode_shapes(pos), dirs)                        # (R, S) true, at the sensors
+    figs, targets, baseline_s = _accelerometer_figures(res, f_true, z_true, phi_s, analysis_s)
+    cam_found = _image_figures(res, f_true, z_true, figs, baseline_s)
+    v = res.video
+    if v is None:
+        if cam_found:
+            targets["freq_within_1pct_video"] = bool(max(cam_found.values()) <= FREQ_TOL)
+            figs["video_modes_found"] = len(cam_found)
+        figs.update(video=None, targets=targets, baseline_s=baseline_s)
+        return figs
+    _video_figures(res, st, f_true, phi_s, pos, q_video, video_lsce, analysis_s, figs, baseline_s, cam_found,
+                   targets)
+    return figs
+
+def _accelerometer_figures(res: AnalysisResult, f_true: np.ndarray, z_true: np.ndarray, phi_s: np.ndarray,
+                           analysis_s: float) -> tuple[dict, dict, dict]:
+    """(a) the accelerometers' modes against the truth, and peak picking on the same FRFs: the figures, the
+    targets (the video's to be filled in) and the baselines' times."""
+    m = res.modes
     lo, hi = m.band_hz
     in_band = (f_true >= lo) & (f_true <= hi)
-    # (a) the accelerometers, and peak picking on the same FRFs
     t = time.perf_counter()
     pp_f, pp_z = peak_picking(res, int(in_band.sum()))
     pp_s = time.perf_counter() - t
@@ -311,9 +327,15 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float,
     figs["ratios"]["time_vs_peak_picking"] = analysis_s / pp_s
     targets = {"freq_within_1pct_accel": not missed and max_err is not None and max_err <= FREQ_TOL,
                "freq_within_1pct_video": None, "mac_ge_0.9": None}
-    # (b) the camera's own poles from the raw frames of every take (no reconstruction)
+    return figs, targets, dict(peak_picking=pp_s)
+
+
+def _image_figures(res: AnalysisResult, f_true: np.ndarray, z_true: np.ndarray, figs: dict,
+                   baseline_s: dict) -> dict[float, float]:
+    """(b) the camera's own poles from the raw frames of every take (no reconstruction), into figs; the true
+    modes they found with their relative frequency errors."""
     cam_found: dict[float, float] = {}
-    baseline_s = dict(peak_picking=pp_s)
+    hi = res.modes.band_hz[1]
     im = res.image
     if im is not None:
         ii = match(f_true, im.freq_hz)
@@ -332,14 +354,15 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float,
         figs["image_poles"]["lsce_baseline"] = found(f_true, f1)
         cam_found.update({float(f_true[r]): abs(rel(im.freq_hz[ii[r]], f_true[r])) for r in range(len(f_true))
                           if ii[r] >= 0})
-    v = res.video
-    if v is None:
-        if cam_found:
-            targets["freq_within_1pct_video"] = bool(max(cam_found.values()) <= FREQ_TOL)
-            figs["video_modes_found"] = len(cam_found)
-        figs.update(video=None, targets=targets, baseline_s=baseline_s)
-        return figs
-    # (c) the reconstruction: its own poles, its residues at the sensors and over the surface, and the DFT ODS
+    return cam_found
+
+
+def _video_figures(res: AnalysisResult, st: ModalStructure, f_true: np.ndarray, phi_s: np.ndarray, pos: np.ndarray,
+                   q_video, video_lsce, analysis_s: float, figs: dict, baseline_s: dict, cam_found: dict[float, float],
+                   targets: dict) -> None:
+    """(c) the reconstruction: its own poles, its residues at the sensors and over the surface, and the DFT ODS,
+    into figs and targets."""
+    m, v = res.modes, res.video
     iv = match(f_true, v.freq_hz)
     pts = face_points(200, seed=1, hidden=False)
     phi_p = st.mode_shapes(pts)                                                          # (P, R, 3)
@@ -396,8 +419,6 @@ def evaluate(res: AnalysisResult, truth: TakeTruth, q_video, analysis_s: float,
     judged = np.array([not x["below_noise_floor"] for x in rows], bool)
     targets["mac_ge_0.9"] = bool(np.all(macs[judged] >= MIN_MAC)) if judged.any() else None
     figs.update(targets=targets, baseline_s={**baseline_s, "dft": dft_s})
-    return figs
-
 
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -448,9 +469,7 @@ def run_seed(args, out: Path) -> dict:
     traj = cap.paths.trajectories_npz
     asides = {p: p.with_name(p.name + ".bench-aside") for p in (traj, cap.paths.measured_motion_npz)}
     if args.perfect and traj.exists():
-        with np.load(traj) as z:
-            real = "perfect" not in z.files
-        if real:                                          # a real reconstruction: put back afterwards
+        if "perfect" not in MotionRecord.read(traj, cap.id).extra:    # a real reconstruction: put back afterwards
             for p, aside in asides.items():
                 if p.exists():
                     os.replace(p, aside)

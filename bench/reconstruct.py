@@ -61,7 +61,9 @@ from odsplat.processing.metrics import psnr, ssim  # noqa: E402
 from odsplat.reconstruction.dynamic import FitSettings  # noqa: E402
 from odsplat.reconstruction.modal import ModalSettings  # noqa: E402
 from odsplat.reconstruction.model import ReconstructSettings, pose_camera, train  # noqa: E402
-from odsplat.reconstruction.poses import PoseResult, compare_poses, estimate_poses  # noqa: E402
+from odsplat.reconstruction.pose_result import PoseResult  # noqa: E402
+from odsplat.reconstruction.poses import estimate_poses  # noqa: E402
+from odsplat.reconstruction.sim3 import compare_poses  # noqa: E402
 from odsplat.reconstruction.views import load_views  # noqa: E402
 from odsplat.spine.store import Capture  # noqa: E402
 from odsplat.sync import SyncSettings, sync_capture  # noqa: E402
@@ -284,14 +286,14 @@ def run_seed(args, out: Path) -> dict:
     figures: dict = {"record_s": time.perf_counter() - t}
     cap = Capture.open(out)
     t = time.perf_counter()
-    if not (cap.derived_dir / "sync.json").exists():
+    if not cap.paths.sync_json.exists():
         sync_capture(cap, SyncSettings())
-    if not (cap.derived_dir / "magnified" / "phase").exists():
+    if not cap.paths.magnified_dir("phase").exists():
         magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha,
                                              options=parse_options(args.magnify_option)), progress=False)
     figures["sync_magnify_s"] = time.perf_counter() - t
     t = time.perf_counter()
-    if (cap.derived_dir / "poses.json").exists():
+    if cap.paths.poses_json.exists():
         poses = PoseResult.read(cap)
     else:
         poses = estimate_poses(cap)

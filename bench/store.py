@@ -23,7 +23,8 @@ import numpy as np
 import pyMRAW
 
 from odsplat.spine.manifest import CameraInfo, Manifest
-from odsplat.spine.store import Capture, TakeReader
+from odsplat.spine.store import Capture
+from odsplat.spine.take_reader import TakeReader
 
 log = logging.getLogger("bench.store")
 

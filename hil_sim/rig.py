@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from odsplat.acquisition import CANNode, DAQChannel
+from odsplat.spine.atomic import atomic_open
 from odsplat.spine.errors import InputError, OdsplatError
 from odsplat.spine.manifest import CameraInfo, Intrinsics
-from odsplat.spine.store import atomic_open
 
 from .camera import SimCamera, SimCameraConfig
 from .daq import register_source

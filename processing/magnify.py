@@ -15,7 +15,7 @@ import os
 import time
 from collections import deque
 from collections.abc import Iterator
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import Executor
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from odsplat.spine.atomic import atomic_write_text
 from odsplat.spine.checks import (
     BLUR_PX,
     CHUNK_FRAMES,
@@ -55,7 +56,8 @@ from odsplat.spine.framefile import (
 )
 from odsplat.spine.manifest import load_json, utc_now
 from odsplat.spine.mp4 import Mp4Writer, display_range, to_8bit
-from odsplat.spine.store import Capture, atomic_write_text
+from odsplat.spine.pool import process_pool
+from odsplat.spine.store import Capture
 from odsplat.sync import AlignedTake, load_sync
 
 from .base import Magnifier
@@ -465,7 +467,7 @@ def magnify_capture(capture: Capture, settings: MagnifySettings, *, progress: bo
                 result.takes.append(magnify_take(*a))
                 bar.update()
         else:
-            with nullcontext(executor) if executor is not None else ProcessPoolExecutor(workers) as pool:
+            with nullcontext(executor) if executor is not None else process_pool(workers) as pool:
                 for done in pool.map(magnify_take, *zip(*args)):
                     result.takes.append(done)
                     bar.update()

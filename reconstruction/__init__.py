@@ -21,7 +21,9 @@ from .model import (
     render_sequence,
     train,
 )
-from .poses import PoseResult, PoseSettings, estimate_poses, run_poses
+from .pose_result import PoseResult, PoseSettings
+from .poses import estimate_poses, run_poses
+from .quaternion import quat_from_rotvec, quat_multiply  # noqa: F401  (exported: the viewer turns Gaussians)
 from .raster import RasterOutput, gsplat_available, rasterize, rasterize_image, rasterize_reference
 from .views import Camera, SceneFrame, TrainView, ViewSet, load_views
 

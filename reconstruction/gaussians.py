@@ -16,9 +16,9 @@ import torch
 from plyfile import PlyData, PlyElement, PlyParseError
 from scipy.spatial import cKDTree
 
+from odsplat.spine.atomic import atomic_path
 from odsplat.spine.contract import CAPTURE_KEY, check_capture
 from odsplat.spine.errors import InputError, SchemaError
-from odsplat.spine.store import atomic_path
 
 SH_C0 = 0.28209479177387814  # the degree-0 spherical-harmonic constant: colour = 0.5 + SH_C0 * f_dc
 _FIELDS = ("means", "quats", "log_scales", "opacity_logits", "color_logits")

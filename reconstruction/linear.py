@@ -261,68 +261,13 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
     views: list[ViewRows] = []
     generation = source_generation(capture, "sync")
     for v, cam in tqdm(list(zip(vs.views, cameras)), desc="linear motion", unit="view", disable=not s.progress):
-        path = source_path(capture, "sync", v.name)
-        with SourceFrames(path, generation, capture.id) as ff:
-            times = ff.times_s
-            if frames.max() >= len(times) or not np.allclose(times[frames], vs.times_s, atol=1e-9):
-                raise InputError(path, "times_s differ from the training grid's")
-            full = 2.0 ** int(ff.attrs["bit_depth"]) - 1
-
-            def read(a, b, ff=ff, full=full):
-                """Frames a..b as grey levels in [0, 1] (colour: the mean of the channels)."""
-                x = np.asarray(ff.read_frames(a, b), np.float64).reshape(b - a, *ff.frame_shape[:2], -1)
-                return x.mean(axis=-1) / full
-
-            before = times < 0
-            if not before.any():
-                raise InputError(path, "no frame before the impact to take the rest image from")
-            h, w = (int(n) for n in ff.frame_shape[:2])
-            if (h, w) != (cam.height_px, cam.width_px):
-                raise InputError(path, f"frames are {w}x{h} px, the pose says {cam.width_px}x{cam.height_px}")
-            # One pass over every frame: the rest image (the mean of those before the impact), the mean of all (the
-            # appearance at rest with the noise of one frame / sqrt(T)) and a few frame-to-frame differences.
-            total, rest, diffs, prev = np.zeros((h, w)), np.zeros((h, w)), [], None
-            for a in range(0, len(times), s.chunk_frames):
-                b = min(a + s.chunk_frames, len(times))
-                chunk = read(a, b)
-                total += chunk.sum(axis=0)
-                rest += chunk[before[a:b]].sum(axis=0)
-                for f in chunk:
-                    if prev is not None and len(diffs) < 16:
-                        diffs.append(smooth(f - prev))
-                    prev = f
-            rest /= before.sum()
-            mean_img = total / len(times)
-            gx = blur(_filter(mean_img, DERIVATIVE, PREFILTER))
-            gy = blur(_filter(mean_img, PREFILTER, DERIVATIVE))
-            with torch.no_grad():
-                out = render(g0, cam.in_scene(scene), background=bg)
-            alpha = out.alpha.double().numpy()
-            z = out.depth.double().numpy() / np.maximum(alpha, 1e-9) * scene.radius
-            use = alpha >= s.min_alpha
-            # Away from depth edges (a step of more than 1.5 node spacings between neighbouring pixels, or the
-            # uncovered background) by the filters' reach: there the image moves with one side only.
-            zf = np.where(use, z, 0.0)
-            step = np.maximum(np.abs(np.diff(zf, axis=0, append=zf[-1:])),
-                              np.abs(np.diff(zf, axis=1, append=zf[:, -1:])))
-            use &= maximum_filter(step, size=2 * EDGE_MARGIN_PX + 1) < 1.5 * spacing
-            energy = gx**2 + gy**2
-            if use.any():
-                use &= energy > np.quantile(energy[use], s.gradient_quantile)
-            vv, uu = np.nonzero(use)
-            if len(vv) < 16:
-                log.warning("%s: %d usable pixels; left out of the linear motion", v.name, len(vv))
-                continue
-            # Noise of one frame after the filters, from frame-to-frame differences (the motion is far smaller).
-            noise = float(1.4826 * np.median(np.abs(np.stack(diffs)[:, vv, uu])) / np.sqrt(2)) if diffs else 1.0
-            X, a = _projection_rows(cam, uu, vv, z[vv, uu], gx[vv, uu], gy[vv, uu])
-            A = graph.rows(X, a / noise)
-            ata = ata + (A.T @ A).tocsr()
-            for a0 in range(0, len(frames), s.chunk_frames):
-                idx = frames[a0:a0 + s.chunk_frames]
-                d = np.stack([smooth(read(int(k), int(k) + 1)[0] - rest)[vv, uu] for k in idx], axis=1)
-                rhs[:, a0:a0 + len(idx)] += A.T @ (d / noise)
-        views.append(ViewRows(v.name, int(len(vv)), noise))
+        rows = _view_rows(capture, generation, v.name, cam, vs, g0, bg, graph, spacing, s, blur, smooth)
+        if rows is None:
+            continue
+        A, row, d_rhs = rows
+        ata = ata + (A.T @ A).tocsr()
+        rhs += d_rhs
+        views.append(row)
     if not views:
         raise InputError(capture.paths.aligned_dir, "no view has pixels the rest Gaussians cover with texture")
     prior = graph.prior(s.k_graph)
@@ -347,6 +292,76 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
     log.info("linear motion: %d views, %d pixels, %d timesteps, %d temporal components, in %.1f s", len(views),
              stats["n_pixels"], len(frames), basis.shape[1], seconds)
     return modal, stats, measured
+
+
+def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: ViewSet, g0: Gaussians,
+               bg: torch.Tensor, graph: NodeGraph, spacing: float, s: LinearSettings, blur, smooth):
+    """One view's rows of the normal equations: its usable pixels' brightness-constancy rows `A` (noise-weighted),
+    the view's figures, and its share of the right-hand side, A^T d / noise at every timestep; None when too few
+    pixels are usable."""
+    frames = np.asarray(vs.frame_index)
+    path = source_path(capture, "sync", name)
+    with SourceFrames(path, generation, capture.id) as ff:
+        times = ff.times_s
+        if frames.max() >= len(times) or not np.allclose(times[frames], vs.times_s, atol=1e-9):
+            raise InputError(path, "times_s differ from the training grid's")
+        full = 2.0 ** int(ff.attrs["bit_depth"]) - 1
+
+        def read(a, b, ff=ff, full=full):
+            """Frames a..b as grey levels in [0, 1] (colour: the mean of the channels)."""
+            x = np.asarray(ff.read_frames(a, b), np.float64).reshape(b - a, *ff.frame_shape[:2], -1)
+            return x.mean(axis=-1) / full
+
+        before = times < 0
+        if not before.any():
+            raise InputError(path, "no frame before the impact to take the rest image from")
+        h, w = (int(n) for n in ff.frame_shape[:2])
+        if (h, w) != (cam.height_px, cam.width_px):
+            raise InputError(path, f"frames are {w}x{h} px, the pose says {cam.width_px}x{cam.height_px}")
+        # One pass over every frame: the rest image (the mean of those before the impact), the mean of all (the
+        # appearance at rest with the noise of one frame / sqrt(T)) and a few frame-to-frame differences.
+        total, rest, diffs, prev = np.zeros((h, w)), np.zeros((h, w)), [], None
+        for a in range(0, len(times), s.chunk_frames):
+            b = min(a + s.chunk_frames, len(times))
+            chunk = read(a, b)
+            total += chunk.sum(axis=0)
+            rest += chunk[before[a:b]].sum(axis=0)
+            for f in chunk:
+                if prev is not None and len(diffs) < 16:
+                    diffs.append(smooth(f - prev))
+                prev = f
+        rest /= before.sum()
+        mean_img = total / len(times)
+        gx = blur(_filter(mean_img, DERIVATIVE, PREFILTER))
+        gy = blur(_filter(mean_img, PREFILTER, DERIVATIVE))
+        with torch.no_grad():
+            out = render(g0, cam.in_scene(vs.scene), background=bg)
+        alpha = out.alpha.double().numpy()
+        z = out.depth.double().numpy() / np.maximum(alpha, 1e-9) * vs.scene.radius
+        use = alpha >= s.min_alpha
+        # Away from depth edges (a step of more than 1.5 node spacings between neighbouring pixels, or the
+        # uncovered background) by the filters' reach: there the image moves with one side only.
+        zf = np.where(use, z, 0.0)
+        step = np.maximum(np.abs(np.diff(zf, axis=0, append=zf[-1:])),
+                          np.abs(np.diff(zf, axis=1, append=zf[:, -1:])))
+        use &= maximum_filter(step, size=2 * EDGE_MARGIN_PX + 1) < 1.5 * spacing
+        energy = gx**2 + gy**2
+        if use.any():
+            use &= energy > np.quantile(energy[use], s.gradient_quantile)
+        vv, uu = np.nonzero(use)
+        if len(vv) < 16:
+            log.warning("%s: %d usable pixels; left out of the linear motion", name, len(vv))
+            return None
+        # Noise of one frame after the filters, from frame-to-frame differences (the motion is far smaller).
+        noise = float(1.4826 * np.median(np.abs(np.stack(diffs)[:, vv, uu])) / np.sqrt(2)) if diffs else 1.0
+        X, a = _projection_rows(cam, uu, vv, z[vv, uu], gx[vv, uu], gy[vv, uu])
+        A = graph.rows(X, a / noise)
+        rhs = np.zeros((A.shape[1], len(frames)))
+        for a0 in range(0, len(frames), s.chunk_frames):
+            idx = frames[a0:a0 + s.chunk_frames]
+            d = np.stack([smooth(read(int(k), int(k) + 1)[0] - rest)[vv, uu] for k in idx], axis=1)
+            rhs[:, a0:a0 + len(idx)] += A.T @ (d / noise)
+    return A, ViewRows(name, int(len(vv)), noise), rhs
 
 
 def _temporal_basis(rhs: np.ndarray, solution: np.ndarray, at_rest: np.ndarray, s: LinearSettings

@@ -1,6 +1,7 @@
 """Reconstruct a capture: posed views -> Gaussians at rest -> per-timestep motion; the saved model and its renders.
 
-Output in `derived/reconstruction/`:
+Output in `derived/reconstruction/`, every path from `Capture.paths` (odsplat.spine.paths, the one place that names
+them):
 - `gaussians_t0.ply`: the rest state in the INRIA layout (world frame, metres), for standard splat viewers;
 - `trajectories.npz`: everything needed to render any time (see `DynamicScene`), world frame, metres;
 - `measured_motion.npz` (the linear motion model only): the node graph's motion with every temporal component
@@ -13,12 +14,14 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from odsplat.spine.atomic import atomic_path, atomic_write_text
 from odsplat.spine.checks import (
     FRAME_INDEX,
     MAX_FRAMES,
@@ -35,13 +38,14 @@ from odsplat.spine.errors import InputError
 from odsplat.spine.geometry import look_at
 from odsplat.spine.manifest import load_json, utc_now
 from odsplat.spine.mp4 import write_mp4
-from odsplat.spine.store import Capture, atomic_path, atomic_write_text
+from odsplat.spine.paths import DerivedPaths
+from odsplat.spine.store import Capture
 
 from .dynamic import FitSettings, Trajectory, fit_dynamic, fit_static, render
 from .gaussians import Gaussians, save_ply
 from .linear import LinearSettings, NodeMotion, fit_linear
 from .modal import ModalMotion, ModalSettings, fit_modal
-from .poses import PoseResult
+from .pose_result import PoseResult
 from .quaternion import quat_conjugate, quat_from_rotvec, quat_multiply, quat_normalize, quat_to_rotvec
 from .views import Camera, SceneFrame, ViewSet, load_views, pose_camera
 
@@ -49,8 +53,6 @@ log = logging.getLogger(__name__)
 
 KIND = "odsplat.reconstruction"
 SCHEMA = 2
-MEASURED = "measured_motion.npz"      # names inside capture.paths.reconstruction_dir (or a bench's folder)
-TRAJECTORIES = "trajectories.npz"
 MOTIONS = ("modal", "timestep", "linear")
 # The timesteps when n_timesteps is not given. The linear model fits the whole record in one solve (the analysis
 # needs cycles of the lowest mode: on the demo, 32 ms of 23.5 Hz read its scale 0.75 and the video's own poles 1 of
@@ -325,10 +327,19 @@ def modal_quats(basis, rot_shapes_rad, quats_rest, chunk: int = 16) -> np.ndarra
     return out.numpy()
 
 
-def save_measured(dest: Path, times_s: np.ndarray, measured: NodeMotion | None, capture_id: str | None = None) -> None:
+def _file(dest: DerivedPaths | Path, pick: Callable[[DerivedPaths], Path]) -> Path:
+    """The reconstruction file `pick` names in `Capture.paths`: in a capture's derived/reconstruction/ (`dest` its
+    `capture.paths`), or under the same name in a folder of its own (`dest` a folder: a test's, a bench's)."""
+    if isinstance(dest, DerivedPaths):
+        return pick(dest)
+    return Path(dest) / pick(DerivedPaths(Path(dest))).name
+
+
+def save_measured(dest: DerivedPaths | Path, times_s: np.ndarray, measured: NodeMotion | None,
+                  capture_id: str | None = None) -> None:
     """`measured_motion.npz` from the linear solve (recording `capture_id`), or none: a stale one from an earlier
-    linear run goes, so that the analysis never pairs it with another model."""
-    path = dest / MEASURED
+    linear run goes, so that the analysis never pairs it with another model. `dest`: as `DynamicScene.save`."""
+    path = _file(dest, lambda p: p.measured_motion_npz)
     if measured is None:
         path.unlink(missing_ok=True)
         return
@@ -347,11 +358,11 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
     bg = m.background
     psnr0 = _psnr(m.g0, vs.views, 0, background=bg)
     psnr_last = _psnr(m.g0, vs.views, last, m.trajectory.means[last], m.trajectory.quats[last], bg)
-    dest = capture.paths.reconstruction_dir
-    m.scene().save(dest, capture.id)
-    save_measured(dest, vs.times_s, m.measured, capture.id)
-    result = ReconstructResult(dest, len(m.g0), len(vs.views), len(vs.static), vs.n_timesteps, m.stats_t0["seconds"],
-                               m.seconds_dynamic, psnr0, psnr_last, vs.notes + [f"initialised from {m.init} points"])
+    m.scene().save(capture.paths, capture.id)
+    save_measured(capture.paths, vs.times_s, m.measured, capture.id)
+    result = ReconstructResult(capture.paths.reconstruction_dir, len(m.g0), len(vs.views), len(vs.static),
+                               vs.n_timesteps, m.stats_t0["seconds"], m.seconds_dynamic, psnr0, psnr_last,
+                               vs.notes + [f"initialised from {m.init} points"])
     report = dict(**describe(capture.id, KIND, SCHEMA, s).header(), created_utc=utc_now(), settings=plain(s),
                   views=[v.name for v in vs.views], static=[v.name for v in vs.static], holdout=list(s.holdout),
                   frame_index=vs.frame_index.tolist(), times_s=vs.times_s.tolist(), source_alpha=vs.source_alpha,
@@ -459,13 +470,15 @@ class DynamicScene:
         return cls(np.asarray(vs.times_s, float), np.asarray(vs.frame_index), sc.to_world(means[0]), disp, quats,
                    rest, sc, vs.bit_depth, background.double().numpy(), float(vs.source_alpha), **extra)
 
-    def save(self, dest: Path, capture_id: str | None = None) -> None:
+    def save(self, dest: DerivedPaths | Path, capture_id: str | None = None) -> None:
         """The rest state as `gaussians_t0.ply` and the whole motion as `trajectories.npz`, world frame (metres),
-        each recording `capture_id` (the capture's) where given."""
-        dest.mkdir(parents=True, exist_ok=True)
+        each recording `capture_id` (the capture's) where given. `dest`: a capture's `capture.paths` (its
+        derived/reconstruction/), or a folder of its own, where the files take the same names."""
+        ply, npz = _file(dest, lambda p: p.gaussians_ply), _file(dest, lambda p: p.trajectories_npz)
+        DerivedPaths.ensure(npz.parent)
         sc = self.scene
         world = self.rest.transformed(sc.radius, sc.center)
-        save_ply(world, dest / "gaussians_t0.ply", capture_id=capture_id)
+        save_ply(world, ply, capture_id=capture_id)
         # a modal model's orientations follow from its rest state and basis, as its displacement does
         modal = dict(quats=self.quats.astype(np.float32)) if self.basis is None else dict(
             basis=self.basis, shapes_m=self.shapes_m, rot_shapes_rad=self.rot_shapes_rad, quats_rest=self.quats[0])
@@ -474,7 +487,7 @@ class DynamicScene:
                     color_logits=self.rest.color_logits.double().numpy(), scene_center_m=sc.center,
                     scene_radius_m=sc.radius, bit_depth=self.bit_depth, background=self.background, **modal)
         MotionRecord(self.times_s, self.means_rest_m, self.displacement_m, self.rest.opacity_logits.double().numpy(),
-                     self.source_alpha, rest).write(dest / TRAJECTORIES, capture_id)
+                     self.source_alpha, rest).write(npz, capture_id)
 
     def physical_displacement_m(self) -> np.ndarray:
         """(T, N, 3) displacement of every Gaussian in metres, the frames' magnification divided out."""

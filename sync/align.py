@@ -15,7 +15,7 @@ import logging
 import math
 import os
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import Executor
 from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -24,14 +24,17 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from odsplat.spine.checks import MAX_FORCE_N, WORKERS, Range, check_choice, check_fields, maybe
+from odsplat.spine.atomic import atomic_write_text
+from odsplat.spine.checks import WORKERS, Range, check_choice, check_fields, maybe
 from odsplat.spine.contract import check, describe
 from odsplat.spine.errors import InputError, OdsplatError
 from odsplat.spine.framefile import begin_outputs, discard_outputs, prune_outputs
-from odsplat.spine.impulse import find_impacts, fit_pulse
+from odsplat.spine.impulse import ImpactDetector, ImpactSettings
 from odsplat.spine.manifest import CameraInfo, TagLayout, load_json, utc_now
-from odsplat.spine.store import TAKE_SELECTIONS, Capture, TakeReader, atomic_write_text
+from odsplat.spine.pool import process_pool
+from odsplat.spine.store import TAKE_SELECTIONS, Capture
 from odsplat.spine.tags import detect_tags
+from odsplat.spine.take_reader import TakeReader
 
 from .aligned import write_aligned
 from .image import DisplacementBasis, fit_frame_times, motion_gram, noise_sd
@@ -55,8 +58,8 @@ class SyncSettings:
     check_with_image: bool = True         # strobe-timed takes: date them from the images too, as a check
     camera_trigger_delay_s: float = 0.0   # from the DAQ's trigger to the camera latching it
     search_frames: float = 1.5            # image method: how far around the trigger frame to look
-    double_hit_fraction: float = 0.05     # a second pulse counts when it stands this much of the peak above its dip
-    min_peak_n: float = 5.0               # smaller force peaks are noise, not a hit
+    # What an impact is (every stage's rule, odsplat.spine.impulse); a peak under 5 N is noise, not a hit.
+    impacts: ImpactSettings = field(default_factory=lambda: ImpactSettings(min_peak_n=5.0))
     max_memory_mb: float = 256.0          # working memory per take (pixels kept, rows per band)
     plot: bool = True                     # derived/sync.png
     workers: int | None = None            # processes aligning the takes' frames; None: one per core, at most one
@@ -69,8 +72,6 @@ class SyncSettings:
         # 100 frames late; max_memory_mb: a budget (what is read is bounded by the take), up to a terabyte.
         check_fields(self, {"camera_trigger_delay_s": Range(above=-1, below=1),
                             "search_frames": Range(above=0, at_most=100),
-                            "double_hit_fraction": Range(above=0, below=1),
-                            "min_peak_n": Range(above=0, at_most=MAX_FORCE_N),
                             "max_memory_mb": Range(above=0, at_most=1e6), "workers": maybe(WORKERS)})
 
 
@@ -223,15 +224,16 @@ class _TakeAnalysis:
         fs = r.sample_rate_hz
         force_name = force_channel(r)
         force = r.channel(force_name).astype(float)
-        hits = find_impacts(force, fraction=s.double_hit_fraction, min_peak_n=s.min_peak_n)
-        peak = float(np.nanmax(force)) if np.isfinite(force).any() else 0.0
-        if hits.size == 0:
-            raise InputError(force_name, f"no hit found: the force peaks at {peak:.3g} N, below {s.min_peak_n:g} N")
-        if hits.size > 1:
-            gaps = ", ".join(f"{1e3 * (b - a) / fs:.2f}" for a, b in zip(hits, hits[1:]))
+        hits = ImpactDetector(s.impacts).detect(force, fs, source=force_name)
+        if not hits.n:
+            raise InputError(force_name, f"no hit found: the force peaks at {hits.peak_n:.3g} N, below "
+                                         f"{hits.floor_n:.3g} N")
+        if hits.double_hit:
+            onsets = [p.onset_s for p in hits.pulses]
+            gaps = ", ".join(f"{1e3 * (b - a):.2f}" for a, b in zip(onsets, onsets[1:]))
             raise InputError(force_name,
-                             f"{hits.size} hits found ({gaps} ms apart): a double hit cannot be locked to one impact")
-        pulse = fit_pulse(force, fs, peak_index=int(hits[0]), source=force_name)
+                             f"{hits.n} hits found ({gaps} ms apart): a double hit cannot be locked to one impact")
+        pulse = hits.pulses[0]
         resp = _response(r, pulse.onset_sample, pulse.impulse_n_s, int(RESPONSE_S * fs))
         self.response = None if resp is None else (resp, fs)
         out.hit_daq_time_s = r.daq_t0_s + pulse.onset_s
@@ -518,7 +520,7 @@ def _sync(capture: Capture, s: SyncSettings, records, generation: str, out_dir: 
             # 400x300 px, the whole stage took 79 s on 2 cores against 130 s one after another)
             workers = max(1, min(s.workers or os.cpu_count() or 1, len(ok)))
             pool = nullcontext(executor) if executor is not None else \
-                ProcessPoolExecutor(workers) if workers > 1 else nullcontext(_Serial())
+                process_pool(workers) if workers > 1 else nullcontext(_Serial())
             with pool as run:
                 done = run.map(align_take, *zip(*args))
                 aligned = {t.name: t for t in tqdm(done, total=len(ok), desc="sync: aligning frames", unit="take",

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import shutil
 from pathlib import Path
 
 import pytest
+from filelock import FileLock
 
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.camera import SimCameraConfig
@@ -128,7 +130,7 @@ plots = false
 
 def small_piped_capture(out: Path, *, n_views: int = 8, seed: int = 1) -> Path:
     """`n_views` views of 24 frames with static photos on the simulated rig, through `odsplat run` once (about
-    40 s for 8 views): every derived file."""
+    40 s for 8 views): every derived file. What `odsplat run` printed is kept beside the capture (RUN_OUTPUT)."""
     from click.testing import CliRunner
 
     from odsplat.acquisition import CaptureSession, HammerTrigger, PlanSettings, SessionSettings
@@ -141,4 +143,32 @@ def small_piped_capture(out: Path, *, n_views: int = 8, seed: int = 1) -> Path:
     (out / "odsplat.toml").write_text(SMALL_PIPELINE_CONFIG)
     r = CliRunner().invoke(main, ["run", str(out)])
     assert r.exit_code == 0, r.output + repr(r.exception)
+    (out.parent / RUN_OUTPUT).write_text(r.output)
     return out
+
+
+RUN_OUTPUT = "run-output.txt"
+
+
+@pytest.fixture(scope="session")
+def piped_original(tmp_path_factory) -> Path:
+    """The one small piped capture of the session (`small_piped_capture`, 8 views, seed 1), built once for every
+    pytest-xdist worker: the first to ask builds it under a file lock in the workers' common base folder, the others
+    wait and take it. Never change it: `piped_copy` gives a test module its own."""
+    base = tmp_path_factory.getbasetemp()
+    shared = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    folder = shared / "piped-original"
+    with FileLock(str(shared / "piped-original.lock")):
+        if not (folder / "complete").is_file():
+            shutil.rmtree(folder, ignore_errors=True)
+            small_piped_capture(folder / "cap")
+            (folder / "complete").touch()
+    return folder / "cap"
+
+
+def piped_copy(original: Path, dest: Path) -> Path:
+    """A copy of the session's piped capture at `dest` (a folder that does not exist yet), to change at will; what
+    `odsplat run` printed building it is at dest.parent / RUN_OUTPUT."""
+    shutil.copytree(original, dest, symlinks=True)
+    shutil.copy2(original.parent / RUN_OUTPUT, dest.parent / RUN_OUTPUT)
+    return dest

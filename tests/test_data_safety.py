@@ -22,7 +22,7 @@ from odsplat.app.batch import _captures
 from odsplat.app.cli import main
 from odsplat.spine.store import Capture
 
-from .conftest import small_piped_capture
+from .conftest import piped_copy
 
 # Every command that writes a capture (and the pipeline), with the arguments after CAPTURE.
 WRITERS = (["qc"], ["sync"], ["magnify"], ["poses"], ["reconstruct"], ["analyze"], ["report"], ["run"],
@@ -31,8 +31,8 @@ STAGES = (["qc"], ["sync"], ["magnify"], ["poses"], ["reconstruct"], ["analyze"]
 
 
 @pytest.fixture(scope="module")
-def piped(tmp_path_factory) -> Path:
-    return small_piped_capture(tmp_path_factory.mktemp("safety") / "cap", seed=2)
+def piped(piped_original, tmp_path_factory) -> Path:
+    return piped_copy(piped_original, tmp_path_factory.mktemp("safety") / "cap")
 
 
 def _digests(root: Path) -> dict[str, str]:

@@ -27,15 +27,15 @@ from odsplat.spine.errors import InputError
 from odsplat.spine.store import Capture
 from odsplat.sync import AlignedTake, load_sync
 
-from .conftest import small_piped_capture
+from .conftest import piped_copy
 
 OTHER_ID = "0123456789abcdef0123456789abcdef"   # another capture's id
 
 
 @pytest.fixture(scope="module")
-def piped(tmp_path_factory) -> Capture:
-    """Eight views through `odsplat run` once: every derived file."""
-    cap = Capture.open(small_piped_capture(tmp_path_factory.mktemp("corruption") / "cap"))
+def piped(piped_original, tmp_path_factory) -> Capture:
+    """Eight views through `odsplat run` (the session's piped capture, copied): every derived file."""
+    cap = Capture.open(piped_copy(piped_original, tmp_path_factory.mktemp("corruption") / "cap"))
     assert cap.id != OTHER_ID
     return cap
 
@@ -376,6 +376,6 @@ def test_odsplat_run_redoes_a_stage_whose_output_was_edited_in_place(piped, tmp_
     assert "[sync] current, skipped" in out and "[poses] current, skipped" in out, out
     DynamicScene.load(cap)
     again, first = read_analysis(cap), read_analysis(piped)
-    assert [m["freq_hz"] for m in again["modes"]] == [m["freq_hz"] for m in first["modes"]]
-    mac = [p["mac"] for p in again["correlation"]["pairs"]]     # the reconstruction is seeded: the same motion
-    assert mac == pytest.approx([p["mac"] for p in first["correlation"]["pairs"]], abs=1e-6)
+    assert [m.freq_hz for m in again.modes] == [m.freq_hz for m in first.modes]
+    mac = [p.mac for p in again.correlation.pairs]     # the reconstruction is seeded: the same motion
+    assert mac == pytest.approx([p.mac for p in first.correlation.pairs], abs=1e-6)

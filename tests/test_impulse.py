@@ -77,3 +77,27 @@ def test_every_stage_takes_the_same_onset():
         assert abs(frf - onset) < 0.1 and abs(qc - onset) < 0.1 and abs(sync - onset) < 0.1
         assert abs(frf - qc) < 0.05 and abs(frf - sync) < 0.05
         assert cut == round(frf)
+
+
+def test_the_detector_measures_baseline_noise_and_each_impacts_extent():
+    """On a 1.5 N offset with 0.2 N of noise and lost samples: the baseline and noise are the pretrigger's, each
+    impact's onset and end are its half sine's, and a pulse under 10 noise sigmas is no impact however it stands
+    out against the largest peak."""
+    from odsplat.spine.impulse import ImpactDetector, ImpactSettings
+
+    rng = np.random.default_rng(7)
+    fs, tau = 25_600.0, 30.0
+    t = np.arange(3000.0)
+    f = 1.5 + half_sine(t, 400.3, 150.0, tau) + half_sine(t, 1200.6, 60.0, tau) + 0.2 * rng.standard_normal(t.size)
+    f[2000:2032] = np.nan
+    found = ImpactDetector().detect(f, fs)
+    assert found.baseline_n == pytest.approx(1.5, abs=0.03) and found.noise_n == pytest.approx(0.2, rel=0.15)
+    assert found.n == 2 and found.double_hit and found.main == 0
+    assert [p.onset_sample for p in found.pulses] == pytest.approx([400.3, 1200.6], abs=0.05)
+    assert found.end_indices == pytest.approx([400.3 + tau, 1200.6 + tau], abs=1.0)
+    assert found.heights_n == pytest.approx([150.0, 60.0], rel=0.02)
+    weak = 1.5 + half_sine(t, 400.3, 1.5, tau) + 0.2 * rng.standard_normal(t.size)   # 7.5 sigma
+    assert ImpactDetector().detect(weak, fs).n == 0
+    assert ImpactDetector(ImpactSettings(noise_sigmas=5.0)).detect(weak, fs).n == 1
+    with pytest.raises(InputError, match="ImpactSettings.rebound_fraction"):
+        ImpactSettings(rebound_fraction=1.0)

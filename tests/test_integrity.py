@@ -13,7 +13,8 @@ from click.testing import CliRunner
 from odsplat.app.cli import main
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.spine.errors import InputError
-from odsplat.spine.store import Capture, TakeReader
+from odsplat.spine.store import Capture
+from odsplat.spine.take_reader import TakeReader
 
 from .test_store_can import NODE, _manifest
 

@@ -9,7 +9,8 @@ import pytest
 from click.testing import CliRunner
 
 from odsplat.analysis import estimate_frf, fit_modes
-from odsplat.analysis.band import band_notes, default_band_hz, force_band_hz, frf_peaks
+from odsplat.analysis.band import default_band_hz, force_band_hz, frf_peaks
+from odsplat.analysis.notes import band_findings
 from odsplat.app.cli import main
 from odsplat.app.pipeline import run, status
 from odsplat.spine.errors import InputError
@@ -115,7 +116,7 @@ def test_automatic_selection_finds_the_clear_peaks_of_real_hits(pyfrf_frf):
     plain = fit_modes(frf.freq_hz, frf.h1, frf_kind="accelerance", fmin_hz=band[0], fmax_hz=band[1], max_order=120)
     assert abs(_nearest(plain.freq_hz, 4128.0) - 4128.0) > 0.002 * 4128.0
     # What is still missed is said, and none of the clear peaks above is among it.
-    notes = band_notes(frf, band, fit.freq_hz, given=False)
+    notes = [n.text for n in band_findings(frf, band, fit.freq_hz, given=False)]
     missed = " ".join(n for n in notes if n.startswith("clear FRF peaks with no mode"))
     assert not any(f"{f0:.1f} Hz" in missed for f0 in PYFRF_PEAKS_HZ)
 
@@ -123,7 +124,7 @@ def test_automatic_selection_finds_the_clear_peaks_of_real_hits(pyfrf_frf):
 def test_a_given_band_that_cuts_strong_peaks_says_so(pyfrf_frf):
     frf = pyfrf_frf
     fit = fit_modes(frf.freq_hz, frf.h1, frf_kind="accelerance", fmin_hz=100.0, fmax_hz=3000.0, max_order=60)
-    notes = band_notes(frf, (100.0, 3000.0), fit.freq_hz, given=True)
+    notes = [n.text for n in band_findings(frf, (100.0, 3000.0), fit.freq_hz, given=True)]
     cut = next(n for n in notes if n.startswith("strong FRF peaks outside the fit band"))
     assert "the band was given" in cut
     for f0 in (3669, 4128, 5969):

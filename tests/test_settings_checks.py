@@ -78,11 +78,11 @@ def test_a_bad_option_is_one_line_naming_the_field(small, args, field):
     ("magnify.options=[['n_orientations', 'many']]", "MagnifySettings.options.n_orientations"),
     ("sync.max_memory_mb=nan", "SyncSettings.max_memory_mb"),
     ("analyze.fmax_hz=0", "AnalyzeSettings.fmax_hz"),
-    ("analyze.frf.double_hit_ratio=inf", "estimate_frf: settings.double_hit_ratio"),
+    ("analyze.frf.impacts.rebound_fraction=inf", "ImpactSettings.rebound_fraction"),
     ("reconstruct.fit.lr_means=-1", "FitSettings.lr_means"),
     ("reconstruct.modal.lr=nan", "ModalSettings.lr"),
     ("reconstruct.linear.max_nodes=0", "LinearSettings.max_nodes"),
-    ("qc.double_hit_fraction=2", "QCSettings.double_hit_fraction"),
+    ("qc.impacts.rebound_fraction=2", "ImpactSettings.rebound_fraction"),
 ])
 def test_run_set_and_the_config_file_get_the_same_checks(small, setting, field):
     _refused(small.root, "run", small.root, "--set", setting, field=field)

@@ -16,7 +16,9 @@ import pytest
 
 from odsplat.spine.errors import IncompleteTakeError, InputError, SchemaError
 from odsplat.spine.manifest import CameraInfo, ChannelInfo, Manifest
-from odsplat.spine.store import Capture, QCInfo, TakeReader, TriggerInfo
+from odsplat.spine.store import Capture
+from odsplat.spine.take_reader import TakeReader
+from odsplat.spine.take_writer import QCInfo, TriggerInfo
 
 CHANNELS = [
     ChannelInfo("force", "force", "N", sensitivity_v_per_unit=2.25e-3, position_m=[0.1, 0.0, 0.5],

@@ -18,7 +18,8 @@ import pytest
 from odsplat.acquisition import CANNode, CANSetup
 from odsplat.spine.errors import InputError
 from odsplat.spine.manifest import ChannelInfo, Manifest
-from odsplat.spine.store import Capture, TakeReader
+from odsplat.spine.store import Capture
+from odsplat.spine.take_reader import TakeReader
 from odsplat.spine.timebase import resample_onto
 
 DAQ_RATE_HZ = 10240.0

@@ -1,19 +1,33 @@
-"""The `odsplat` command line: `odsplat run` for the whole pipeline, and one thin subcommand per stage calling the
-same entry; errors are one line naming the culprit."""
+"""The `odsplat` command line: `odsplat run` for the whole pipeline, and one thin command per stage calling the
+same entry, made from the stage table (stages.py) with its options generated from the stage's settings (options.py);
+errors are one line naming the culprit."""
 from __future__ import annotations
 
 import json
 import logging
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import click
-from click.core import ParameterSource
 
-from odsplat.app.config import STAGES, load_config
-from odsplat.spine.checks import MAX_MAGNIFICATION, PLAYBACK_FPS, WIDTH_PX, WORKERS, Range, check_number, maybe
-from odsplat.spine.errors import OdsplatError, exit_if_hdf5_unclosed, storage_error
+from odsplat.app.config import STAGES, load_config, settings_type
+from odsplat.app.options import (
+    RENDER_FLAGS,
+    STAGE_FLAGS,
+    VIEW_FLAGS,
+    Flag,
+    SettingsCommand,
+    blame,
+    given,
+    given_flags,
+    lay_over,
+    settings_from,
+)
+from odsplat.app.stages import TABLE, Stage, resolve
+from odsplat.spine.checks import PLAYBACK_FPS, WORKERS, check_number, maybe
+from odsplat.spine.errors import InputError, OdsplatError, exit_if_hdf5_unclosed, storage_error
 
 
 class _Group(click.Group):
@@ -44,27 +58,6 @@ def main(verbose: int) -> None:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
 
 
-def _given(**fields: Any) -> dict[str, Any]:
-    """The settings the user gave on the command line, as a table for the stage: FIELD=VALUE for each option given
-    (not defaulted). FIELD is a name, a dotted name for a nested one (fit.iters_t0), or a tuple of them, or
-    (FIELD, convert) with a function of the option's value."""
-    ctx = click.get_current_context()
-    table: dict[str, Any] = {}
-    for param, target in fields.items():
-        if ctx.get_parameter_source(param) not in (ParameterSource.COMMANDLINE, ParameterSource.ENVIRONMENT):
-            continue
-        names, convert = (target[0], target[1]) if callable(target[-1]) else (target, None)
-        value = ctx.params[param]
-        value = convert(value) if convert else value
-        for name in (names,) if isinstance(names, str) else names:
-            *path, last = name.split(".")
-            node = table
-            for part in path:
-                node = node.setdefault(part, {})
-            node[last] = list(value) if isinstance(value, tuple) else value
-    return table
-
-
 def _set_wait(ctx: click.Context, _param: click.Parameter, value: bool) -> None:
     ctx.meta["odsplat.wait"] = value
 
@@ -73,17 +66,26 @@ def _set_derived(ctx: click.Context, _param: click.Parameter, value: Path | None
     ctx.meta["odsplat.derived"] = value
 
 
-def _wait_option(command):
+_WAIT = (("--wait",), {
+    "is_flag": True, "expose_value": False, "callback": _set_wait,
+    "help": "When another odsplat command is writing this capture, wait for it to finish instead of stopping."})
+_DERIVED = (("--derived",), {
+    "type": click.Path(path_type=Path, file_okay=False), "default": None, "expose_value": False,
+    "callback": _set_derived, "is_eager": True,
+    "help": "Read and write the derived files in this folder instead of the capture's derived/ (a read-only "
+            "capture, a faster disk)."})
+
+
+def _wait_params() -> list[click.Parameter]:
     """--wait and --derived, for the commands that write a capture's derived files."""
-    command = click.option(
-        "--derived", type=click.Path(path_type=Path, file_okay=False), default=None, expose_value=False,
-        callback=_set_derived, is_eager=True,
-        help="Read and write the derived files in this folder instead of the capture's derived/ (a read-only "
-             "capture, a faster disk).")(command)
-    return click.option(
-        "--wait", is_flag=True, expose_value=False, callback=_set_wait,
-        help="When another odsplat command is writing this capture, wait for it to finish instead of stopping.",
-    )(command)
+    return [click.Option(list(decls), **kwargs) for decls, kwargs in (_WAIT, _DERIVED)]
+
+
+def _wait_option(command):
+    """--wait and --derived on a command (a decorator)."""
+    for decls, kwargs in (_DERIVED, _WAIT):
+        command = click.option(*decls, **kwargs)(command)
+    return command
 
 
 def _waits() -> bool:
@@ -104,16 +106,20 @@ def _locked(capture: Any):
     return capture_lock(capture, wait=_waits())
 
 
-def _stage(capture_dir: Path, stage: str, given: dict[str, Any]) -> tuple[Any, Any]:
-    """Run one stage through the pipeline's entry: the capture's configuration with the options given laid over.
-    Returns (capture, the stage's result)."""
+def _stage(capture_dir: Path, stage: str, flags: Sequence[Flag] = ()) -> tuple[Any, Any]:
+    """Run one stage through the pipeline's entry: the capture's configuration with the flags given laid over it
+    (the command line's layer, checked by the stage's settings as --set is). Returns (capture, the stage's result)."""
     from odsplat.app.pipeline import run_stage
 
     cap = _open(capture_dir)
-    config = load_config(cap)
-    if given:
-        config = config.updated({stage: given}, "the command line")
+    config = lay_over(load_config(cap), stage, click.get_current_context(), flags)
     return cap, run_stage(cap, stage, config, wait=_waits()).result
+
+
+def _settings(cls: type, flags: Sequence[Flag]) -> Any:
+    """A command's settings (not a stage's) from the flags given, checked by the settings class."""
+    ctx = click.get_current_context()
+    return settings_from(cls, given(ctx, flags), given_flags(ctx, flags))
 
 
 @main.command()
@@ -286,22 +292,13 @@ def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], 
 
 
 @main.command()
-@_wait_option
-@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--force-band", "force_band_n", type=(float, float), default=None,
-              help="Planned peak force (N); takes outside are rejected (default: any).")
-def qc(capture_dir: Path, force_band_n: tuple[float, float] | None) -> None:
-    """Check every take's hit from its file (impacts, force band, lost samples, dropped frames): derived/qc.json."""
-    _, result = _stage(capture_dir, "qc", _given(force_band_n="force_band_n"))
-    click.echo(result.summary())
-
-
-@main.command()
 @click.argument("out", type=click.Path(path_type=Path))
 @click.option("--sim", is_flag=True, help="Capture from the simulated rig (hil_sim) instead of the lab's devices.")
-@click.option("--auto", is_flag=True, help="With --sim: the simulated engineer places, hits and accepts; no questions.")
+@click.option("--auto", is_flag=True, help="On the simulated rig: the simulated engineer places, hits and accepts; no "
+                                           "questions.")
 @click.option("--config", "config_path", type=click.Path(path_type=Path), default=None,
-              help="Lab configuration (TOML: DAQ port and channels, camera, tags); see acquisition/lab.py.")
+              help="Lab configuration (TOML: DAQ port and channels, camera, tags; docs/acquisition.md). Its camera "
+                   "driver names a back end: opencv, photron, or sim for the simulated rig.")
 @click.option("--views", type=int, default=27, show_default=True, help="Number of planned views.")
 @click.option("--radius-m", type=float, default=1.6, show_default=True, help="Camera distance from the target.")
 @click.option("--elevation-deg", type=(float, float), default=(15.0, 60.0), show_default=True,
@@ -344,142 +341,71 @@ def qc(capture_dir: Path, force_band_n: tuple[float, float] | None) -> None:
 @click.option("--bit-depth", type=int, default=12, show_default=True,
               help="With --sim: 12 (in 16-bit words, as Photron writes them) or 8.")
 @click.option("--window/--no-window", default=None, help="Live plots in a window (default: when a display exists).")
-def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, views: int, radius_m: float,
-            elevation_deg: tuple[float, float], target_m: tuple[float, float, float], n_frames: int,
-            pretrigger_frames: int, fps: float | None, record_s: float, pretrigger_s: float, trigger_n: float,
-            force_band: tuple[float, float], min_tags: int, static_photos: bool, max_attempts: int, size: str,
-            hammer: str | None,
-            hammer_force_n: float | None, hammer_tolerance: float | None, hammer_link: str, sim_faults: str, seed: int,
-            structure: str, texture: str, floor_tag_m: float, bit_depth: int, window: bool | None) -> None:
+def capture(out: Path, sim: bool, auto: bool, config_path: Path | None, window: bool | None, **o: Any) -> None:
     """Guided multi-view capture into OUT: place the camera at each planned view, hit, QC, accept or redo.
 
     Stop at any time (even by a crash) and run the same command again to resume."""
     from odsplat.acquisition import (
         CaptureSession,
-        HammerTrigger,
-        LabBench,
-        PlanSettings,
         PlotFeedback,
-        QCLimits,
-        SessionSettings,
         TextFeedback,
-        choose_hammer,
         display_available,
         load_lab_config,
+        open_bench,
     )
-    from odsplat.spine.errors import InputError
 
     if sim == (config_path is not None):
         raise InputError("odsplat capture", "give exactly one of --sim or --config LAB.toml")
-    if auto and not sim:
-        raise InputError("odsplat capture", "--auto needs --sim: in the lab a person places the camera and hits")
     lab = load_lab_config(config_path) if config_path is not None else None
-    hammer_settings = choose_hammer(hammer, simulated_engineer=sim and auto,
-                                    lab_settings=lab.hammer_settings() if lab is not None else None,
-                                    has_lab=lab is not None, force_n=hammer_force_n, tolerance=hammer_tolerance,
-                                    where=str(config_path))
-    settings = SessionSettings(
-        name=out.name, plan=PlanSettings(views, radius_m, elevation_deg, target_m), n_frames=n_frames,
-        pretrigger_frames=pretrigger_frames, fps=fps,
-        trigger=HammerTrigger(level_n=trigger_n, pretrigger_s=pretrigger_s, record_s=record_s),
-        limits=QCLimits(force_band_n=force_band, min_tags=min_tags), max_attempts=max_attempts,
-        static_photos=static_photos, hammer=hammer_settings)
-    if sim:
-        from odsplat.hil_sim import SceneSettings, SimBench, SimBenchSettings, SimCameraConfig, make_rig, parse_faults
-
-        try:
-            w, h = (int(v) for v in size.lower().split("x"))
-        except ValueError:
-            raise InputError("--size", f"expected WxH in pixels, e.g. 400x300; got {size!r}") from None
-        scene = SceneSettings(floor_tag_size_m=floor_tag_m, texture=texture)
-        sim_settings = SimBenchSettings(width_px=w, height_px=h, seed=seed, structure=structure, scene=scene,
-                                        camera=SimCameraConfig(fps=2000.0, bit_depth=bit_depth))
-        bench = SimBench(make_rig(structure, scene, seed=seed), sim_settings,
-                         faults=parse_faults(sim_faults), hammer=hammer_link if hammer_settings else None)
-        if not auto:
-            bench.place_camera = _asking_place(bench.place_camera)
-            bench.decide = _asking_decide
-    else:
-        bench = LabBench(lab.open_camera(), lab.daq_url, lab.channels, lab.sample_rate_hz, lab.tags,
-                         ask=lambda q: click.prompt(q, default="", show_default=False), tell=click.echo,
-                         hammer=lab.open_hammer() if hammer_settings else None,
-                         can=lab.can, open_can=lab.open_can if lab.can is not None else None)
+    simulated = lab is None or lab.simulated
+    if auto and not simulated:
+        raise InputError("odsplat capture", "--auto needs the simulated rig (--sim, or driver = \"sim\" in the lab "
+                                            "file): in the lab a person places the camera and hits")
+    settings = _session_settings(out, lab, simulated and auto, o, str(config_path))
     if window is None:
         window = display_available() and not auto
-    feedback = PlotFeedback(click.echo, settings and _plan(settings)) if window else TextFeedback(click.echo)
+    feedback = PlotFeedback(click.echo, _plan(settings)) if window else TextFeedback(click.echo)
+    bench = open_bench(lab, None if lab is not None else _sim_rig(o), hammer=settings.hammer is not None,
+                       ask=lambda q: click.prompt(q, default="", show_default=False), tell=click.echo)
+    if simulated and not auto:
+        bench.place_camera = _asking_place(bench.place_camera)
+        bench.decide = _asking_decide
     try:
         report = CaptureSession(out, settings, bench, feedback=feedback).run()
     finally:
-        bench.close()  # SimBench and LabBench: the hammer's driver, the CAN bus, the simulated devices
+        bench.close()  # the simulated rig and the lab: the hammer's driver, the CAN bus, the simulated devices
     click.echo(report.summary())
     if not report.complete:
         sys.exit(1)
 
 
-@main.command()
-@_wait_option
-@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--method", type=click.Choice(["auto", "ttl", "image"]), default="auto", show_default=True,
-              help="Frame timing: the exposure strobe (ttl), the trigger frame refined by the images, "
-                   "or ttl where recorded.")
-@click.option("--all-takes", is_flag=True,
-              help="Sync every take, complete or recovered after a crash, whatever QC said (default: those QC "
-                   "accepted).")
-@click.option("--normalize-impulse", is_flag=True, help="Scale each take's motion to the median hammer impulse.")
-@click.option("--frames/--no-frames", default=True, show_default=True,
-              help="Write the aligned frames to derived/sync/.")
-@click.option("--image-check/--no-image-check", default=True, show_default=True,
-              help="Date strobe-timed takes from the images too, as a check.")
-@click.option("--trigger-delay-s", type=float, default=0.0, show_default=True,
-              help="The camera's latency from the trigger edge to latching it.")
-@click.option("--max-memory-mb", type=float, default=256.0, show_default=True, help="Working memory per take.")
-@click.option("--plot/--no-plot", default=True, show_default=True, help="Write derived/sync.png.")
-@click.option("--workers", type=int, default=None, help="Processes aligning the takes' frames (default: one per "
-              "core).")
-def sync(capture_dir: Path, method: str, all_takes: bool, normalize_impulse: bool, frames: bool, image_check: bool,
-         trigger_delay_s: float, max_memory_mb: float, plot: bool, workers: int | None) -> None:
-    """Put the takes of CAPTURE_DIR on one impact-locked timeline: derived/sync.json and the aligned frames."""
-    _, result = _stage(capture_dir, "sync", _given(
-        method="method", all_takes=("takes", lambda v: "all" if v else "accepted"),
-        normalize_impulse="normalize_impulse", frames="write_frames", image_check="check_with_image",
-        trigger_delay_s="camera_trigger_delay_s", max_memory_mb="max_memory_mb", plot="plot", workers="workers"))
-    click.echo(result.summary())
-    if not result.ok:
-        sys.exit(1)
+def _session_settings(out: Path, lab: Any, engineer: bool, o: dict[str, Any], where: str) -> Any:
+    """The capture session's settings from `odsplat capture`'s options `o` and the lab file's [hammer]."""
+    from odsplat.acquisition import HammerTrigger, PlanSettings, QCLimits, SessionSettings, choose_hammer
+
+    hammer = choose_hammer(o["hammer"], simulated_engineer=engineer,
+                           lab_settings=lab.hammer_settings() if lab is not None else None,
+                           has_lab=lab is not None and not lab.simulated, force_n=o["hammer_force_n"],
+                           tolerance=o["hammer_tolerance"], where=where)
+    return SessionSettings(
+        name=out.name, plan=PlanSettings(o["views"], o["radius_m"], o["elevation_deg"], o["target_m"]),
+        n_frames=o["n_frames"], pretrigger_frames=o["pretrigger_frames"], fps=o["fps"],
+        trigger=HammerTrigger(level_n=o["trigger_n"], pretrigger_s=o["pretrigger_s"], record_s=o["record_s"]),
+        limits=QCLimits(force_band_n=o["force_band"], min_tags=o["min_tags"]), max_attempts=o["max_attempts"],
+        static_photos=o["static_photos"], hammer=hammer)
 
 
-@main.command()
-@_wait_option
-@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--method", type=click.Choice(["phase", "linear", "learned"]), default="phase", show_default=True)
-@click.option("--alpha", type=float, default=20.0, show_default=True, help="Output motion = alpha x input motion.")
-@click.option("--band", "band_hz", type=float, nargs=2, default=None, metavar="LOW HIGH",
-              help="Temporal band in Hz (default: static, against the first frame).")
-@click.option("--filter", "filter_kind", type=click.Choice(["ideal", "fir", "butter", "diff_iir", "none"]),
-              default=None, help="Temporal filter for the band (default: butter).")
-@click.option("--mode", type=click.Choice(["static", "dynamic"]), default="static", show_default=True,
-              help="Learned method without a band: against the first frame, or the previous one.")
-@click.option("--source", type=click.Choice(["auto", "aligned", "raw"]), default="auto", show_default=True,
-              help="sync's aligned frames, or the raw takes (auto: aligned when synced).")
-@click.option("--workers", type=int, default=None, help="Parallel processes (default: one per core).")
-@click.option("--take", "takes", multiple=True, help="Only these takes (repeatable).")
-@click.option("--option", "options", multiple=True, metavar="KEY=VALUE",
-              help="A keyword of the method (e.g. n_orientations=8, cutoff_wavelength_px=4); repeatable.")
-@click.option("--video/--no-video", default=True, show_default=True, help="Write NAME.mp4 beside each take.")
-@click.option("--video-fps", type=float, default=30.0, show_default=True, help="The mp4s' playback rate.")
-@click.option("--side-by-side", is_flag=True, help="The mp4s show the input beside the magnified frames.")
-def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: str | None, mode: str, source: str,
-            workers: int | None, takes: tuple[str, ...], options: tuple[str, ...], video: bool, video_fps: float,
-            side_by_side: bool) -> None:
-    """Magnify the motion in every view of CAPTURE_DIR into derived/magnified/METHOD/ (frames, and an mp4 to watch);
-    warns where alpha x the measured motion passes the method's bound."""
-    from odsplat.processing import parse_options
+def _sim_rig(o: dict[str, Any]) -> Any:
+    """The simulated rig's settings from `odsplat capture --sim`'s options `o`."""
+    from odsplat.acquisition import SimRigSettings
 
-    _, result = _stage(capture_dir, "magnify", _given(
-        method="method", alpha="alpha", band_hz="band_hz", filter_kind="filter", mode="mode", source="source",
-        workers="workers", takes="takes", options=("options", lambda v: [list(kv) for kv in parse_options(v)]),
-        video="video", video_fps="video_fps", side_by_side="side_by_side"))
-    click.echo(result.summary())
+    try:
+        width, height = (int(v) for v in o["size"].lower().split("x"))
+    except ValueError:
+        raise InputError("--size", f"expected WxH in pixels, e.g. 400x300; got {o['size']!r}") from None
+    return SimRigSettings(size_px=(width, height), bit_depth=o["bit_depth"], seed=o["seed"], structure=o["structure"],
+                          texture=o["texture"], floor_tag_m=o["floor_tag_m"], faults=o["sim_faults"],
+                          hammer_link=o["hammer_link"])
 
 
 @main.command("export-video")
@@ -495,7 +421,6 @@ def magnify(capture_dir: Path, method: str, alpha: float, band_hz, filter_kind: 
 def export_video(capture_dir: Path, take: str | None, source: str, out: Path | None, fps: float) -> None:
     """Write a take's raw, aligned or magnified frames to an 8-bit mp4 to watch (docs/processing.md)."""
     from odsplat.processing import check_export, export_video, source_takes
-    from odsplat.spine.errors import InputError
 
     cap = _open(capture_dir)
     check_export(cap, take or "", source, out, fps)
@@ -509,30 +434,6 @@ def export_video(capture_dir: Path, take: str | None, source: str, out: Path | N
         v = done.mp4
         click.echo(f"{name}: {v.n_frames} frames {v.width_px}x{v.height_px} px ({source}) -> {v.path} "
                    f"({v.bytes / 1e6:.2f} MB, {v.codec}, {v.fps:g} frames/s; recorded at {done.recorded_fps:g})")
-
-
-@main.command()
-@_wait_option
-@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--no-static", is_flag=True, help="Leave out the still photos in static/.")
-@click.option("--estimate-intrinsics", is_flag=True,
-              help="Refine the manifest's intrinsics instead of holding them fixed.")
-@click.option("--masks", "masks_dir", type=click.Path(path_type=Path, file_okay=False), default=None,
-              help="Folder of mask PNGs, TAKE.png and static/PHOTO.png; black = no features there.")
-@click.option("--min-registered", type=int, default=3, show_default=True,
-              help="Fewer images registered by SfM: fall back to poses from the tags alone.")
-@click.option("--from", "from_file", type=click.Path(path_type=Path, dir_okay=False), default=None,
-              help="Known cameras: a TOML/JSON file of per-view name, K, R, t (world to camera, metres).")
-def poses(capture_dir: Path, no_static: bool, estimate_intrinsics: bool, masks_dir: Path | None,
-          min_registered: int, from_file: Path | None) -> None:
-    """Camera poses of every view of CAPTURE_DIR in metres, floor z = 0: derived/poses.json, derived/points.npz."""
-    cap, result = _stage(capture_dir, "poses", _given(
-        no_static=("use_static", lambda v: not v),
-        estimate_intrinsics=("fixed_intrinsics", lambda v: False if v else None),
-        masks_dir=("masks_dir", str), min_registered="min_registered", from_file=("from_file", str)))
-    for line in result.report_lines():
-        click.echo(line)
-    click.echo(f"wrote {cap.paths.poses_json} and {cap.paths.points_npz}")
 
 
 @main.command("train-mm")
@@ -561,138 +462,26 @@ def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, 
                f"weights {report.out}")
 
 
-@main.command()
+@main.command(cls=SettingsCommand, flags=RENDER_FLAGS, settings=lambda: resolve("odsplat.app.display:RenderSettings"))
 @_wait_option
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--source", default=None,
-              help="Frames to fit: 'sync' (unmagnified, on the common grid) or 'magnified/METHOD'. Default: "
-                   "sync, or magnified/phase for --motion timestep.")
-@click.option("--width", "width_px", type=int, default=128, show_default=True, help="Training image width in px.")
-@click.option("--timesteps", "n_timesteps", type=int, default=None,
-              help="Timesteps to fit from the rest frame on (default: the whole record, at most 512, for the linear "
-                   "and modal models; 32 for timestep).")
-@click.option("--step", type=int, default=1, show_default=True, help="Grid frames between timesteps.")
-@click.option("--start", type=int, default=None, help="First grid frame (default: the last before the impact).")
-@click.option("--holdout", multiple=True, help="A take never used in training (repeatable).")
-@click.option("--no-static", is_flag=True, help="Do not condition the t=0 fit on static photos.")
-@click.option("--motion", type=click.Choice(["linear", "modal", "timestep"]), default="linear", show_default=True,
-              help="linear: every timestep in one linear solve on the raw frames at full resolution, magnified in "
-                   "3D at render time; modal: one temporal basis for every Gaussian, all timesteps at once; "
-                   "timestep: a fit per timestep on frames magnified in 2D (Luiten et al.). docs/reconstruction.md "
-                   "compares them: linear measures best.")
-@click.option("--iters-t0", type=int, default=1500, show_default=True, help="Iterations of the rest fit.")
-@click.option("--iters-modal", type=int, default=2000, show_default=True, help="Iterations of the modal fit.")
-@click.option("--components", type=int, default=4, show_default=True, help="Temporal basis functions (modal).")
-@click.option("--iters-step", "iters_per_step", type=int, default=150, show_default=True,
-              help="Iterations per timestep (timestep).")
-@click.option("--threads", type=int, default=None, help="Torch threads (default: torch's).")
-@click.option("--seed", type=int, default=0, show_default=True)
-def reconstruct(capture_dir: Path, source: str | None, width_px: int, n_timesteps: int | None, step: int,
-                start: int | None, holdout: tuple[str, ...], no_static: bool, motion: str, iters_t0: int,
-                iters_modal: int, components: int, iters_per_step: int, threads: int | None, seed: int) -> None:
-    """Train dynamic 3D Gaussians on CAPTURE_DIR's posed views into derived/reconstruction/ (docs/reconstruction.md)."""
-    _, result = _stage(capture_dir, "reconstruct", _given(
-        source="source", width_px="width_px", n_timesteps="n_timesteps", step="step", start="start",
-        holdout="holdout", no_static=("use_static", lambda v: not v), motion="motion", iters_t0="fit.iters_t0",
-        iters_modal="modal.iters", components="modal.n_components", iters_per_step="fit.iters_per_step",
-        threads="threads", seed=("fit.seed", "modal.seed")))
-    click.echo(result.summary())
-
-
-@main.command()
-@_wait_option
-@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--camera", "camera_spec", default="orbit", show_default=True,
-              help="A take name (its estimated pose), orbit[:N[:ELEVATION_DEG[:DISTANCE_M]]], or a JSON camera path.")
-@click.option("--times", "times_spec", default="all", show_default=True,
-              help="'all' (the trained timesteps), 'A:B:N' (N times from A to B s) or 'a,b,c' (s after the impact).")
 @click.option("-o", "--out", type=click.Path(path_type=Path, file_okay=False), default=None,
               help="Folder for the PNG frames and render.mp4 (default: derived/reconstruction/render/).")
-@click.option("--width", "width_px", type=int, default=None, help="Image width in px (default: the camera's).")
-@click.option("--alpha", type=float, default=None,
-              help="Magnification to show (default: as trained, i.e. the frames' own). Scales every Gaussian's "
-                   "displacement and rotation from rest: any factor, no retraining.")
-@click.option("--fps", type=float, default=30.0, show_default=True, help="Frame rate of the mp4.")
-@click.option("--no-mp4", is_flag=True)
-def render(capture_dir: Path, camera_spec: str, times_spec: str, out: Path | None, width_px: int | None,
-           alpha: float | None, fps: float, no_mp4: bool) -> None:
+def render(capture_dir: Path, out: Path | None, **_: Any) -> None:
     """Render the reconstruction of CAPTURE_DIR from any camera path over any time range."""
-    from odsplat.reconstruction import DynamicScene, camera_path, check_camera_spec, parse_times, render_sequence
+    from odsplat.app.display import RenderSettings
+    from odsplat.reconstruction import DynamicScene, camera_path, parse_times, render_sequence
 
-    # alpha 0 shows the rest state; above, the 2D magnification's bound (MAGNIFICATION), so one number rules both.
-    check_number("--alpha", alpha, maybe(Range(at_least=0, at_most=MAX_MAGNIFICATION)))
-    check_number("--width", width_px, maybe(WIDTH_PX))
-    check_number("--fps", fps, PLAYBACK_FPS)
+    s = _settings(RenderSettings, RENDER_FLAGS)
     cap = _open(capture_dir)
-    check_camera_spec(camera_spec)
     scene = DynamicScene.load(cap)
-    times = parse_times(times_spec, scene.times_s)
-    cameras = camera_path(cap, camera_spec, len(times), width_px)
+    times = parse_times(s.times, scene.times_s)
+    cameras = camera_path(cap, s.camera, len(times), s.width_px)
     with _locked(cap):
-        paths = render_sequence(scene, cameras, times, out or cap.paths.render_dir, alpha=alpha, fps=fps,
-                                mp4=not no_mp4)
+        paths = render_sequence(scene, cameras, times, out or cap.paths.render_dir, alpha=s.alpha, fps=s.fps,
+                                mp4=s.mp4)
     click.echo(f"{sum(p.suffix == '.png' for p in paths)} frames -> {paths[0].parent}"
                + (f" (and {paths[-1].name})" if paths and paths[-1].suffix == ".mp4" else ""))
-
-
-@main.command()
-@_wait_option
-@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-@click.option("--force", "force_channel", default=None,
-              help="Force channel (default: the capture's one force channel).")
-@click.option("--response", "responses", multiple=True,
-              help="Response channel (repeatable; default: every acceleration channel placed on the structure).")
-@click.option("--all-takes", is_flag=True,
-              help="Use every take, complete or recovered after a crash, whatever QC said (default: those QC "
-                   "accepted). A recovered take holds what was flushed before the crash; `odsplat info` marks it.")
-@click.option("--fmin", "fmin_hz", type=float, default=None, help="Modal fit band, low end (Hz).")
-@click.option("--fmax", "fmax_hz", type=float, default=None,
-              help="Modal fit band, high end (Hz; default 0.45 x the frame rate, or 0.4 x the DAQ rate).")
-@click.option("--max-order", type=int, default=None,
-              help="Highest LSCF model order (default: 120, at most half the fit band's frequency lines).")
-@click.option("--freq", "approx_freq_hz", type=float, multiple=True,
-              help="Pick the pole nearest this frequency (repeatable) instead of automatic selection.")
-@click.option("--ods", "ods_freq_hz", type=float, multiple=True,
-              help="An ODS frequency line (repeatable; default: the modal frequencies).")
-@click.option("--exp-end", type=float, default=0.01, show_default=True,
-              help="Exponential window: its value at the end of the record (0: rectangular).")
-@click.option("--record", "record_s", type=float, default=None, help="Seconds of each hit to use (default: all).")
-@click.option("--no-video", is_flag=True, help="Accelerometers only, even with a reconstruction.")
-@click.option("--image-poles/--no-image-poles", default=True, show_default=True,
-              help="Also find poles in the synced takes' raw frames (needs a few hundred ms of frames for low modes).")
-@click.option("--plots/--no-plots", default=True, show_default=True,
-              help="Write the figures and each mode's animation (derived/analysis/plots/), which the report shows.")
-@click.option("--report/--no-report", "with_report", default=True, show_default=True,
-              help="Also write derived/analysis/report.html.")
-def analyze(capture_dir: Path, force_channel: str | None, responses: tuple[str, ...], all_takes: bool,
-            fmin_hz: float | None, fmax_hz: float | None, max_order: int | None, approx_freq_hz: tuple[float, ...],
-            ods_freq_hz: tuple[float, ...], exp_end: float, record_s: float | None, no_video: bool,
-            image_poles: bool, plots: bool, with_report: bool) -> None:
-    """FRFs, modes, the video's 3D shapes and their correlation for CAPTURE_DIR, into derived/analysis/
-    (docs/analysis.md)."""
-    from odsplat.spine.errors import InputError
-
-    if not 0 <= exp_end < 1:
-        raise InputError("--exp-end", f"expected 0 (rectangular) up to below 1; got {exp_end}")
-    cap, result = _stage(capture_dir, "analyze", _given(
-        force_channel="force_channel", responses="response_channels",
-        all_takes=("takes", lambda v: "all" if v else "accepted"), fmin_hz="fmin_hz", fmax_hz="fmax_hz",
-        max_order="max_order", approx_freq_hz="approx_freq_hz", ods_freq_hz="ods_freq_hz",
-        exp_end=("frf.exponential_end", lambda v: v or None), record_s="record_s",
-        no_video=("video", lambda v: not v), image_poles="image_poles", plots="plots"))
-    click.echo(result.text())
-    if with_report:
-        _, path = _stage(capture_dir, "report", {})
-        click.echo(f"report -> {path}")
-
-
-@main.command()
-@_wait_option
-@click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
-def report(capture_dir: Path) -> None:
-    """Write derived/analysis/report.html from the last `odsplat analyze` of CAPTURE_DIR."""
-    _, path = _stage(capture_dir, "report", {})
-    click.echo(path)
 
 
 @main.command()
@@ -716,78 +505,32 @@ def demo(out: Path, quick: bool, shared_data: Path | None, seed: int | None) -> 
     click.echo(result.text())
 
 
-@main.command()
+@main.command(cls=SettingsCommand, flags=VIEW_FLAGS, settings=lambda: resolve("odsplat.app.display:ViewSettings"))
 @click.argument("capture_dir", type=click.Path(path_type=Path, file_okay=False))
 @click.option("--export", "export_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Write the view as an .mp4 or .gif instead of opening the window.")
 @click.option("--screenshot", "screenshot_path", type=click.Path(path_type=Path, dir_okay=False), default=None,
               help="Write the view as a PNG instead of opening the window.")
-@click.option("--frames", "n_frames", type=int, default=48, show_default=True, help="Frames of the export.")
-@click.option("--fps", type=float, default=24.0, show_default=True, help="Frame rate of the export.")
-@click.option("--alpha", type=float, default=100.0, show_default=True,
-              help="Magnification in 3D, 1 to 1000 (displacements and rotations from rest times alpha).")
-@click.option("--mode", "mode_number", type=int, default=None,
-              help="Animate mode K (1-based, the analysis's numbering) at its frequency; the export is one cycle.")
-@click.option("--ods", "ods_number", type=int, default=None,
-              help="Animate ODS line K (1-based, the analysis's lines) at its frequency, per newton of harmonic force.")
-@click.option("--motion", is_flag=True, help="The measured motion over the reconstruction's time (the default).")
-@click.option("--time", "time_s", type=float, default=None, help="Time in s after the impact (screenshot).")
-@click.option("--turntable", is_flag=True, help="The export's camera turns once around the structure.")
-@click.option("--camera", "camera_index", type=int, default=None, help="Look through capture camera N.")
-@click.option("--structure-only", is_flag=True, help="Hide what does not move (the floor, the background).")
-@click.option("--colour", type=click.Choice(["image", "displacement"]), default="image", show_default=True,
-              help="The Gaussians' own colours, or their displacement amplitude (with a scale bar).")
-@click.option("--size", "size_px", type=(int, int), default=(640, 480), show_default=True,
-              help="Image width and height in px.")
-def view(capture_dir: Path, export_path: Path | None, screenshot_path: Path | None, n_frames: int, fps: float,
-         alpha: float, mode_number: int | None, ods_number: int | None, motion: bool, time_s: float | None,
-         turntable: bool, camera_index: int | None, structure_only: bool, colour: str,
-         size_px: tuple[int, int]) -> None:
+def view(capture_dir: Path, export_path: Path | None, screenshot_path: Path | None, **_: Any) -> None:
     """Look at CAPTURE_DIR's result: the Gaussians magnified in 3D, the modes, the FRFs and the signals linked
     (a window), or write the view as a video or a screenshot (--export, --screenshot)."""
-    from dataclasses import replace
+    from odsplat.app.display import ViewSettings, view_state
+    from odsplat.app.viewer import export_video, load_viewer, save_screenshot
 
-    from odsplat.app.viewer import default_state, export_video, load_viewer, save_screenshot
-    from odsplat.app.viewer.model import ALPHA_RANGE
-    from odsplat.spine.errors import InputError
-
-    # The window's magnification slider spans ALPHA_RANGE (1 to 1000, within MAGNIFICATION); its frames box 10000.
-    check_number("--alpha", alpha, Range(at_least=ALPHA_RANGE[0], at_most=ALPHA_RANGE[1]))
-    check_number("--frames", n_frames, Range(at_least=1, at_most=10_000, integer=True))
-    check_number("--fps", fps, PLAYBACK_FPS)
-    if min(size_px) < 8 or max(size_px) > 8192:
-        raise InputError("--size", f"expected 8 to 8192 px each way, got {size_px[0]} x {size_px[1]}")
-    if sum(x is not None and x is not False for x in (mode_number, ods_number, motion or None)) > 1:
-        raise InputError("--mode", "give one of --mode K, --ods K or --motion")
+    s = _settings(ViewSettings, VIEW_FLAGS)
     data = load_viewer(capture_dir)
-    state = default_state(data, alpha=alpha, structure_only=structure_only, colour=colour, width_px=size_px[0],
-                          height_px=size_px[1])
-    if mode_number is not None or ods_number is not None:
-        kind, option, number = ("mode", "--mode", mode_number) if ods_number is None else ("ods", "--ods", ods_number)
-        index = [k for k, m in enumerate(data.modes) if m.kind == kind]
-        if not 1 <= number <= len(index):
-            raise InputError(option, f"expected {'a mode' if kind == 'mode' else 'an ODS line'} from 1 to "
-                                     f"{len(index)}, got {number}")
-        state = replace(state, mode=index[number - 1], time_s=0.0)
-    elif motion:
-        if data.scene is None:
-            raise InputError("--motion", "no reconstruction: only the modes can be shown (--mode K)")
-        state = replace(state, mode=None, time_s=data.time_range_s[0])
-    if time_s is not None:
-        state = replace(state, time_s=time_s)
-    if camera_index is not None:
-        if not 0 <= camera_index < len(data.cameras):
-            raise InputError("--camera", f"expected a capture camera from 0 to {len(data.cameras) - 1}, got "
-                                         f"{camera_index}")
-        state = replace(state, snap=camera_index)
+    try:
+        state = view_state(data, s)
+    except InputError as exc:
+        raise blame(exc, VIEW_FLAGS) from None
     for note in data.notes:
         click.echo(f"note: {note}", err=True)
+    if screenshot_path is not None:
+        click.echo(f"screenshot -> {save_screenshot(data, state, screenshot_path)}")
+    if export_path is not None:
+        path = export_video(data, state, export_path, n_frames=s.n_frames, fps=s.fps, turntable=s.turntable)
+        click.echo(f"{s.n_frames} frames -> {path}")
     if export_path is not None or screenshot_path is not None:
-        if screenshot_path is not None:
-            click.echo(f"screenshot -> {save_screenshot(data, state, screenshot_path)}")
-        if export_path is not None:
-            path = export_video(data, state, export_path, n_frames=n_frames, fps=fps, turntable=turntable)
-            click.echo(f"{n_frames} frames -> {path}")
         return
     from odsplat.acquisition import display_available
 
@@ -795,8 +538,49 @@ def view(capture_dir: Path, export_path: Path | None, screenshot_path: Path | No
         raise InputError("display", "no display to open the window on (set DISPLAY, or use --export/--screenshot)")
     from odsplat.app.viewer.app import ViewerWindow
 
-    window = ViewerWindow(data, state)
-    sys.exit(window.run())
+    sys.exit(ViewerWindow(data, state).run())
+
+
+# ------------------------------------------------------------------------------------------ the stage commands
+
+def _after_sync(ctx: click.Context, cap: Any, result: Any) -> None:
+    if not result.ok:
+        sys.exit(1)
+
+
+def _after_poses(ctx: click.Context, cap: Any, result: Any) -> None:
+    click.echo(f"wrote {cap.paths.poses_json} and {cap.paths.points_npz}")
+
+
+def _after_analyze(ctx: click.Context, cap: Any, result: Any) -> None:
+    if ctx.params["report"]:
+        _, path = _stage(ctx.params["capture_dir"], "report")
+        click.echo(f"report -> {path}")
+
+
+_AFTER = {"sync": _after_sync, "poses": _after_poses, "analyze": _after_analyze}
+
+
+def _stage_command(st: Stage) -> click.Command:
+    """A stage's command, from the stage table: CAPTURE_DIR, --wait, --derived and the stage's flags (options.py,
+    built from its settings class on first use); it runs the stage through the pipeline and prints its summary."""
+    flags = STAGE_FLAGS.get(st.name, ())
+
+    def callback(capture_dir: Path, **_: Any) -> None:
+        cap, result = _stage(capture_dir, st.name, flags)
+        click.echo(st.summary(result))
+        if st.name in _AFTER:
+            _AFTER[st.name](click.get_current_context(), cap, result)
+
+    params = [*_wait_params(), click.Argument(["capture_dir"], type=click.Path(path_type=Path, file_okay=False))]
+    if st.settings_path is None:
+        return click.Command(st.name, callback=callback, params=params, help=st.doc)
+    return SettingsCommand(st.name, callback=callback, params=params, help=st.doc, flags=flags,
+                           settings=lambda: settings_type(st.name), prefix=st.name)
+
+
+for _st in TABLE:
+    main.add_command(_stage_command(_st))
 
 
 def _plan(settings):

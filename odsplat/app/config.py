@@ -11,27 +11,29 @@ from typing import Any
 
 import tomli_w
 
+from odsplat.app.stages import STAGES
+from odsplat.app.stages import stage as stage_record
 from odsplat.spine.checks import shown
 from odsplat.spine.contract import plain
 from odsplat.spine.errors import InputError
 from odsplat.spine.manifest import MAX_TOML_DEPTH, from_plain, load_toml, parse_toml_value
 
 CONFIG_NAME = "odsplat.toml"
-STAGES = ("qc", "sync", "magnify", "poses", "reconstruct", "analyze", "report")
-_WITH_SETTINGS = STAGES[:-1]  # the report has none
+_WITH_SETTINGS = tuple(name for name in STAGES if stage_record(name).settings_path is not None)  # the report has none
 MAX_SET_CHARS = 10_000          # one --set: a list of a thousand frequencies fits
 
 
 def settings_types() -> dict[str, type]:
-    """Each stage's settings class, from the stage's exported surface (imported on use: some load torch)."""
-    from odsplat.acquisition import QCSettings
-    from odsplat.analysis import AnalyzeSettings
-    from odsplat.processing import MagnifySettings
-    from odsplat.reconstruction import PoseSettings, ReconstructSettings
-    from odsplat.sync import SyncSettings
+    """Each stage's settings class, from the stage table (each imported now: some load torch)."""
+    return {name: settings_type(name) for name in _WITH_SETTINGS}
 
-    return {"qc": QCSettings, "sync": SyncSettings, "magnify": MagnifySettings, "poses": PoseSettings,
-            "reconstruct": ReconstructSettings, "analyze": AnalyzeSettings}
+
+def settings_type(name: str) -> type:
+    """One stage's settings class, imported now (and only that stage)."""
+    cls = stage_record(name).settings_class
+    if cls is None:
+        raise InputError("stage", f"{name} has no settings; expected one of {', '.join(_WITH_SETTINGS)}")
+    return cls
 
 
 @dataclass(frozen=True)
@@ -55,7 +57,7 @@ class Config:
             raise InputError("stage", f"expected one of {', '.join(STAGES)}; got {stage!r}")
         if stage in self.given:
             return self.given[stage]
-        return from_plain(settings_types()[stage], self.table.get(stage, {}), f"{', '.join(self.sources)}: {stage}")
+        return from_plain(settings_type(stage), self.table.get(stage, {}), f"{', '.join(self.sources)}: {stage}")
 
     qc = property(lambda self: self.settings("qc"))
     sync = property(lambda self: self.settings("sync"))
@@ -81,9 +83,8 @@ class Config:
             if not isinstance(over, dict):
                 raise InputError(f"{source}: [{stage}]", "expected a table of settings")
         merged = _merge(self.table, table)
-        types = settings_types()
         for stage in table:
-            from_plain(types[stage], merged[stage], f"{source}: {stage}")
+            from_plain(settings_type(stage), merged[stage], f"{source}: {stage}")
         given = {k: v for k, v in self.given.items() if k not in table}
         return Config(merged, (*self.sources, source), given)
 
@@ -161,4 +162,4 @@ def load_config(capture: Any = None, *, path: str | Path | None = None, sets: tu
     return config
 
 
-__all__ = ["CONFIG_NAME", "STAGES", "Config", "load_config", "parse_set", "settings_types"]
+__all__ = ["CONFIG_NAME", "STAGES", "Config", "load_config", "parse_set", "settings_type", "settings_types"]

@@ -145,21 +145,11 @@ def summarize(capture: Capture, what: str, render: Path | None = None) -> Captur
     from odsplat.analysis import read_analysis
 
     doc = read_analysis(capture)
-    video = doc.get("video") or {}
-    fitted = video.get("modes_fitted", [])
-    pairs: dict[int, dict] = {}
-    for p in (doc.get("correlation") or {}).get("pairs", []):
-        b = p.get("b")
-        if isinstance(b, int) and b < len(fitted):
-            pairs[int(fitted[b])] = p
-    modes = []
-    for k, m in enumerate(doc["modes"]):
-        p = pairs.get(k)
-        modes.append(ModeLine(float(m["freq_hz"]), float(m["damping"]),
-                              None if p is None or p.get("mac") is None else float(p["mac"]),
-                              bool(p and p.get("below_noise_floor"))))
-    verdict = ((doc.get("correlation") or {}).get("verdict") or {}).get("line")
-    return CaptureSummary(capture.root.name, capture.root, what, modes, bool(doc.get("video")), verdict,
+    pairs = doc.pair_by_mode()
+    modes = [ModeLine(m.freq_hz, m.damping, pairs[k].mac if k in pairs else None,
+                      k in pairs and bool(pairs[k].below_noise_floor)) for k, m in enumerate(doc.modes)]
+    verdict = doc.correlation.verdict.line if doc.correlation is not None and doc.correlation.verdict else None
+    return CaptureSummary(capture.root.name, capture.root, what, modes, doc.video is not None, verdict,
                           capture.paths.report_html, render)
 
 
@@ -237,16 +227,19 @@ def demo_settings(scale: DemoScale) -> str:
 
 def simulated_capture(root: Path, scale: DemoScale, echo: Callable[[str], None], seed: int | None = None) -> None:
     """The guided capture of `odsplat capture --sim --auto` (its defaults, `CAPTURE_DEFAULTS`) with the scale's
-    views, frames and faults; each take's verdict through `echo`. seed: the rig's and the camera's noise, the
-    hammer's scatter (None: the capture's default, 0)."""
-    from odsplat.acquisition import QCLimits, TextFeedback, choose_hammer
-    from odsplat.hil_sim import (
-        SceneSettings,
-        SimBenchSettings,
-        SimCameraConfig,
-        make_rig,
-        parse_faults,
-        simulate_capture,
+    views, frames and faults; each take's verdict through `echo`. The set-up is opened as the command opens it
+    (acquisition.open_bench). seed: the rig's and the camera's noise, the hammer's scatter (None: the capture's
+    default, 0)."""
+    from odsplat.acquisition import (
+        CaptureSession,
+        HammerTrigger,
+        PlanSettings,
+        QCLimits,
+        SessionSettings,
+        SimRigSettings,
+        TextFeedback,
+        choose_hammer,
+        open_bench,
     )
 
     d = dict(CAPTURE_DEFAULTS, **({} if seed is None else {"seed": seed}))
@@ -257,17 +250,15 @@ def simulated_capture(root: Path, scale: DemoScale, echo: Callable[[str], None],
         def show_view(self, view: Any, n_views: int, instructions: str) -> None:
             pass
 
-    scene = SceneSettings(floor_tag_size_m=d["floor_tag_m"], texture=d["texture"])
-    width, height = d["size"]
-    settings = SimBenchSettings(width_px=width, height_px=height, seed=d["seed"], structure=d["structure"],
-                                scene=scene, camera=SimCameraConfig(fps=2000.0, bit_depth=d["bit_depth"]))
+    rig = SimRigSettings(size_px=d["size"], bit_depth=d["bit_depth"], seed=d["seed"], structure=d["structure"],
+                         texture=d["texture"], floor_tag_m=d["floor_tag_m"], faults=scale.faults)
     hammer = choose_hammer(None, simulated_engineer=True, lab_settings=None, has_lab=False)
-    report = simulate_capture(root, n_views=scale.n_views, n_frames=scale.n_frames,
-                              pretrigger_frames=scale.pretrigger_frames, record_s=d["record_s"],
-                              pretrigger_s=d["pretrigger_s"], settings=settings,
-                              rig=make_rig(d["structure"], scene, seed=d["seed"]), faults=parse_faults(scale.faults),
-                              max_attempts=d["max_attempts"], hammer=hammer,
-                              limits=QCLimits(min_tags=d["min_tags"]), feedback=TakeLines(echo))
+    session = SessionSettings(name=root.name, plan=PlanSettings(n_views=scale.n_views), n_frames=scale.n_frames,
+                              pretrigger_frames=scale.pretrigger_frames, max_attempts=d["max_attempts"],
+                              trigger=HammerTrigger(pretrigger_s=d["pretrigger_s"], record_s=d["record_s"]),
+                              hammer=hammer, limits=QCLimits(min_tags=d["min_tags"]))
+    with open_bench(sim=rig, hammer=hammer is not None) as bench:
+        report = CaptureSession(root, session, bench, feedback=TakeLines(echo)).run()
     echo(report.summary())
     if not report.complete:
         log.warning("%s: the capture is incomplete (%s); the pipeline goes on with the views it has", root,

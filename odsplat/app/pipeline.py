@@ -13,7 +13,6 @@ upstream makes the stages downstream stale.
 from __future__ import annotations
 
 import hashlib
-import importlib
 import json
 import logging
 import os
@@ -24,13 +23,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from odsplat.app.config import STAGES, Config, load_config
+from odsplat.app.config import Config, load_config
+from odsplat.app.stages import BY_NAME, STAGES, TABLE, Stage, stage
+from odsplat.app.stages import walk as _walk
+from odsplat.spine.atomic import atomic_write_text, fsync_path, remove_stale_temporaries
 from odsplat.spine.contract import Provenance, check, describe, digest, plain
 from odsplat.spine.errors import InputError, OdsplatError, one_line, storage_error
 from odsplat.spine.lock import capture_lock
 from odsplat.spine.manifest import load_json
 from odsplat.spine.sensors import geometry_identity
-from odsplat.spine.store import Capture, atomic_write_text, fsync_path, remove_stale_temporaries
+from odsplat.spine.store import Capture
 
 log = logging.getLogger(__name__)
 
@@ -43,91 +45,11 @@ _BLOCK = 1 << 20    # bytes read at a time while digesting
 
 # ------------------------------------------------------------------------------------------ the stage graph
 
-@dataclass(frozen=True)
-class Stage:
-    """One node of the graph: its entry, what it reads and what it writes."""
-
-    name: str
-    entry: Callable[[Capture, Any], Any]               # run(capture, settings) -> result; saves its own outputs
-    upstream: Callable[[Config], tuple[str, ...]]      # the stages whose outputs it reads, under this configuration
-    outputs: Callable[[Capture, Any], list[Path]]      # the files and folders it writes
-    summary: Callable[[Any], str]                      # its result in a few lines
-    volatile: tuple[str, ...] = ()                     # settings that do not change the result (threads, memory)
-    raw: bool = False                                  # reads the raw takes themselves
-    needs_views: int = 0                               # takes with frames from this many views, or it does not apply
-    geometry: bool = False                             # reads the sensors' placement (odsplat geometry changes it)
-    per_view: bool = False                             # its entry takes `executor=` for its per-view tasks
-
-
-def _entry(package: str, name: str) -> Callable[..., Any]:
-    """A stage's entry, `odsplat.<package>.<name>(capture, settings)`, imported when the stage runs (some stages
-    load torch or pycolmap). The report's entry takes no settings; the per-view stages' take `executor=`."""
-    def call(capture: Capture, settings: Any, **kwargs: Any) -> Any:
-        entry = getattr(importlib.import_module(f"odsplat.{package}"), name)
-        return entry(capture, **kwargs) if settings is None else entry(capture, settings, **kwargs)
-
-    call.__qualname__ = f"odsplat.{package}.{name}"
-    return call
-
-
-def _magnify_upstream(c: Config) -> tuple[str, ...]:
-    return ("qc",) if c.magnify.source == "raw" else ("qc", "sync")
-
-
-def _reconstruct_upstream(c: Config) -> tuple[str, ...]:
-    return ("poses", "sync") if c.reconstruct.source == "sync" else ("poses", "magnify")
-
-
-def _analyze_upstream(c: Config) -> tuple[str, ...]:
-    return ("qc", "sync", "reconstruct") if c.analyze.video else ("qc",)
-
-
-def _lines(text: Any) -> str:
-    return "\n".join(text) if isinstance(text, (list, tuple)) else str(text)
-
-
-GRAPH: tuple[Stage, ...] = (
-    Stage("qc", _entry("acquisition", "run_qc"), upstream=lambda c: (),
-          outputs=lambda cap, s: [cap.paths.qc_json], summary=lambda r: r.summary(), raw=True),
-    Stage("sync", _entry("sync", "run"), upstream=lambda c: ("qc",),
-          outputs=lambda cap, s: [cap.paths.sync_json] + ([cap.paths.sync_png] if s.plot else [])
-          + ([cap.paths.aligned_dir] if s.write_frames else []),
-          summary=lambda r: r.summary(), volatile=("max_memory_mb", "workers"), raw=True, needs_views=1,
-          per_view=True),
-    Stage("magnify", _entry("processing", "run"), upstream=_magnify_upstream,
-          outputs=lambda cap, s: [cap.paths.magnified_dir(s.method)],
-          summary=lambda r: r.summary(), volatile=("workers",), raw=True, needs_views=1, per_view=True),
-    Stage("poses", _entry("reconstruction", "run_poses"), upstream=lambda c: ("qc",),
-          outputs=lambda cap, s: [cap.paths.poses_json, cap.paths.points_npz],
-          summary=lambda r: _lines(r.report_lines()), volatile=("threads",), raw=True, needs_views=2),
-    Stage("reconstruct", _entry("reconstruction", "run"), upstream=_reconstruct_upstream,
-          outputs=lambda cap, s: [cap.paths.reconstruction_json, cap.paths.gaussians_ply, cap.paths.trajectories_npz,
-                                  cap.paths.measured_motion_npz],
-          summary=lambda r: r.summary(), volatile=("threads",), needs_views=2),
-    Stage("analyze", _entry("analysis", "run"), upstream=_analyze_upstream,
-          outputs=lambda cap, s: [p for p in _walk(cap.paths.analysis_dir) if p != cap.paths.report_html],
-          summary=lambda r: r.text(), geometry=True),
-    Stage("report", _entry("analysis", "write_report"), upstream=lambda c: ("analyze",),
-          outputs=lambda cap, s: [cap.paths.report_html], summary=str),
-)
-BY_NAME = {s.name: s for s in GRAPH}
-assert tuple(BY_NAME) == STAGES, "the graph and the configuration must name the same stages in the same order"
-
-
-def stage(name: str) -> Stage:
-    try:
-        return BY_NAME[name]
-    except KeyError:
-        raise InputError("stage", f"expected one of {', '.join(STAGES)}; got {name!r}") from None
+# The graph is the stage table (odsplat/app/stages.py: each stage's settings, entry, inputs and outputs).
+GRAPH: tuple[Stage, ...] = TABLE
 
 
 # ------------------------------------------------------------------------------------------ identities
-
-def _walk(path: Path) -> list[Path]:
-    if path.is_dir():
-        return sorted(p for p in path.rglob("*") if p.is_file() and not p.name.startswith("."))
-    return [path]
-
 
 def file_digest(path: Path) -> str:
     """The content digest of one file (`DIGEST`), streamed in blocks of `_BLOCK` bytes."""
@@ -464,6 +386,6 @@ def status(capture: Capture, config: Config | None = None) -> list[tuple[str, bo
     return out
 
 
-__all__ = ["GRAPH", "PipelineResult", "Stage", "StageCrash", "StageError", "StageFailure", "StageRun", "Stamp",
-           "applies", "expected", "file_digest", "is_current", "output_identity", "outputs_unchanged", "run",
+__all__ = ["BY_NAME", "GRAPH", "PipelineResult", "Stage", "StageCrash", "StageError", "StageFailure", "StageRun",
+           "Stamp", "applies", "expected", "file_digest", "is_current", "output_identity", "outputs_unchanged", "run",
            "run_stage", "stage", "stage_settings", "status", "takes_identity"]

@@ -23,11 +23,11 @@ from typing import Any, ClassVar
 import h5py
 import numpy as np
 
+from odsplat.spine.atomic import atomic_path, frame_compression, fsync_path, remove_stale_temporaries
 from odsplat.spine.contract import CAPTURE_KEY, check_capture
 from odsplat.spine.errors import InputError, SchemaError
 from odsplat.spine.guard import link_error
 from odsplat.spine.space import check_free, writing_h5
-from odsplat.spine.store import atomic_path, frame_compression, fsync_path, remove_stale_temporaries
 
 ALIGNED_KIND = "odsplat.aligned-take"        # sync's frames on the common grid
 MAGNIFIED_KIND = "odsplat.magnified-take"    # processing's magnified frames
@@ -117,7 +117,7 @@ def to_stored(values_dn: np.ndarray, scale: float) -> np.ndarray:
 
 @contextlib.contextmanager
 def atomic_h5(path: str | Path) -> Iterator[h5py.File]:
-    """An HDF5 file that appears at `path` only once written whole (`store.atomic_path`)."""
+    """An HDF5 file that appears at `path` only once written whole (`atomic.atomic_path`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp, writing_h5(tmp, "w") as f:

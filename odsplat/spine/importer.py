@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from odsplat.spine.atomic import fsync_path
 from odsplat.spine.errors import InputError
 from odsplat.spine.io.signals import SignalSet, read_signals
 from odsplat.spine.io.video import VideoSource, open_video
@@ -35,7 +36,8 @@ from odsplat.spine.manifest import (
     from_plain,
     load_toml,
 )
-from odsplat.spine.store import Capture, QCInfo, TriggerInfo, fsync_path
+from odsplat.spine.store import Capture
+from odsplat.spine.take_writer import QCInfo, TriggerInfo
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,8 @@ import h5py
 
 from odsplat.spine.errors import InputError
 from odsplat.spine.manifest import TakeRecord
-from odsplat.spine.store import Capture, TakeReader, damage_text, damaged_chunks
+from odsplat.spine.store import Capture
+from odsplat.spine.take_reader import TakeReader, damage_text, damaged_chunks
 
 log = logging.getLogger(__name__)
 

@@ -37,10 +37,6 @@ CHANNEL_KINDS: dict[str, str] = {
 }
 TAKE_STATUSES = ("complete", "recovered")
 QC_STATUSES = ("unchecked", "accepted", "rejected")
-# The qc stage's result, derived/qc.json: read by the spine to select imported (unchecked) takes.
-QC_KIND = "odsplat.qc"
-QC_SCHEMA = 1
-
 
 NAME_MAX_CHARS = 100  # a take's name is a file name (takes/NAME.h5) on every file system we meet
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._-]*")

@@ -20,8 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from odsplat.spine.atomic import atomic_path
 from odsplat.spine.errors import InputError, OdsplatError
-from odsplat.spine.store import atomic_path
 
 log = logging.getLogger(__name__)
 

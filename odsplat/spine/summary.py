@@ -7,7 +7,8 @@ from typing import Any
 
 from odsplat.spine.errors import OdsplatError
 from odsplat.spine.integrity import UNREADABLE_ERRORS, file_problem
-from odsplat.spine.store import Capture, TakeReader
+from odsplat.spine.store import Capture
+from odsplat.spine.take_reader import TakeReader
 
 
 @dataclass

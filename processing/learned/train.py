@@ -18,8 +18,8 @@ from tqdm import tqdm
 from odsplat.processing.learned.network import MagNet, from_net, to_net
 from odsplat.processing.learned.synth import SynthConfig, make_batch, make_sample
 from odsplat.processing.metrics import estimate_translation, psnr, ssim
+from odsplat.spine.atomic import atomic_open
 from odsplat.spine.errors import InputError
-from odsplat.spine.store import atomic_open
 
 log = logging.getLogger(__name__)
 

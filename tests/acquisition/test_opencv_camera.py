@@ -167,7 +167,7 @@ def test_wait_times_out_naming_the_camera(video):
         t0 = time.monotonic()
         with pytest.raises(CameraTimeout, match=r"^dry-cam: no trigger within 0.2 s"):
             cam.wait(0.2)
-        assert 0.2 <= time.monotonic() - t0 < 1.0
+        assert 0.2 <= time.monotonic() - t0 < 10 * 0.2  # never before its timeout; 10x above, for a loaded machine
         cam.stop()
         with pytest.raises(OdsplatError, match="arm"):
             list(cam.frames())

@@ -12,11 +12,9 @@ from odsplat.analysis.export import (
     Geometry,
     ShapeRecord,
     TimeSeries,
-    read_results_h5,
-    read_uff,
-    write_results_h5,
-    write_uff,
 )
+from odsplat.analysis.results_h5 import read_results_h5, write_results_h5
+from odsplat.analysis.uff import read_uff, write_uff
 from odsplat.spine.errors import InputError, OdsplatError
 
 DT_S = 1 / 51200          # not representable in the 6 digits of a UFF 58 header: exercises its rounding

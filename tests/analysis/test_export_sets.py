@@ -17,12 +17,10 @@ from odsplat.analysis.export import (
     ShapeRecord,
     StabilisationRecord,
     TimeSeries,
-    read_results_h5,
-    read_uff,
-    write_results_h5,
-    write_uff,
 )
 from odsplat.analysis.outputs import sensor_lines, surface_lines
+from odsplat.analysis.results_h5 import read_results_h5, write_results_h5
+from odsplat.analysis.uff import read_uff, write_uff
 from odsplat.spine.errors import InputError
 
 FREQ_HZ = 0.5 * np.arange(401)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from odsplat.analysis import read_analysis
 from odsplat.analysis.correlation import correlate
 from odsplat.analysis.ema import fit_modes
 from odsplat.analysis.frf import FRFResult, HitCheck
@@ -151,12 +152,17 @@ def test_plots_without_video_nan_lines_and_one_sensor(result, tmp_path):
         plot_ods(bare, 99)
 
 
+def _document(result: AnalysisResult, capture: Capture, files: dict[str, str]):
+    return result.document(describe(capture.id, "odsplat.analysis", 2, {}), capture="bench-arm",
+                           created_utc="2024-05-01T10:00:00Z", settings={"fmax_hz": 450.0}, files=files)
+
+
 def test_report_embeds_the_numbers_and_figures(written, result):
     dest, files = written
     capture = Capture(dest.parent.parent, Manifest(name="bench-arm"))
-    doc = {**_header(capture), "capture": "bench-arm", "created_utc": "2024-05-01T10:00:00Z",
-           **result.summary(), "files": {**files, "results": "results.h5"}}
-    (dest / "analysis.json").write_text(json.dumps(doc, default=float))
+    document = _document(result, capture, {**files, "results": "results.h5"})
+    assert document.write(capture) == dest / "analysis.json"
+    assert read_analysis(capture) == document                          # it reads back as written
     html = write_report(capture).read_text()
     for f, z in zip(result.modes.freq_hz, result.modes.damping):
         assert f"<td>{f:.2f}</td><td>{100 * z:.2f}</td>" in html
@@ -175,7 +181,7 @@ def _header(capture: Capture) -> dict:
     return describe(capture.id, "odsplat.analysis", 2, {}).header()
 
 
-def test_report_input_errors(tmp_path):
+def test_report_input_errors(tmp_path, result):
     capture = Capture(tmp_path, Manifest(name="cap"))
     path = tmp_path / "derived" / "analysis" / "analysis.json"
     with pytest.raises(InputError, match="odsplat analyze") as err:
@@ -191,10 +197,12 @@ def test_report_input_errors(tmp_path):
     path.write_text(json.dumps({**_header(Capture(tmp_path, Manifest(name="other"))), "modes": []}))
     with pytest.raises(InputError, match="belongs to another capture"):
         write_report(capture)
-    path.write_text(json.dumps({**_header(capture), "modes": [{"damping": 0.01}]}))
+    doc = _document(result, capture, {}).to_json()
+    del doc["modes"][0]["freq_hz"]
+    path.write_text(json.dumps(doc))
     with pytest.raises(InputError) as err:
         write_report(capture)
-    assert err.value.source.endswith("modes[0]: freq_hz") and err.value.problem == "missing"
+    assert err.value.source == f"{path}: modes[0].freq_hz" and err.value.problem == "missing"
 
 
 def test_the_render_plays_inline_when_there_is_one(tmp_path):
@@ -215,11 +223,13 @@ def test_a_camera_pole_off_every_mode_is_said_to_be_none_and_named_near_the_stro
     """A video pole 4 % from twice the strongest mode (the demo's 48.9 Hz beside 2 x 23.5 Hz) is no accelerometer
     mode, and lies where the image's slight nonlinearity in the strongest motion puts energy; a pole on a mode is
     neither."""
+    from odsplat.analysis.document import ModeEntry, PairEntry
     from odsplat.analysis.report import _poles_table
 
-    modes = [{"freq_hz": f, "damping": 0.01} for f in (23.5, 31.0, 86.0, 142.0)]
-    pairs = [{"a": k, "b": k, "video_amplitude_um": a} for k, a in enumerate((120.0, 80.0, 30.0, 4.0))]
-    html = _poles_table(modes, [23.49, 48.9, 141.4, 300.0], [0.01] * 4, "Poles", "none", pairs)
+    modes = tuple(ModeEntry(f, 0.01) for f in (23.5, 31.0, 86.0, 142.0))
+    pairs = tuple(PairEntry(a=k, b=k, mac=0.99, scale_factor_abs=1.0, scale_factor_phase_deg=0.0, video_amplitude_um=a)
+                  for k, a in enumerate((120.0, 80.0, 30.0, 4.0)))
+    html = _poles_table(modes, (23.49, 48.9, 141.4, 300.0), (0.01,) * 4, "Poles", "none", pairs)
     rows = re.findall(r"<tr>(.*?)</tr>", html)[1:]
     assert "no accelerometer mode" not in rows[0] and "no accelerometer mode" not in rows[2]
     assert "no accelerometer mode within 1 %; near 2 x mode 1 (47.0 Hz)" in rows[1], rows[1]

@@ -1,5 +1,6 @@
 """The HTML report is safe to mail: nothing from analysis.json reaches the page as markup, whatever a hand-edited
-file holds, and only the files the analysis wrote in derived/analysis/ are inlined."""
+file holds (its text shows as text; a field of the wrong kind is refused in one line naming it), and only the files
+the analysis wrote in derived/analysis/ are inlined."""
 from __future__ import annotations
 
 import base64
@@ -20,14 +21,13 @@ from odsplat.spine.manifest import Manifest
 from odsplat.spine.store import Capture
 
 PAYLOADS = ("<script>alert(1)</script>", '"><img src=x onerror=alert(1)>')
-# The fields the contract and read_analysis check before anything is shown: poisoned, the report is refused.
-CHECKED = {".kind", ".schema_version", ".capture_id", ".files"}
-CHECKED_IN_MODES = re.compile(r"^\.modes\[\d+\]\.(freq_hz|damping)$")
+# The header's text, checked before anything is read: poisoned, the report is refused; `files` is poisoned apart.
+CHECKED = {".kind", ".capture_id", ".files"}
 # Text fields the page shows as they are: each must appear, escaped, as the page's text.
-SHOWN = (".capture", ".created_utc", ".n_averages", ".notes[0]", ".takes[0]", ".rejected_hits[0].take",
-         ".rejected_hits[0].reasons[0]", ".rejected_hits[1].reasons", ".sensors[0]", ".video.modes_fitted[0]",
-         ".video.structure_rule", ".video.crosscheck[0].take", ".video.crosscheck_verdict.status",
-         ".video.crosscheck_verdict.line", ".correlation.verdict.line", ".correlation.pairs[0].a")
+SHOWN = (".capture", ".created_utc", ".notes[0]", ".takes[0]", ".rejected_hits[0].take",
+         ".rejected_hits[0].reasons[0]", ".rejected_hits[1].reasons[0]", ".sensors[0]", ".video.structure_rule",
+         ".video.crosscheck[0].take", ".video.crosscheck_verdict.status", ".video.crosscheck_verdict.line",
+         ".correlation.verdict.status", ".correlation.verdict.line", ".settings.response_channels[0]")
 PAGE_TAGS = {"html", "head", "meta", "title", "style", "body", "h1", "h2", "h3", "p", "b", "ul", "li", "table", "tr",
              "th", "td", "span", "figure", "img", "figcaption", "details", "summary", "pre"}
 IMAGE_SRC = re.compile(r"data:image/(png|gif|webp);base64,[A-Za-z0-9+/=]+")
@@ -51,7 +51,8 @@ def _analysis(capture: Capture) -> dict:
     return {**describe(capture.id, "odsplat.analysis", 2, {}).header(), "capture": "bench-arm",
             "created_utc": "2024-05-01T10:00:00Z", "settings": {"fmax_hz": 450.0, "response_channels": ["acc_tip_z"]},
             "takes": ["t1", "t2", "t3"], "n_averages": 2,
-            "rejected_hits": [{"take": "t2", "reasons": ["double hit at +2.1 ms"]}, {"take": "t9", "reasons": "late"}],
+            "rejected_hits": [{"take": "t2", "reasons": ["double hit at +2.1 ms"]},
+                              {"take": "t9", "reasons": ["late"]}],
             "sensors": ["tip z", "tip y"], "exp_tau_s": 0.003,
             "modes": [{"freq_hz": 23.5, "damping": 0.01}, {"freq_hz": 31.0, "damping": 0.012},
                       {"freq_hz": 86.0, "damping": 0.008}],
@@ -66,8 +67,11 @@ def _analysis(capture: Capture) -> dict:
                                       "motion_rms_px": 0.4, "residual_rms_px": 0.05, "force_ratio": 1.01,
                                       "noise_px": 0.01}],
                       "noise_floor": {"sigma_um": 5.0, "static_sigma_um": 4.8, "n_static_points": 300,
-                                      "pre_impact_sigma_um": 5.2, "n_pre_impact": 4, "floor_sigmas": 3.0,
-                                      "floor_mac": 0.9},
+                                      "pre_impact_sigma_um": 5.2, "n_pre_impact": 4, "sensor_sigma_um": [5.1, 4.9],
+                                      "point_sigma_um_p10_p90": [4.0, 6.5], "floor_sigmas": 3.0, "floor_mac": 0.9,
+                                      "modes": [{"freq_hz": f, "amplitude_um": a, "floor_um": 15.0,
+                                                 "spectrum_gain": 1.0, "below_floor": a < 15.0}
+                                                for f, a in ((23.5, 120.0), (31.0, 80.0), (86.0, 4.0))]},
                       "real_modes": [{"freq_hz": 23.5, "mpc": 0.999, "quadrature_over_noise": 1.1, "lost": 0.01,
                                       "real": True},
                                      {"freq_hz": 31.0, "mpc": 0.9, "quadrature_over_noise": 6.0, "lost": 0.2,
@@ -97,21 +101,21 @@ def _capture(root: Path) -> Capture:
 
 
 def _poisoned(x, payload: str, path: str = ""):
-    """x with every value the report may show replaced by `payload` and the value's path (strings, numbers and
-    flags alike), but for the fields checked before anything is shown (CHECKED); the keys of `files` and
-    `settings`, which the page shows too, get theirs."""
+    """x with every text the report may show replaced by `payload` and the text's path, but for the header's
+    (CHECKED); the keys of `settings`, which the page shows too, get theirs. Numbers and flags stay: one of the
+    wrong kind is refused (tests/analysis/test_document.py)."""
     if isinstance(x, dict):
         out = {}
         for k, v in x.items():
             p = f"{path}.{k}"
-            if p in CHECKED or CHECKED_IN_MODES.match(p):
+            if p in CHECKED:
                 out[k] = v
             else:
                 out[f"{payload} {p}#key" if path == ".settings" else k] = _poisoned(v, payload, p)
         return out
     if isinstance(x, list):
         return [_poisoned(v, payload, f"{path}[{i}]") for i, v in enumerate(x)]
-    return f"{payload} {path}"
+    return f"{payload} {path}" if isinstance(x, str) else x
 
 
 class _Page(HTMLParser):
@@ -165,18 +169,27 @@ def test_every_field_of_analysis_json_is_shown_as_text(tmp_path, payload):
     assert f"{payload} .settings.fmax_hz#key" in text
 
 
-def test_the_crosschecks_point_count_is_text(tmp_path):
-    """The leak first reported: a number the report showed as it stood in the file (issue 41)."""
+def test_the_crosschecks_point_count_is_refused_as_text(tmp_path):
+    """The leak first reported: a number the report showed as it stood in the file (issue 41). A number that is
+    text now stops the report in one line naming it; one that is no finite number shows as a dash."""
     capture = _capture(tmp_path / "cap")
     doc = _analysis(capture)
     doc["video"]["crosscheck"][0]["n_points"] = PAYLOADS[0]
     capture.paths.analysis_json.write_text(json.dumps(doc))
+    with pytest.raises(InputError) as err:
+        write_report(capture)
+    assert err.value.source == f"{capture.paths.analysis_json}: video.crosscheck[0].n_points"
+    assert err.value.problem.startswith("expected an integer; got '<script>")
+    assert "\n" not in str(err.value) and not capture.paths.report_html.exists()
+    doc["video"]["crosscheck"][0].update(n_points=120, gain=float("nan"))
+    capture.paths.analysis_json.write_text(json.dumps(doc))
     html = write_report(capture).read_text()
     _assert_inert(html)
-    assert "<td>v00_000</td><td>\u2013</td><td>0.98</td>" in html.replace('<td class="t">', "<td>")
+    assert "<td>v00_000</td><td>120</td><td>\u2013</td><td>0.97</td>" in html.replace('<td class="t">', "<td>")
 
 
-@pytest.mark.parametrize("field", [("modes", 0, "freq_hz"), ("modes", 1, "damping"), ("kind",)])
+@pytest.mark.parametrize("field", [("modes", 0, "freq_hz"), ("modes", 1, "damping"), ("kind",),
+                                   ("video", "noise_floor", "sigma_um"), ("correlation", "pairs", 1, "b")])
 def test_a_poisoned_field_the_report_needs_is_refused_by_name(tmp_path, field):
     capture = _capture(tmp_path / "cap")
     doc = _analysis(capture)
@@ -188,9 +201,10 @@ def test_a_poisoned_field_the_report_needs_is_refused_by_name(tmp_path, field):
     capture.paths.analysis_json.write_text(json.dumps(doc))
     with pytest.raises(InputError) as err:
         write_report(capture)
-    assert (err.value.source.endswith(f"modes[{field[1]}]: {last}") if field[0] == "modes"
+    name = "".join(f"[{k}]" if isinstance(k, int) else f".{k}" for k in field)[1:]
+    assert (err.value.source == f"{capture.paths.analysis_json}: {name}" if len(field) > 1
             else "not an odsplat.analysis file" in err.value.problem)
-    assert not capture.paths.report_html.exists()
+    assert "\n" not in str(err.value) and not capture.paths.report_html.exists()
 
 
 def test_only_the_files_the_analysis_wrote_are_inlined(tmp_path):

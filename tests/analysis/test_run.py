@@ -15,16 +15,16 @@ from click.testing import CliRunner
 from odsplat.analysis.analyze import AnalyzeSettings, analyze_capture
 from odsplat.analysis.correlation import mac, modal_scale_factor
 from odsplat.analysis.crosscheck import views_seeing
-from odsplat.analysis.export import read_results_h5
 from odsplat.analysis.noise import FLOOR_SIGMAS, MAX_LOST
 from odsplat.analysis.ods import decay_design
 from odsplat.analysis.outputs import FORCE_NODE, NO_NODE, records
+from odsplat.analysis.results_h5 import read_results_h5
 from odsplat.app.cli import main
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.rig import TakeTruth, truth_path
 from odsplat.hil_sim.structure import ModalStructure
 from odsplat.reconstruction import PoseResult
-from odsplat.reconstruction.poses import ViewPose
+from odsplat.reconstruction.pose_result import ViewPose
 from odsplat.spine.errors import InputError
 from odsplat.spine.store import Capture
 from odsplat.sync import SyncSettings, load_sync, sync_capture

@@ -297,7 +297,10 @@ def test_overrun_when_the_host_stops_reading(channel):
         with sim_nodes(channel, [3], SRC, faults={3: CANFaults(disconnect_after_samples=2500)}) as (node,):
             reader = cp.AccelNodeReader(small, node_timeout_s=0.2)
             reader.start([3])
-            time.sleep(0.2)  # the node's sends fail once the host queue is full: those samples are gone
+            # the node's sends fail once the host queue is full: those samples are gone (waited for, not timed)
+            deadline = time.monotonic() + 10.0
+            while len(node.overrun_samples) < 5 and time.monotonic() < deadline:
+                time.sleep(0.01)
             blocks = _collect(reader, _timed_out(3))
     finally:
         small.shutdown()
@@ -318,8 +321,9 @@ def test_disconnect_raises_a_timeout_for_that_node_only(host, channel):
         assert [t.node_id for t in reader.timeouts] == [2]  # node 1 keeps streaming
         (event,) = reader.timeouts
         assert event.next_sample == 300 and event.silent_s > timeout_s
-        # silent_since_s is a hair after its last frame left, so allow 20 ms below the timeout
-        assert timeout_s - 0.02 <= detected - node2.silent_since_s <= timeout_s + 0.3
+        # silent_since_s is a hair after its last frame left, so allow 20 ms below the timeout; above it, 10x the
+        # timeout, so that a loaded machine (a busy loop on every core) does not fail it
+        assert timeout_s - 0.02 <= detected - node2.silent_since_s <= 10 * timeout_s
         reader.stop()
     assert node1.sent_samples > 300
 
@@ -353,14 +357,16 @@ def _sine_freq_hz(x: np.ndarray, fs_hz: float, f0_hz: float) -> float:
 def test_realtime_node_paces_to_its_sample_rate(host, channel):
     with sim_nodes(channel, [8], SRC, realtime=True, sample_rate_hz=500.0):
         reader = cp.AccelNodeReader(host)
+        t0 = time.monotonic()  # before START: the node cannot have sampled earlier
         reader.start([8], 500.0)
-        t0 = time.monotonic()
-        got = 0
-        while time.monotonic() - t0 < 0.6:
+        got, deadline = 0, t0 + 10.0
+        while got < 300 and time.monotonic() < deadline:
             got += sum(b.n_samples for b in reader.read(0.05))
         elapsed = time.monotonic() - t0
         reader.stop()
-    assert 0.5 * 500 * elapsed <= got <= 500 * elapsed + 64 + 5
+    # Paced: never more than 500 Hz allows since START (plus what is in flight), however slow the host; every
+    # sample arrives. How fast a loaded host receives them is not asserted.
+    assert 300 <= got <= 500 * elapsed + 64 + 5
     assert reader.gaps == []
 
 
@@ -369,7 +375,7 @@ def test_start_names_a_silent_node(host):
     t0 = time.monotonic()
     with pytest.raises(InputError, match="CAN node 11"):
         reader.start([11], confirm_timeout_s=0.2)
-    assert 0.2 <= time.monotonic() - t0 < 1.0
+    assert 0.2 <= time.monotonic() - t0 < 10 * 0.2  # the confirm timeout, never before; 10x above for a loaded machine
 
 
 def test_open_bus_takes_the_interface_from_configuration(monkeypatch, channel):

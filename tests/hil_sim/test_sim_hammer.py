@@ -31,6 +31,10 @@ from odsplat.spine.errors import InputError
 pytestmark = pytest.mark.timeout(30)
 
 F32 = 1e-6  # relative: floats travel as float32 on the serial line
+# How long the host waits for a message: 10x the protocol's 1 s reply deadline, so that a loaded machine (a busy loop
+# on every core) delays a reply without failing the test. Timings are asserted as lower bounds from the host's send
+# time only (causality: nothing comes back before the device could have sent it); the bench measures speed.
+WAIT_S = 10.0
 
 
 @dataclass
@@ -60,7 +64,7 @@ class HammerHost:
         now = time.monotonic()
         self.inbox += [(now, p.seq, p.message) for p in map(hp.parse_packet, self.decoder.feed_raw(data))]
 
-    def expect(self, match, timeout_s: float = 1.0):
+    def expect(self, match, timeout_s: float = WAIT_S):
         """The first message (oldest first) for which match(message) is true; removes it from the inbox."""
         deadline = time.monotonic() + timeout_s
         while True:
@@ -80,21 +84,21 @@ class HammerHost:
         self.inbox.clear()
         return out
 
-    def request(self, message, timeout_s: float = 1.0):
+    def request(self, message, timeout_s: float = WAIT_S):
         seq = self.send(message)
         return self.expect(lambda m: not isinstance(m, hp.Shot) and m.ref_seq == seq, timeout_s)
 
-    def status_update(self, timeout_s: float = 1.0) -> hp.Status:
+    def status_update(self, timeout_s: float = WAIT_S) -> hp.Status:
         return self.expect(lambda m: isinstance(m, hp.Status) and m.ref_seq == hp.NO_REF, timeout_s)
 
-    def shot(self, shot_id: int, timeout_s: float = 1.0) -> hp.Shot:
+    def shot(self, shot_id: int, timeout_s: float = WAIT_S) -> hp.Shot:
         return self.expect(lambda m: isinstance(m, hp.Shot) and m.shot_id == shot_id, timeout_s)
 
     def fire(self, shot_id: int, level: float, mode=hp.LevelMode.FORCE_N, timeout_s: float = 1.0) -> hp.Shot:
         """ARM, FIRE, and the SHOT."""
         assert isinstance(self.request(hp.Arm()), hp.Ack)
         assert isinstance(self.request(hp.Fire(shot_id, mode, level, timeout_s)), hp.Ack)
-        return self.shot(shot_id, timeout_s + 1.0)
+        return self.shot(shot_id, timeout_s + WAIT_S)
 
 
 def _nak(reply, reason: hp.NakReason, ref_type: hp.MsgType) -> None:
@@ -138,7 +142,7 @@ def test_hello_and_the_order_of_replies(open_hammer, rig):
     while len(got) < 7:
         host._read(time.monotonic() + 1.0)
         got = list(host.inbox)
-        assert time.monotonic() - sent < 2.0, got
+        assert time.monotonic() - sent < WAIT_S, got
     seqs = [s for _, s, _ in got]
     assert seqs == list(range(seqs[0], seqs[0] + 7))  # one device counter, no gaps
     msgs = [m for _, _, m in got]
@@ -152,10 +156,11 @@ def test_hello_and_the_order_of_replies(open_hammer, rig):
     assert (after.state, after.ready, after.shot_count) == (hp.State.DISARMED, False, 1)
     assert after.last_peak_force_n == pytest.approx(truth.measured_peak_n, rel=F32)
     assert (ready.state, ready.ready, ready.fault) == (hp.State.DISARMED, True, hp.Fault.NONE)
-    # SHOT comes when the contact is over (delay + 1 ms after FIRE); ready again recharge_s (50 ms) later
-    t_fire_ack, t_shot, t_ready = got[2][0], got[4][0], got[6][0]
-    assert t_shot - t_fire_ack >= truth.delay_s + 1e-3 - 2e-3
-    assert 0.045 <= t_ready - t_shot <= 0.2
+    # SHOT comes when the contact is over (delay + 1 ms after FIRE); ready again recharge_s (50 ms) later. Lower
+    # bounds from `sent` (before ARM and FIRE left): a late reader may receive the replies together, never early.
+    t_shot, t_ready = got[4][0] - sent, got[6][0] - sent
+    assert t_shot >= truth.wait_s + truth.delay_s + 1e-3
+    assert t_ready >= truth.wait_s + truth.delay_s + 1e-3 + model.settings.recharge_s
     # what struck the rig: one half-sine at the manual hammer's point, delay after the rig's now (0: no DAQ running)
     (imp,) = rig.impacts
     assert imp == truth.impacts[0]
@@ -266,16 +271,16 @@ def test_fire_expires_when_the_drive_is_not_ready(open_hammer, rig):
     assert isinstance(host.request(hp.Arm()), hp.Ack)
     t0 = time.monotonic()
     assert isinstance(host.request(hp.Fire(5, hp.LevelMode.FORCE_N, 200.0, 0.15)), hp.Ack)
-    shot = host.shot(5, timeout_s=1.0)
+    shot = host.shot(5)
     waited = time.monotonic() - t0
     assert shot.outcome is hp.Outcome.EXPIRED and shot.peak_force_n == 0.0 and shot.shot_count == 0
-    assert shot.delay_s == pytest.approx(0.15, abs=0.01) and 0.14 <= waited <= 0.3
+    assert shot.delay_s == pytest.approx(0.15, abs=1e-6) and waited >= 0.15  # at the FIRE's timeout, never before
     updates = [host.status_update() for _ in range(3)]  # ARMED; FIRING not ready; DISARMED still not ready
     assert (updates[1].state, updates[1].ready, updates[1].fault) == (hp.State.FIRING, False, hp.Fault.NOT_READY)
     assert (updates[2].state, updates[2].fault) == (hp.State.DISARMED, hp.Fault.NOT_READY)
-    recovered = host.status_update(timeout_s=1.0)  # by itself, not_ready_ms after the FIRE
+    recovered = host.status_update()  # by itself, not_ready_ms after the FIRE
     assert (recovered.ready, recovered.fault) == (True, hp.Fault.NONE)
-    assert 0.38 <= time.monotonic() - t0 <= 0.6
+    assert time.monotonic() - t0 >= 0.4
     assert rig.impacts == [] and model.fires[0].outcome is hp.Outcome.EXPIRED
 
 
@@ -320,9 +325,9 @@ def test_no_response_then_back_disarmed(open_hammer, rig):
     host.port.write(b"\x05\x01\x02")  # a partial frame, lost with the reboot
     got = host.silence(0.3)
     assert [m for m in got if not (isinstance(m, hp.Status) and m.state is hp.State.ARMED)] == []
-    back = host.status_update(timeout_s=1.0)
+    back = host.status_update()
     assert (back.state, back.ready, back.fault) == (hp.State.DISARMED, True, hp.Fault.NONE)
-    assert 0.45 <= time.monotonic() - t0 <= 0.8
+    assert time.monotonic() - t0 >= 0.5  # silent_ms after the FIRE, never before
     assert host.request(hp.GetStatus()).state is hp.State.DISARMED
     assert rig.impacts == [] and model.fires[0].outcome is None and model.fires[0].faults == {"no_response"}
     assert host.fire(2, 200.0).outcome is hp.Outcome.FIRED  # fire index 1: no fault
@@ -411,7 +416,7 @@ def test_model_is_reproducible_and_timed_by_next_event():
 
 # ---------------------------------------------------------------------------------- CAN
 
-def _can_expect(bus: can.BusABC, match, timeout_s: float = 1.0):
+def _can_expect(bus: can.BusABC, match, timeout_s: float = WAIT_S):
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         frame = bus.recv(timeout=max(0.0, deadline - time.monotonic()))

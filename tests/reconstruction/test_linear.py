@@ -10,7 +10,7 @@ from odsplat.reconstruction.dynamic import render
 from odsplat.reconstruction.gaussians import Gaussians
 from odsplat.reconstruction.linear import LinearSettings, NodeGraph, fit_linear
 from odsplat.reconstruction.model import ReconstructSettings
-from odsplat.reconstruction.poses import PoseResult, ViewPose
+from odsplat.reconstruction.pose_result import PoseResult, ViewPose
 from odsplat.reconstruction.views import Camera, load_views
 from odsplat.spine.errors import InputError
 from odsplat.spine.geometry import look_at

@@ -19,7 +19,9 @@ from odsplat.app.cli import main
 from odsplat.hil_sim.bench import SimBench, SimBenchSettings
 from odsplat.hil_sim.rig import TakeTruth, truth_path
 from odsplat.hil_sim.structure import ModalStructure
-from odsplat.reconstruction.poses import PoseResult, PoseSettings, compare_poses, estimate_poses, fit_sim3
+from odsplat.reconstruction.pose_result import PoseResult, PoseSettings
+from odsplat.reconstruction.poses import estimate_poses
+from odsplat.reconstruction.sim3 import compare_poses, fit_sim3
 from odsplat.spine.errors import InputError
 from odsplat.spine.geometry import camera_center_m
 from odsplat.spine.store import Capture

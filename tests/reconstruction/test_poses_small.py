@@ -19,7 +19,9 @@ from odsplat.app.config import load_config
 from odsplat.app.pipeline import run_stage
 from odsplat.hil_sim.bench import SimBench, SimBenchSettings
 from odsplat.hil_sim.rig import TakeTruth, truth_path
-from odsplat.reconstruction.poses import PoseResult, PoseSettings, compare_poses, estimate_poses
+from odsplat.reconstruction.pose_result import PoseResult, PoseSettings
+from odsplat.reconstruction.poses import estimate_poses
+from odsplat.reconstruction.sim3 import compare_poses
 from odsplat.spine.geometry import camera_center_m
 from odsplat.spine.store import Capture
 from odsplat.spine.tags import detect_tags

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from odsplat.app.viewer.model import _scene
+from odsplat.app.viewer.load import _scene
 from odsplat.reconstruction import DynamicScene, Gaussians, SceneFrame
 from odsplat.reconstruction.model import modal_quats
 
@@ -36,3 +36,22 @@ def test_a_modal_models_motion_and_turns_reach_the_viewer(captures, tmp_path):
                               np.array([0.0]), alpha)
     assert np.allclose(view.rotvec_rad, from_quats.turns_rad() / alpha, atol=1e-7)
     assert np.allclose(view.displacement_m, np.einsum("tk,nkc->tnc", basis, shapes) / alpha, atol=1e-10)
+
+
+def test_the_view_turns_each_gaussian_from_its_rest_orientation():
+    """The render's turn of each Gaussian (reconstruction's quaternions): the rotation from rest applied after the
+    rest orientation, as scipy composes them."""
+    from scipy.spatial.transform import Rotation
+
+    from odsplat.app.viewer.model import _turned
+
+    rng = np.random.default_rng(4)
+    q = rng.normal(size=(50, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    r = rng.normal(0, 0.5, (50, 3))
+    r[0] = 0.0                                                                  # no turn at all
+    got = _turned(q.astype(np.float32), r.astype(np.float32))
+    want = (Rotation.from_rotvec(r) * Rotation.from_quat(q[:, [1, 2, 3, 0]])).as_quat()[:, [3, 0, 1, 2]]
+    assert got.dtype == np.float32 and got.shape == (50, 4)
+    assert np.allclose(got * np.sign(np.sum(got * want, axis=1))[:, None], want, atol=2e-6)
+    assert np.allclose(got[0], q[0], atol=1e-7)

@@ -53,11 +53,12 @@ def _shift_px(a: np.ndarray, b: np.ndarray, box) -> float:
 
 def _tip_box(data, state, half_px: int = 40):
     """A box in the view's pixels around the arm's free end (the structure's Gaussian that moves most)."""
-    from odsplat.app.viewer.model import _project, camera_for
+    from odsplat.app.viewer.draw import project
+    from odsplat.app.viewer.model import camera_for
 
     sc = data.scene
     i = int(np.argmax(np.linalg.norm(sc.displacement_m, axis=2).max(axis=0)))
-    uv, _ = _project(camera_for(data, state), sc.means_m[i:i + 1].astype(float))
+    uv, _ = project(camera_for(data, state), sc.means_m[i:i + 1].astype(float))
     u, v = (int(round(c)) for c in uv[0])
     return max(u - half_px, 0), max(v - half_px, 0), u + half_px, v + half_px
 
@@ -329,7 +330,7 @@ def test_an_ods_line_is_listed_animated_at_its_frequency_and_read_per_newton(dat
     # 24 timesteps cannot separate 23.5 and 31 Hz: the analysis says the video's ODS at 23.5 Hz is their noise
     from odsplat.analysis import read_analysis
 
-    notes = read_analysis(data.capture)["notes"]
+    notes = read_analysis(data.capture).notes
     assert any(n.startswith("ODS line 1 (23.5 Hz): the video's ODS there is carried by modes below") for n in notes), \
         notes
     window.set_state(structure_only=True, alpha=1000.0, show_cameras=False, show_sensors=False)

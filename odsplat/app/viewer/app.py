@@ -12,13 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
+from odsplat.app.viewer.draw import caption
 from odsplat.app.viewer.export import export_video, save_screenshot
+from odsplat.app.viewer.load import aligned_frame
 from odsplat.app.viewer.model import (
     ALPHA_RANGE,
     COLOUR_MODES,
     ViewerData,
     ViewState,
-    aligned_frame,
     best_threads,
     default_state,
     render_view,
@@ -129,12 +130,41 @@ class ViewerWindow:
         self._playing = False
         self._last_tick = None
         self._quiet = False     # while controls are set from the state
+        self._dragging = False
 
         central = QtWidgets.QWidget()
         self.window.setCentralWidget(central)
         top = QtWidgets.QHBoxLayout(central)
         left = QtWidgets.QVBoxLayout()
         top.addLayout(left, 3)
+        self._build_views(left)
+        self._build_plots(left)
+        panel = QtWidgets.QVBoxLayout()
+        top.addLayout(panel, 1)
+        self._build_motion_controls(panel)
+        self._build_shown_controls(panel)
+        self._build_camera_controls(panel)
+        self._build_export_controls(panel)
+        self.status = QtWidgets.QLabel("\n".join(data.notes))
+        self.status.setWordWrap(True)
+        panel.addWidget(self.status)
+        panel.addStretch(1)
+
+        self.timer = QtCore.QTimer()
+        self.timer.setInterval(TICK_MS)
+        self.timer.timeout.connect(self._tick)
+        self.window.resize(1500, 950)
+        self.threads = best_threads(data, self.state) if data.scene is not None else 1
+        self._sync_controls()
+        self.refresh()
+
+    # ------------------------------------------------------------------ building the window
+
+    def _build_views(self, left) -> None:
+        """The 3D view under the mouse, the capture camera's real frame beside it (hidden until asked), the
+        caption under them."""
+        from PySide6 import QtCore, QtWidgets
+
         views = QtWidgets.QHBoxLayout()
         left.addLayout(views, 3)
         self.view = _view_widget()
@@ -142,7 +172,6 @@ class ViewerWindow:
         self.view.on_pan = lambda dx, dy: self.set_state(orbit=self.state.orbit.panned(dx, dy), snap=None)
         self.view.on_zoom = lambda f: self.set_state(orbit=self.state.orbit.zoomed(f))
         self.view.on_drag = self._on_drag
-        self._dragging = False
         views.addWidget(self.view, 1)
         self.real = QtWidgets.QLabel()
         self.real.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
@@ -152,7 +181,10 @@ class ViewerWindow:
         self.caption = QtWidgets.QLabel()
         left.addWidget(self.caption)
 
-        # the linked plots
+    def _build_plots(self, left) -> None:
+        """The linked plots: force and accelerations against time, the FRFs, the selected mode at the sensors."""
+        import pyqtgraph as pg
+
         self.plots = pg.GraphicsLayoutWidget()
         left.addWidget(self.plots, 2)
         self.force_plot = self.plots.addPlot(row=0, col=0, title="force (N)")
@@ -162,12 +194,14 @@ class ViewerWindow:
         self.shape_plot = self.plots.addPlot(row=1, col=1, title="mode at the sensors: accelerometers, video")
         self._fill_plots()
 
-        # the controls
-        panel = QtWidgets.QVBoxLayout()
-        top.addLayout(panel, 1)
+    def _build_motion_controls(self, panel) -> None:
+        """What moves (the measured motion, a mode or an ODS line), the time and its playback."""
+        from PySide6 import QtCore, QtWidgets
+
         self.mode_list = QtWidgets.QListWidget()
-        self.mode_list.addItem("measured motion" if data.scene is not None else "measured motion (no reconstruction)")
-        for m in data.modes:
+        self.mode_list.addItem("measured motion" if self.data.scene is not None
+                               else "measured motion (no reconstruction)")
+        for m in self.data.modes:
             self.mode_list.addItem(m.label())
         self.mode_list.currentRowChanged.connect(self._on_mode_row)
         panel.addWidget(QtWidgets.QLabel("what moves"))
@@ -175,7 +209,6 @@ class ViewerWindow:
         self.mode_label = QtWidgets.QLabel()
         self.mode_label.setWordWrap(True)
         panel.addWidget(self.mode_label)
-
         self.time_slider = QtWidgets.QSlider(QtCore.Qt.Orientation.Horizontal)
         self.time_slider.setRange(0, TIME_STEPS)
         self.time_slider.valueChanged.connect(self._on_time_slider)
@@ -197,13 +230,17 @@ class ViewerWindow:
         panel.addLayout(row)
         panel.addWidget(self.speed_box)
 
+    def _build_shown_controls(self, panel) -> None:
+        """How it is shown: the magnification, structure only, the box (plan view and z range), the colour."""
+        import pyqtgraph as pg
+        from PySide6 import QtCore, QtWidgets
+
         self.alpha_label = QtWidgets.QLabel()
         self.alpha_slider = QtWidgets.QSlider(QtCore.Qt.Orientation.Horizontal)
         self.alpha_slider.setRange(0, ALPHA_STEPS)
         self.alpha_slider.valueChanged.connect(lambda v: self.set_state(alpha=slider_to_alpha(v)))
         panel.addWidget(self.alpha_label)
         panel.addWidget(self.alpha_slider)
-
         self.structure_box = QtWidgets.QCheckBox("structure only")
         self.structure_box.toggled.connect(lambda on: self.set_state(structure_only=on))
         panel.addWidget(self.structure_box)
@@ -226,15 +263,18 @@ class ViewerWindow:
             box.valueChanged.connect(lambda _v: self._on_box())
             zrow.addWidget(box)
         panel.addLayout(zrow)
-
         self.colour_combo = QtWidgets.QComboBox()
         self.colour_combo.addItems(["colour: image", "colour: displacement amplitude"])
         self.colour_combo.currentIndexChanged.connect(lambda i: self.set_state(colour=COLOUR_MODES[i]))
         panel.addWidget(self.colour_combo)
 
+    def _build_camera_controls(self, panel) -> None:
+        """The camera (free, or a capture camera's), the real frame beside the view, what is drawn over it."""
+        from PySide6 import QtWidgets
+
         self.camera_combo = QtWidgets.QComboBox()
         self.camera_combo.addItem("free camera")
-        for k, c in enumerate(data.cameras):
+        for k, c in enumerate(self.data.cameras):
             self.camera_combo.addItem(f"capture camera {k}: {c.name}")
         self.camera_combo.activated.connect(lambda i: self.snap(i - 1) if i > 0 else self.set_state(snap=None))
         panel.addWidget(self.camera_combo)
@@ -249,6 +289,10 @@ class ViewerWindow:
         self.sensors_box.setChecked(self.state.show_sensors)
         self.sensors_box.toggled.connect(lambda on: self.set_state(show_sensors=on))
         panel.addWidget(self.sensors_box)
+
+    def _build_export_controls(self, panel) -> None:
+        """The export's frame count and turntable, and the export and screenshot buttons."""
+        from PySide6 import QtWidgets
 
         row = QtWidgets.QHBoxLayout()
         self.frames_box = QtWidgets.QSpinBox()
@@ -267,18 +311,6 @@ class ViewerWindow:
         row.addWidget(export_button)
         row.addWidget(shot_button)
         panel.addLayout(row)
-        self.status = QtWidgets.QLabel("\n".join(data.notes))
-        self.status.setWordWrap(True)
-        panel.addWidget(self.status)
-        panel.addStretch(1)
-
-        self.timer = QtCore.QTimer()
-        self.timer.setInterval(TICK_MS)
-        self.timer.timeout.connect(self._tick)
-        self.window.resize(1500, 950)
-        self.threads = best_threads(data, self.state) if data.scene is not None else 1
-        self._sync_controls()
-        self.refresh()
 
     # ------------------------------------------------------------------ the state
 
@@ -381,8 +413,6 @@ class ViewerWindow:
             self._quiet = False
 
     def _caption(self) -> str:
-        from odsplat.app.viewer.model import caption
-
         return caption(self.data, self.state)
 
     def _on_mode_row(self, row: int) -> None:

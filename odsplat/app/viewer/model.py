@@ -1,9 +1,6 @@
-"""The viewer's Qt-free core: what a capture has to show (`load_viewer`), what is shown (`ViewState`) and the one
-renderer from the second to the first (`render_view`), which the window, the exporter, the tests and the bench call.
-
-Everything is read through the stages' documented readers: the reconstruction's `DynamicScene` and `PoseResult`,
-the analysis's `read_analysis` and `read_results_h5`, sync's `AlignedTake`, the take files' channels.
-"""
+"""The viewer's Qt-free core: what a capture has to show (`ViewerData`, which `load.load_viewer` reads), what is
+shown (`ViewState`) and the one renderer from the second to the first (`render_view`), which the window, the
+exporter, the tests and the bench call. The drawing over the rendered view is `draw.py`'s."""
 from __future__ import annotations
 
 import logging
@@ -12,19 +9,15 @@ from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
-from odsplat.spine.errors import InputError, OdsplatError
+from odsplat.app.viewer.draw import draw_floor, draw_overlays, plasma
 from odsplat.spine.geometry import camera_center_m, look_at
-from odsplat.spine.impulse import fit_pulse, impact_onsets
 from odsplat.spine.store import Capture
 
 log = logging.getLogger(__name__)
 
 WIDTH_PX, HEIGHT_PX = 640, 480
 ALPHA_RANGE = (1.0, 1000.0)
-MOVING_FACTOR = 3.0      # a Gaussian moves when its rms motion is this many times the quietest quarter's median
-SHAPE_NEIGHBOURS = 8     # surface points a Gaussian's mode shape is interpolated from
 COLOUR_MODES = ("image", "displacement")
 
 
@@ -224,230 +217,6 @@ def snap_orbit(data: ViewerData, index: int, orbit: Orbit) -> Orbit:
     return Orbit(tuple(float(v) for v in target), az, el, float(np.linalg.norm(d)), fov)
 
 
-# ---------------------------------------------------------------------------------------------- loading
-
-def load_viewer(capture: Capture | str, *, need_analysis: bool = True) -> ViewerData:
-    """What the capture has to show. Refuses (InputError) a capture without an analysis when need_analysis: the
-    viewer's modes, FRFs and structure rule come from it."""
-    capture = capture if isinstance(capture, Capture) else Capture.open(capture)
-    notes: list[str] = []
-    sensors = _sensors(capture)
-    doc, results = _analysis(capture, need_analysis)
-    scene_data, cameras = _reconstruction(capture, notes)
-    impulse, times, force, accel = _signals(capture, doc, sensors, notes)
-    modes = _modes(doc, results, sensors, notes)
-    freq, h1, frf_names = _frfs(results, sensors)
-    scene = None
-    if scene_data is not None:
-        scene = _scene(capture, scene_data, doc)
-        # the background moves with no mode: its shapes are noise, and the analysis keeps them out of its own
-        modes = tuple(replace(m, gaussians=None if g is None else g * scene.structure[:, None])
-                      for m, g in zip(modes, _mode_shapes_on(results, modes, scene)))
-    if scene is not None and scene.structure.any():
-        pts = scene.means_m[scene.structure]
-    elif sensors:      # the sensors and the floor under them (the view without a reconstruction shows both)
-        pts = np.array([s.position_m for s in sensors])
-        pts = np.concatenate([pts, pts * [1, 1, 0]])
-    else:
-        pts = np.zeros((1, 3))
-    lo, hi = np.percentile(pts, 2, axis=0), np.percentile(pts, 98, axis=0)
-    extent = float(max(np.linalg.norm(hi - lo), 0.2))
-    return ViewerData(capture.root.name, capture, scene, tuple(cameras), (lo + hi) / 2, extent, sensors, modes, freq,
-                      h1, frf_names, times, force, accel, impulse, tuple(notes))
-
-
-def _sensors(capture: Capture) -> tuple[SensorInfo, ...]:
-    out = []
-    for c in capture.manifest.channels:
-        if c.kind == "acceleration" and c.position_m is not None and c.direction is not None:
-            d = np.asarray(c.direction, float)
-            out.append(SensorInfo(c.name, np.asarray(c.position_m, float), d / np.linalg.norm(d)))
-    return tuple(out)
-
-
-def _analysis(capture: Capture, need: bool):
-    from odsplat.analysis import read_analysis, read_results_h5
-
-    if not capture.paths.analysis_json.exists():
-        if need:
-            raise InputError(capture.root, "no analysis to view (run `odsplat analyze` or `odsplat run` first)")
-        return None, None
-    doc = read_analysis(capture)
-    path = capture.paths.analysis_dir / "results.h5"
-    results = read_results_h5(path, capture.id) if path.exists() else None
-    return doc, results
-
-
-def _reconstruction(capture: Capture, notes: list[str]):
-    from odsplat.reconstruction import Camera, DynamicScene, PoseResult
-
-    cameras = []
-    if capture.paths.poses_json.exists():
-        try:
-            poses = PoseResult.read(capture)
-            cameras = [Camera(np.asarray(v.K, float), np.asarray(v.R, float), np.asarray(v.t, float), v.width_px,
-                              v.height_px, v.name) for v in poses.views]
-        except OdsplatError as e:
-            notes.append(f"no capture cameras: {e}")
-    if not capture.paths.trajectories_npz.exists():
-        notes.append("no reconstruction: the sensors' shapes on their positions, and the plots")
-        return None, cameras
-    try:
-        return DynamicScene.load(capture), cameras
-    except OdsplatError as e:
-        notes.append(f"the reconstruction could not be read ({e}): the sensors and the plots only")
-        return None, cameras
-
-
-def _scene(capture: Capture, sc, doc: dict | None) -> Scene:
-    """The DynamicScene's Gaussians in world metres, their physical motion, and which are the structure's."""
-    from odsplat.analysis import AnalyzeSettings, structure_mask
-
-    r = sc.scene.radius
-    g = sc.rest
-    means = sc.means_rest_m.astype(np.float32)
-    q0 = np.asarray(sc.quats[0], np.float64)
-    q0 = q0 / np.linalg.norm(q0, axis=1, keepdims=True)
-    disp = (sc.displacement_m / sc.source_alpha).astype(np.float32)
-    rot = sc.turns_rad() / sc.source_alpha
-    rms = np.sqrt(np.mean(np.sum(disp.astype(np.float64) ** 2, axis=2), axis=0))
-    quiet = np.median(np.sort(rms)[: max(1, len(rms) // 4)])
-    moving = rms > MOVING_FACTOR * max(quiet, 1e-12)
-    settings = AnalyzeSettings()
-    if doc is not None:      # the analysis's own floor margin and box, where it saved them
-        st = doc.get("settings", {}) or {}
-        kw = {}
-        if "floor_margin_m" in st:
-            kw["floor_margin_m"] = st["floor_margin_m"]
-        if st.get("structure_box_m") is not None:
-            kw["structure_box_m"] = tuple(tuple(c) for c in st["structure_box_m"])
-        if kw:
-            settings = AnalyzeSettings(**kw)
-    keep, rule = structure_mask(capture, means, settings, moving=moving)
-    return Scene(means, q0.astype(np.float32), (g.scales.double().numpy() * r).astype(np.float32),
-                 g.opacities.double().numpy().astype(np.float32), g.colors.double().numpy().astype(np.float32),
-                 np.asarray(sc.background, np.float32), np.asarray(sc.times_s, float), disp, rot.astype(np.float32),
-                 keep, rule, rms)
-
-
-def _quat_from_rotvec(r: np.ndarray) -> np.ndarray:
-    angle = np.linalg.norm(r, axis=-1, keepdims=True)
-    half = 0.5 * angle
-    k = np.where(angle > 1e-12, np.sin(half) / np.maximum(angle, 1e-30), 0.5)
-    return np.concatenate([np.cos(half), r * k], axis=-1)
-
-
-def _quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    aw, av, bw, bv = a[..., :1], a[..., 1:], b[..., :1], b[..., 1:]
-    return np.concatenate([aw * bw - np.sum(av * bv, axis=-1, keepdims=True),
-                           aw * bv + bw * av + np.cross(av, bv)], axis=-1)
-
-
-def _signals(capture: Capture, doc: dict | None, sensors: tuple[SensorInfo, ...], notes: list[str]):
-    """One hit's force and accelerations on the impact-locked time (0 at the onset), and its impulse."""
-    takes = list((doc or {}).get("takes", [])) or capture.take_names()
-    forces = [c.name for c in capture.manifest.channels if c.kind == "force"]
-    if not takes or not forces:
-        notes.append("no force record: modes drawn for an impulse of 1 N s")
-        return 1.0, np.zeros(0), np.zeros(0), np.zeros((len(sensors), 0))
-    rate = float(capture.manifest.daq_sample_rate_hz)
-    try:
-        with capture.open_take(takes[0]) as r:
-            force = np.nan_to_num(r.channel(forces[0]))
-            accel = np.array([np.nan_to_num(r.channel(s.name)) for s in sensors]).reshape(len(sensors), -1)
-    except (OdsplatError, KeyError) as e:
-        notes.append(f"no force record ({e}): modes drawn for an impulse of 1 N s")
-        return 1.0, np.zeros(0), np.zeros(0), np.zeros((len(sensors), 0))
-    pulses = impact_onsets(force, rate) or [fit_pulse(force, rate)]
-    onset_s = float(pulses[0].onset_s)
-    impulse = float(pulses[0].impulse_n_s) if pulses[0].impulse_n_s > 0 else 1.0
-    times = np.arange(len(force)) / rate - onset_s
-    keep = (times >= -0.01) & (times <= 0.25)
-    return impulse, times[keep], force[keep], accel[:, keep]
-
-
-def _modes(doc: dict | None, results, sensors: tuple[SensorInfo, ...], notes: list[str]) -> tuple[Mode, ...]:
-    if doc is None:
-        return ()
-    macs = {}
-    for p in ((doc.get("correlation") or {}).get("pairs") or []):
-        try:
-            macs[int(p["a"])] = float(p["mac"])
-        except (KeyError, TypeError, ValueError):
-            continue
-    shapes = {} if results is None else {s.name: s for s in results.shapes}
-    node = {} if results is None or results.geometry is None else \
-        {int(i): k for k, i in enumerate(results.geometry.node_ids)}
-    def at_sensors(mode: Mode) -> Mode:
-        acc_name, vid_name = mode.shape_names()
-        acc, vid = shapes.get(acc_name), shapes.get(vid_name)
-        at = None
-        if acc is not None and len(sensors) and len(acc.node_ids) == len(sensors):
-            at = np.array([np.dot(acc.values[i], s.direction) for i, s in enumerate(sensors)])
-        at_video = None
-        if vid is not None and node and len(sensors):
-            pts = results.geometry.coords_m[[node[int(i)] for i in vid.node_ids]]
-            at_video = np.array([np.dot(v, s.direction) for v, s in
-                                 zip(_interpolate(pts, vid.values, np.array([s.position_m for s in sensors]), 16),
-                                     sensors)])
-        return replace(mode, sensors_accel=at, sensors_video=at_video)
-
-    out = [at_sensors(Mode(k + 1, float(m["freq_hz"]), float(m["damping"]), macs.get(k, float("nan"))))
-           for k, m in enumerate(doc.get("modes", []))]
-    # the ODS lines (the modal frequencies by default, or those asked for with `odsplat analyze --ods F`)
-    for k, line in enumerate(doc.get("ods") or []):
-        out.append(at_sensors(Mode(k + 1, float(line["freq_hz"]), 0.0, float(line.get("mac", float("nan"))),
-                                   kind="ods")))
-    if out and results is None:
-        notes.append("no results.h5: mode shapes unavailable")
-    return tuple(out)
-
-
-def _interpolate(points_m: np.ndarray, values: np.ndarray, at_m: np.ndarray, k: int,
-                 reach_m: float | None = None) -> np.ndarray:
-    """values (P, 3) at points_m, inverse-distance mean of the k nearest at at_m (M, 3); zero beyond reach_m of
-    every point."""
-    k = min(k, len(points_m))
-    tree = cKDTree(points_m)
-    d, i = tree.query(at_m, k=k)
-    d, i = d.reshape(len(at_m), k), i.reshape(len(at_m), k)
-    w = 1.0 / np.maximum(d, 1e-6)
-    out = np.einsum("mk,mkc->mc", w, values[i]) / w.sum(axis=1, keepdims=True)
-    if reach_m is not None:
-        out[d[:, 0] > reach_m] = 0
-    return out
-
-
-def _mode_shapes_on(results, modes: tuple[Mode, ...], scene: Scene) -> list[np.ndarray | None]:
-    """Each mode's video shape (m/N) on every Gaussian: the analysis's surface residues, inverse-distance
-    interpolated from the 8 nearest surface points; zero further than 3 point spacings from any (the background
-    the analysis left out of its shapes)."""
-    if results is None or results.geometry is None:
-        return [None] * len(modes)
-    shapes = {s.name: s for s in results.shapes}
-    node = {int(i): k for k, i in enumerate(results.geometry.node_ids)}
-    out: list[np.ndarray | None] = []
-    for m in modes:
-        vid = shapes.get(m.shape_names()[1])
-        if vid is None:
-            out.append(None)
-            continue
-        pts = results.geometry.coords_m[[node[int(i)] for i in vid.node_ids]]
-        spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else 1.0
-        out.append(_interpolate(pts, vid.values, scene.means_m.astype(float), SHAPE_NEIGHBOURS,
-                                3 * spacing).astype(np.complex64))
-    return out
-
-
-def _frfs(results, sensors):
-    if results is None or not results.frfs:
-        return np.zeros(0), np.zeros((0, 0), complex), ()
-    frfs = [f for f in results.frfs if f.name.startswith("H1 ")] or list(results.frfs)
-    freq = np.asarray(frfs[0].freq_hz, float)
-    h1 = np.array([np.asarray(f.values) for f in frfs if len(f.values) == len(freq)])
-    return freq, h1, tuple(f.name for f in frfs if len(f.values) == len(freq))
-
-
 # ---------------------------------------------------------------------------------------------- rendering
 
 def motion_at(data: ViewerData, state: ViewState) -> tuple[np.ndarray, np.ndarray] | None:
@@ -508,7 +277,7 @@ def render_view(data: ViewerData, state: ViewState, *, overlays: bool = True) ->
     sc = data.scene
     if sc is None:
         img = np.full((h, w, 3), 255, np.uint8)
-        _draw_floor(img, data, cam)
+        draw_floor(img, data, cam)
     else:
         disp, rot = motion_at(data, state)
         keep = visible(data, state)
@@ -517,7 +286,7 @@ def render_view(data: ViewerData, state: ViewState, *, overlays: bool = True) ->
         means = pick(sc.means_m) + np.float32(state.alpha) * pick(disp)
         quats = pick(sc.quats)
         if state.mode is None and np.any(rot):
-            quats = _quat_multiply(_quat_from_rotvec(np.float32(state.alpha) * pick(rot)), quats)
+            quats = _turned(quats, np.float32(state.alpha) * pick(rot))
         if state.colour == "displacement":
             top, _ = colour_scale(data, state)
             amp = np.linalg.norm(np.abs(pick(data.modes[state.mode].gaussians)), axis=1) if (
@@ -535,14 +304,19 @@ def render_view(data: ViewerData, state: ViewState, *, overlays: bool = True) ->
         img = cv2.convertScaleAbs(image, alpha=255.0)       # rounded, saturated to 0..255
         img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB) if img.ndim == 2 or img.shape[2] == 1 else img
     if overlays:
-        if state.show_cameras:
-            _draw_cameras(img, data, cam)
-        if state.show_sensors or sc is None:
-            _draw_sensors(img, data, state, cam)
-        if state.colour == "displacement" and sc is not None:
-            _draw_colour_bar(img, *colour_scale(data, state))
-        _draw_caption(img, data, state)
+        draw_overlays(img, data, state, cam,
+                      colour_scale(data, state) if state.colour == "displacement" and sc is not None else None)
     return img
+
+
+def _turned(quats: np.ndarray, rotvec_rad: np.ndarray) -> np.ndarray:
+    """(N, 4) float32 orientations (w, x, y, z) turned by (N, 3) rotation vectors: reconstruction's quaternions."""
+    import torch
+
+    from odsplat.reconstruction import quat_from_rotvec, quat_multiply
+
+    turn = quat_from_rotvec(torch.from_numpy(np.ascontiguousarray(rotvec_rad, np.float32)))
+    return quat_multiply(turn, torch.from_numpy(np.ascontiguousarray(quats, np.float32))).numpy()
 
 
 def best_threads(data: ViewerData, state: ViewState, repeats: int = 3) -> int:
@@ -574,148 +348,6 @@ def best_threads(data: ViewerData, state: ViewState, repeats: int = 3) -> int:
     return best
 
 
-def _project(cam, pts_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    pc = np.asarray(pts_m, float) @ np.asarray(cam.R).T + np.asarray(cam.t)
-    z = pc[:, 2]
-    uv = pc[:, :2] / np.where(z > 1e-6, z, 1e-6)[:, None]
-    K = np.asarray(cam.K)
-    return np.stack([K[0, 0] * uv[:, 0] + K[0, 2], K[1, 1] * uv[:, 1] + K[1, 2]], axis=1), z > 1e-6
-
-
-def _line(img: np.ndarray, a, b, colour, thickness: int = 1) -> None:
-    p, q = (int(round(a[0] * 16)), int(round(a[1] * 16))), (int(round(b[0] * 16)), int(round(b[1] * 16)))
-    if max(abs(v) for v in p + q) < 2 ** 27:
-        cv2.line(img, p, q, colour, thickness, cv2.LINE_AA, shift=4)
-
-
-def _draw_floor(img: np.ndarray, data: ViewerData, cam) -> None:
-    """A grid on z = 0 under the sensors (the accelerometer-only view has nothing else to stand on)."""
-    c = data.target_m
-    half = 0.6 * data.extent_m
-    for v in np.linspace(-half, half, 9):
-        for a, b in (((c[0] + v, c[1] - half, 0), (c[0] + v, c[1] + half, 0)),
-                     ((c[0] - half, c[1] + v, 0), (c[0] + half, c[1] + v, 0))):
-            uv, ok = _project(cam, np.array([a, b]))
-            if ok.all():
-                _line(img, uv[0], uv[1], (210, 210, 210))
-
-
-def _camera_pyramids(data: ViewerData) -> np.ndarray:
-    """(M, 5, 3): each capture camera's centre and the corners of its image at 8 % of the scene's size."""
-    size = 0.08 * data.extent_m
-    out = []
-    for c in data.cameras:
-        R, t = np.asarray(c.R, float), np.asarray(c.t, float)
-        centre = camera_center_m(R, t)
-        Kinv = np.linalg.inv(np.asarray(c.K, float))
-        corners = [centre + size * (R.T @ (Kinv @ np.array([x, y, 1.0])))
-                   for x, y in ((0, 0), (c.width_px, 0), (c.width_px, c.height_px), (0, c.height_px))]
-        out.append([centre] + corners)
-    return np.asarray(out, float).reshape(-1, 5, 3)
-
-
-def _draw_cameras(img: np.ndarray, data: ViewerData, cam) -> None:
-    """Each capture camera as a small pyramid (one projection and one polyline call for all of them)."""
-    pyramids = _camera_pyramids(data)
-    if not len(pyramids):
-        return
-    uv, ok = _project(cam, pyramids.reshape(-1, 3))
-    uv, ok = uv.reshape(-1, 5, 2), ok.reshape(-1, 5).all(axis=1) & (np.abs(uv).reshape(-1, 10).max(axis=1) < 1e5)
-    lines = []
-    for p in np.round(uv[ok] * 16).astype(np.int32):
-        lines += [p[[1, 2, 3, 4, 1]], p[[0, 1]], p[[0, 2]], p[[0, 3]], p[[0, 4]]]
-    cv2.polylines(img, lines, False, (40, 120, 255), 1, cv2.LINE_AA, shift=4)
-
-
-def _draw_sensors(img: np.ndarray, data: ViewerData, state: ViewState, cam) -> None:
-    """Each accelerometer as an arrow along its direction; with a mode selected, moved by the accelerometers' shape
-    (magnified like the Gaussians) and its arrow scaled by the motion along it."""
-    length = 0.1 * data.extent_m
-    mode = data.modes[state.mode] if state.mode is not None else None
-    phase = np.exp(2j * np.pi * mode.freq_hz * state.time_s) if mode is not None else 1.0
-    for i, s in enumerate(data.sensors):
-        shift = 0.0
-        if mode is not None and mode.sensors_accel is not None:
-            shift = float(state.alpha * 2 * data.impulse_n_s * np.real(mode.sensors_accel[i] * phase))
-        base = s.position_m + shift * s.direction
-        uv, ok = _project(cam, np.array([s.position_m, base, base + length * s.direction]))
-        if not ok.all():
-            continue
-        p0, p1, p2 = uv
-        if data.scene is None:      # nothing else shows their height: a drop line to the floor
-            foot, ok_foot = _project(cam, (s.position_m * [1, 1, 0])[None])
-            if ok_foot.all():
-                _line(img, p0, foot[0], (190, 190, 190))
-        cv2.circle(img, (int(p0[0]), int(p0[1])), 3, (160, 160, 160), -1, cv2.LINE_AA)
-        tip = tuple(int(v) for v in p2)
-        if max(abs(v) for v in tip) < 1e6:
-            cv2.arrowedLine(img, (int(p1[0]), int(p1[1])), tip, (0, 170, 0), 2, cv2.LINE_AA, tipLength=0.3)
-            cv2.putText(img, s.name, (tip[0] + 3, tip[1]), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 110, 0), 1,
-                        cv2.LINE_AA)
-
-
-def _draw_colour_bar(img: np.ndarray, top: float, unit: str) -> None:
-    h, w = img.shape[:2]
-    x0, y0, y1 = w - 28, 40, h - 40
-    ramp = plasma(np.linspace(1, 0, y1 - y0))
-    img[y0:y1, x0:x0 + 12] = ramp[:, None, :]
-    cv2.rectangle(img, (x0, y0), (x0 + 12, y1), (0, 0, 0), 1)
-    for v, y in ((top, y0), (top / 2, (y0 + y1) // 2), (0.0, y1)):
-        cv2.putText(img, f"{v:.2g}", (x0 - 44, y + 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.putText(img, unit, (x0 - 4, y0 - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
-
-
-def caption(data: ViewerData, state: ViewState) -> str:
-    """One line: what moves, at what magnification."""
-    if state.mode is not None:
-        what = data.modes[state.mode].label()
-    else:
-        what = f"measured motion, t = {1e3 * state.time_s:.2f} ms"
-    return f"{data.name}: {what}, x{state.alpha:.0f}" + (", structure only" if state.structure_only else "")
-
-
-def _draw_caption(img: np.ndarray, data: ViewerData, state: ViewState) -> None:
-    text = caption(data, state)
-    (tw, th), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
-    cv2.rectangle(img, (4, 4), (12 + tw, 12 + th), (255, 255, 255), -1)
-    cv2.putText(img, text, (8, 8 + th), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-
-
-def plasma(x: np.ndarray) -> np.ndarray:
-    """(N, 3) uint8 RGB from dark blue (0) through magenta to yellow (1) (the report's animations' map)."""
-    stops = np.array([[13, 8, 135], [126, 3, 168], [204, 71, 120], [248, 149, 64], [240, 249, 33]], float)
-    t = np.clip(np.nan_to_num(np.asarray(x, float)), 0, 1) * (len(stops) - 1)
-    i = np.minimum(t.astype(int), len(stops) - 2)
-    f = (t - i)[:, None]
-    return np.round(stops[i] * (1 - f) + stops[i + 1] * f).astype(np.uint8)
-
-
-def aligned_frame(data: ViewerData, take: str, time_s: float) -> np.ndarray | None:
-    """(H, W) uint8: a capture camera's real frame on sync's common grid nearest time_s (impact-locked), or None
-    where the capture has no aligned frames for that take."""
-    from odsplat.sync import AlignedTake, load_sync
-
-    capture = data.capture
-    path = capture.paths.frames("sync", take)
-    if not path.exists():
-        return None
-    try:
-        generation = load_sync(capture).generation
-    except OdsplatError as e:
-        log.warning("sync's index could not be read (%s); the aligned frames are shown unchecked", e)
-        generation = None
-    try:
-        with AlignedTake(path, generation, capture.id) as f:
-            k = int(np.argmin(np.abs(f.times_s - time_s)))
-            frame = np.asarray(f.read_frames(k, k + 1)[0], float)
-    except OdsplatError as e:
-        log.warning("%s", e)
-        return None
-    frame = frame[..., 0] if frame.ndim == 3 else frame
-    lo, hi = np.percentile(frame, (0.5, 99.5))
-    return np.round(np.clip((frame - lo) / max(hi - lo, 1e-9), 0, 1) * 255).astype(np.uint8)
-
-
-__all__ = ["COLOUR_MODES", "Mode", "Orbit", "Scene", "SensorInfo", "ViewState", "ViewerData", "aligned_frame",
-           "best_threads", "camera_for", "caption", "colour_scale", "default_state", "load_viewer", "motion_at",
-           "plasma", "render_view", "snap_orbit", "visible"]
+__all__ = ["ALPHA_RANGE", "COLOUR_MODES", "Mode", "Orbit", "Scene", "SensorInfo", "ViewState", "ViewerData",
+           "best_threads", "camera_for", "colour_scale", "default_state", "motion_at", "render_view", "snap_orbit",
+           "visible"]

@@ -1,0 +1,180 @@
+"""What the analysis's numbers cannot show, as findings: one small frozen dataclass per kind, collected while it
+analyses (analyze.py), each worded here and only here (its `text`). analysis.json's notes, the terminal's summary
+and the report's top are these words."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .band import CUT_PEAK_DB, FORCE_DROP_DB, MAX_FRACTION_OF_RATE, frf_peaks, unmatched_peaks
+from .frf import FRFResult
+
+
+def length_text(x_m: float) -> str:
+    """A length in the unit that reads best: 3 significant digits in nm, µm, mm or m."""
+    for unit, scale in (("nm", 1e-9), ("µm", 1e-6), ("mm", 1e-3)):
+        if abs(x_m) < 1000 * scale:
+            return f"{x_m / scale:.3g} {unit}"
+    return f"{x_m:.3g} m"
+
+
+# ---------------------------------------------------------------------------------------------- the accelerometers
+
+@dataclass(frozen=True)
+class PeaksWithoutMode:
+    """Clear FRF peaks inside the fit band with no mode near them (band.unmatched_peaks)."""
+
+    peaks: tuple[tuple[float, float], ...]   # (frequency in Hz, height in dB against the highest), by frequency
+
+    @property
+    def text(self) -> str:
+        return ("clear FRF peaks with no mode: " + ", ".join(f"{f:.1f} Hz ({h:+.0f} dB)" for f, h in self.peaks)
+                + "; pick them with --freq (analyze.approx_freq_hz) or raise max_order")
+
+
+@dataclass(frozen=True)
+class PeaksOutsideBand:
+    """Strong FRF peaks the fit band leaves out."""
+
+    fmin_hz: float
+    fmax_hz: float
+    peaks_hz: tuple[float, ...]
+    force_drop_db: float | None    # why the band ends there: the hammer's force is this far down; None: it was given
+
+    @property
+    def text(self) -> str:
+        why = ("the band was given" if self.force_drop_db is None else
+               f"the hammer's force is {self.force_drop_db:g} dB down above {self.fmax_hz:.0f} Hz")
+        return (f"strong FRF peaks outside the fit band {self.fmin_hz:.0f}-{self.fmax_hz:.0f} Hz ({why}): "
+                + ", ".join(f"{f:.0f} Hz" for f in self.peaks_hz)
+                + "; widen it with --fmax (analyze.fmax_hz); a harder hammer tip excites higher")
+
+
+@dataclass(frozen=True)
+class UnplacedSensors:
+    """Response channels without a position or direction: no shapes."""
+
+    names: tuple[str, ...]
+
+    @property
+    def text(self) -> str:
+        return (f"no position or direction for {', '.join(self.names)}: frequencies and damping only; shapes need "
+                "them (`odsplat geometry CAPTURE FILE`)")
+
+
+# ---------------------------------------------------------------------------------------------- the video
+
+@dataclass(frozen=True)
+class ModesAboveVideoBand:
+    """Accelerometer modes above the frequencies the video's timesteps resolve."""
+
+    freq_hz: tuple[float, ...]
+
+    @property
+    def text(self) -> str:
+        return f"modes at {', '.join(f'{f:.0f}' for f in self.freq_hz)} Hz are above the video's band: no video shape"
+
+
+@dataclass(frozen=True)
+class WindowTooShort:
+    """A mode below the noise floor whose cause is the video's window: too few of its cycles to read its shape."""
+
+    mode: int                # its number (1-based, as the accelerometer modes are numbered)
+    freq_hz: float
+    window_s: float
+    min_cycles: float        # what a shape needs
+
+    @property
+    def cycles(self) -> float:
+        return self.window_s * self.freq_hz
+
+    @property
+    def text(self) -> str:
+        return (f"mode {self.mode} ({self.freq_hz:.1f} Hz): the video's window ({1e3 * self.window_s:.1f} ms) holds "
+                f"{self.cycles:.2f} of its cycles, too few to read its shape apart from the other modes (MAC and "
+                f"scale not judged); reconstruct at least {1e3 * self.min_cycles / self.freq_hz:.0f} ms "
+                "([reconstruct] n_timesteps)")
+
+
+@dataclass(frozen=True)
+class BelowNoiseFloor:
+    """A mode whose amplitude at the sensors is below the video's noise floor there: its MAC is not judged."""
+
+    mode: int
+    freq_hz: float
+    amplitude_m: float
+    floor_m: float
+    expected_mac: float      # the MAC the noise alone allows its shape
+    real: bool               # its shape is a real mode (which keeps half the noise)
+
+    @property
+    def text(self) -> str:
+        return (f"mode {self.mode} ({self.freq_hz:.1f} Hz): below the video's noise floor "
+                f"({length_text(self.amplitude_m)} against {length_text(self.floor_m)} at the sensors): the noise "
+                f"alone allows its {'complex ' if self.real else ''}shape a MAC of {self.expected_mac:.2f}"
+                f"{' (its real mode keeps half that noise)' if self.real else ''}, too little to judge (MAC and "
+                "scale not judged)")
+
+
+@dataclass(frozen=True)
+class ComplexMode:
+    """A video mode whose shape is complex beyond its noise: kept complex."""
+
+    mode: int
+    freq_hz: float
+    mpc: float
+    lost: float              # the share of its shape out of phase
+    quadrature_ratio: float  # that, over what the noise puts there
+
+    @property
+    def text(self) -> str:
+        return (f"mode {self.mode} ({self.freq_hz:.1f} Hz): a complex mode in the video (MPC {self.mpc:.2f}; "
+                f"{100 * self.lost:.0f} % of its shape out of phase, {self.quadrature_ratio:.1f} x what the noise "
+                "puts there): its shape is left complex, with the noise's full power; a time shift between views or "
+                "non-proportional damping does this")
+
+
+@dataclass(frozen=True)
+class OdsCarriedByNoise:
+    """An ODS line the video's modes below the noise floor carry: the video's ODS there is their noise."""
+
+    line: int                # its number (1-based)
+    freq_hz: float
+    share: float             # their terms' size at the sensors over the ODS's
+
+    @property
+    def text(self) -> str:
+        return (f"ODS line {self.line} ({self.freq_hz:.1f} Hz): the video's ODS there is carried by modes below its "
+                f"noise floor (their terms sum to {min(self.share, 99.0):.2g} x its size at the sensors); read it "
+                "from the accelerometers")
+
+
+Note = (PeaksWithoutMode | PeaksOutsideBand | UnplacedSensors | ModesAboveVideoBand | WindowTooShort
+        | BelowNoiseFloor | ComplexMode | OdsCarriedByNoise)
+
+
+def band_findings(frf: FRFResult, band_hz: tuple[float, float], freq_hz: np.ndarray, *, given: bool,
+                  inside: list | None = None) -> list[Note]:
+    """What the FRFs say of the fit band and the poles: clear peaks in the band with no mode, and strong peaks the
+    band leaves out (`given`: whether the user chose it); `inside`: the band's clear peaks where already found
+    (band.frf_peaks)."""
+    fmin, fmax = band_hz
+    df = float(frf.freq_hz[1] - frf.freq_hz[0]) if len(frf.freq_hz) > 1 else 0.0
+    out: list[Note] = []
+    missed = unmatched_peaks(frf_peaks(frf, fmin, fmax) if inside is None else inside, freq_hz, df)
+    if missed:
+        out.append(PeaksWithoutMode(tuple((p.freq_hz, p.height_db) for p in sorted(missed, key=lambda p: p.freq_hz))))
+    nyq = min(MAX_FRACTION_OF_RATE * frf.sample_rate_hz, float(frf.freq_hz[-1]))
+    everywhere = frf_peaks(frf, float(frf.freq_hz[0]), nyq, height_db=None) if nyq > frf.freq_hz[0] else []
+    if everywhere:   # heights relative to one reference: the highest clear peak below 0.4 x the rate
+        band_top = max((p.height_db for p in everywhere if fmin <= p.freq_hz <= fmax), default=-np.inf)
+        cut = [p for p in everywhere if not fmin <= p.freq_hz <= fmax and p.height_db >= band_top - CUT_PEAK_DB]
+        if cut:
+            out.append(PeaksOutsideBand(float(fmin), float(fmax), tuple(sorted(p.freq_hz for p in cut)),
+                                        None if given else FORCE_DROP_DB))
+    return out
+
+
+__all__ = ["BelowNoiseFloor", "ComplexMode", "ModesAboveVideoBand", "Note", "OdsCarriedByNoise", "PeaksOutsideBand",
+           "PeaksWithoutMode", "UnplacedSensors", "WindowTooShort", "band_findings", "length_text"]
