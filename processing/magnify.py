@@ -81,15 +81,16 @@ LUMA = np.array([0.299, 0.587, 0.114], np.float32)   # Y of YIQ, what the method
 
 @dataclass(frozen=True)
 class MagnifySettings:
-    method: str = "phase"
-    alpha: float = 20.0
+    method: str = "phase"                        # the magnification method: phase, linear or learned
+    alpha: float = 20.0                          # output motion = alpha x input motion
     band_hz: tuple[float, float] | None = None   # temporal band; None: static mode (against the first frame)
     filter: str | None = None                    # default: butter with a band, none without
     mode: str = "static"                         # learned only: static or dynamic
     source: str = "auto"                         # aligned (sync's grid), raw (the takes), auto: aligned if synced
     chunk_frames: int = 16
     workers: int | None = None                   # default: one per core, at most one per take
-    takes: tuple[str, ...] = ()                  # default: every take sync kept, else every accepted take
+    takes: tuple[str, ...] = ()                  # only these takes (default: every take sync kept, else every
+    #                                              accepted take)
     views: tuple[int, ...] = ()                  # only these viewpoints' takes (of those above); default: every view
     options: tuple[tuple[str, Any], ...] = ()    # the method's own keyword arguments, e.g. (("n_orientations", 8),)
     video: bool = True                           # an 8-bit mp4 to watch beside each magnified take

@@ -47,8 +47,8 @@ log = logging.getLogger(__name__)
 class FitSettings:
     """Iteration counts, learning rates and weights of both fits (lengths in scene units: scene radius = 1)."""
 
-    iters_t0: int = 1500
-    iters_per_step: int = 150
+    iters_t0: int = 1500                # iterations of the rest fit
+    iters_per_step: int = 150           # iterations per timestep (motion "timestep")
     iters_first_step: int | None = None     # the first moving timestep (default 2 x iters_per_step): no velocity yet
     ssim_weight: float = 0.2
     # t = 0: learning rates as in 3DGS, positions decaying exponentially to 1 % over the fit
@@ -82,7 +82,7 @@ class FitSettings:
     neighbour_width: float = 2.0            # weight width, x the median neighbour distance
     background: float | None = None         # None: learned at t = 0 (one value per channel), then frozen
     backend: str = "auto"
-    seed: int = 0
+    seed: int = 0                       # random seed of the fits
     progress: bool = True
 
     def __post_init__(self) -> None:

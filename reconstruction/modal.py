@@ -68,7 +68,7 @@ class ModalSettings:
     """The joint fit of the modal model (dimensionless: lengths are in units of the estimated motion scale)."""
 
     n_components: int = 4                # K temporal basis functions
-    iters: int = 2000
+    iters: int = 2000                   # iterations of the modal fit
     lr: float = 0.1                      # Adam, on the shape vectors (motion-scale units) and on the basis
     lr_final_frac: float = 0.05          # exponential decay to this fraction of lr over the fit
     loss: str = "difference"             # "difference": (R_t - R_0) vs (I_t - I_rest); "image": R_t vs I_t
@@ -79,7 +79,7 @@ class ModalSettings:
     k_neighbours: int = 10
     neighbour_width: float = 2.0         # weight width, x the median neighbour distance
     backend: str = "auto"
-    seed: int = 0
+    seed: int = 0                       # random seed of the fit
     progress: bool = True
 
     def __post_init__(self) -> None:

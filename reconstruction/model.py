@@ -81,7 +81,7 @@ class ReconstructSettings:
     holdout: tuple[str, ...] = ()        # takes never used in training (for evaluation)
     use_static: bool = True              # condition the t=0 fit on static photos too
     init_opacity: float = 0.1
-    threads: int | None = None
+    threads: int | None = None          # torch threads (default: torch's)
     motion: str = "linear"               # "linear" (linear.py: one linear solve on the raw frames; measures best,
     #                                      docs/reconstruction.md), "modal" (modal.py: one basis, all at once) or
     #                                      "timestep" (a fit per timestep, the paper's)
