@@ -17,9 +17,6 @@ from odsplat.spine.errors import InputError
 
 log = logging.getLogger(__name__)
 
-RESULTS_KIND = "odsplat.results"
-RESULTS_SCHEMA = 3
-READABLE_SCHEMAS = (2, 3)
 # UFF direction codes (58 record 6): 1..3 translations, 4..6 rotations, 0 scalar.
 _DIR_CODE = {"scalar": 0, **{f"{s}{a}": (1 if s == "+" else -1) * (i + 1) for s in "+-"
                              for i, a in enumerate(("X", "Y", "Z", "RX", "RY", "RZ"))}}

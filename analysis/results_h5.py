@@ -44,23 +44,13 @@ from odsplat.spine.contract import CAPTURE_KEY, check_capture
 from odsplat.spine.errors import InputError, OdsplatError, SchemaError
 from odsplat.spine.space import writing_h5
 
-from .export import (
-    _KINDS,
-    READABLE_SCHEMAS,
-    RESULTS_KIND,
-    RESULTS_SCHEMA,
-    CoherenceRecord,
-    FRFRecord,
-    Geometry,
-    MACRecord,
-    ResultSet,
-    ShapeRecord,
-    StabilisationRecord,
-    TimeSeries,
-    _check_records,
-)
+from . import export as rec  # the records, written and read here
 
 log = logging.getLogger(__name__)
+
+RESULTS_KIND = "odsplat.results"
+RESULTS_SCHEMA = 3
+READABLE_SCHEMAS = (2, 3)
 
 
 # ------------------------------------------------------------------------------------------------------- HDF5
@@ -80,18 +70,18 @@ def _plain(value: Any) -> Any:
     return value.item() if isinstance(value, np.generic) else value
 
 
-def write_results_h5(path: str | Path, *, geometry: Geometry | None = None, time_series: Sequence[TimeSeries] = (),
-                     frfs: Sequence[FRFRecord] = (), shapes: Sequence[ShapeRecord] = (),
-                     coherence: Sequence[CoherenceRecord] = (), mac: Sequence[MACRecord] = (),
-                     stabilisation: Sequence[StabilisationRecord] = (), attrs: dict[str, Any] | None = None,
-                     capture_id: str | None = None) -> Path:
+def write_results_h5(path: str | Path, *, geometry: rec.Geometry | None = None,
+                     time_series: Sequence[rec.TimeSeries] = (), frfs: Sequence[rec.FRFRecord] = (),
+                     shapes: Sequence[rec.ShapeRecord] = (), coherence: Sequence[rec.CoherenceRecord] = (),
+                     mac: Sequence[rec.MACRecord] = (), stabilisation: Sequence[rec.StabilisationRecord] = (),
+                     attrs: dict[str, Any] | None = None, capture_id: str | None = None) -> Path:
     """Write the records to an HDF5 file in the layout of the module docstring (atomically); `capture_id`: the
     capture the results are of, recorded for `read_results_h5` to check."""
     path = Path(path)
     records = {"time_series": list(time_series), "frfs": list(frfs), "shapes": list(shapes),
                "coherence": list(coherence), "mac": list(mac), "stabilisation": list(stabilisation)}
     attrs = dict(attrs or {})
-    _check_records(geometry, records)
+    rec._check_records(geometry, records)
     if set(_RESERVED) & set(attrs):
         raise InputError("attrs", f"{sorted(set(_RESERVED) & set(attrs))} are reserved by the results layout")
     json_keys = [k for k, v in attrs.items() if v is None or isinstance(v, (dict, list, tuple))]
@@ -147,7 +137,7 @@ def _h5_record(cls: type, name: str, g: h5py.Group) -> Any:
     return cls(name=name, **kw)
 
 
-def read_results_h5(path: str | Path, capture_id: str | None = None) -> ResultSet:
+def read_results_h5(path: str | Path, capture_id: str | None = None) -> rec.ResultSet:
     """Read a file written by `write_results_h5`; given `capture_id`, a file that records another capture's is
     refused. Whatever is wrong with the file (empty, cut short, not HDF5, damaged, a record incomplete or of the
     wrong shape or type) is one line naming it."""
@@ -172,7 +162,7 @@ def read_results_h5(path: str | Path, capture_id: str | None = None) -> ResultSe
                                    f"{' '.join(str(exc).split())[:200]}); run `odsplat analyze` again") from None
 
 
-def _read_results(f: h5py.File, path: Path, capture_id: str | None) -> ResultSet:
+def _read_results(f: h5py.File, path: Path, capture_id: str | None) -> rec.ResultSet:
     if _plain(f.attrs.get("kind")) != RESULTS_KIND:
         raise InputError(path, f"not an {RESULTS_KIND} file (kind={_plain(f.attrs.get('kind'))!r})")
     version = _plain(f.attrs.get("schema_version"))
@@ -182,7 +172,7 @@ def _read_results(f: h5py.File, path: Path, capture_id: str | None) -> ResultSet
     check_capture(f.attrs.get(CAPTURE_KEY), path, capture_id)
     try:
         json_keys = json.loads(_plain(f.attrs.get("json_attrs", "[]")))
-        out = ResultSet(attrs={k: json.loads(v) if k in json_keys else _plain(v) for k, v in f.attrs.items()
+        out = rec.ResultSet(attrs={k: json.loads(v) if k in json_keys else _plain(v) for k, v in f.attrs.items()
                                if k not in _RESERVED})
     except (json.JSONDecodeError, TypeError) as exc:
         raise InputError(path, f"attributes: not the JSON text the results layout stores ({exc})") from None
@@ -191,8 +181,8 @@ def _read_results(f: h5py.File, path: Path, capture_id: str | None) -> ResultSet
             g = f["geometry"]
             lines = [(int(a), int(b)) for a, b in g["lines"][()]] if "lines" in g else None
             names = [_plain(s) for s in g["names"][()]] if "names" in g else None
-            out.geometry = Geometry(g["node_ids"][()], g["coords_m"][()], lines, names)
-        for group, (_, cls) in _KINDS.items():
+            out.geometry = rec.Geometry(g["node_ids"][()], g["coords_m"][()], lines, names)
+        for group, (_, cls) in rec._KINDS.items():
             for name, g in f.get(group, {}).items():
                 getattr(out, group).append(_h5_record(cls, name, g))
     except KeyError as exc:

@@ -49,8 +49,9 @@ def pytest_addoption(parser):
 
 # The files that take longest (a minute or more on two cores), longest first: run first, so that pytest-xdist's
 # workers (a file each, in collection order) fill the rest of their time with the short ones instead of ending on
-# one long file while the other worker idles.
-LONG_FILES = ("test_pipeline.py", "test_data_safety.py", "test_batch.py", "reconstruction/test_modal.py",
+# one long file while the other worker idles. The batch comes second: while the first worker builds the session's
+# piped capture (piped_original) for test_pipeline.py, the other has work of its own instead of waiting for it.
+LONG_FILES = ("test_pipeline.py", "test_batch.py", "test_data_safety.py", "reconstruction/test_modal.py",
               "analysis/test_imagepoles.py", "test_demo.py", "reconstruction/test_run.py",
               "reconstruction/test_dynamic.py", "analysis/test_run.py", "acquisition/test_session.py",
               "sync/test_sync.py", "processing/test_run.py", "processing/test_video.py", "test_fidelity.py",
@@ -95,6 +96,23 @@ def sim_capture(tmp_path_factory) -> Capture:
                               faults={1: "double_hit", 3: "dropped_frames"})
     assert report.complete
     return Capture.open(out)
+
+
+def tiny_capture(out: Path) -> Capture:
+    """A capture with one complete take of 10 frames of 8x8 px and a force and an acceleration channel: what a
+    command opens before it reads its settings."""
+    import numpy as np
+
+    from odsplat.spine.manifest import ChannelInfo, Manifest
+
+    cap = Capture.create(out, Manifest(name="s", daq_sample_rate_hz=1000.0, channels=[
+        ChannelInfo("force", "force", "N"), ChannelInfo("acc", "acceleration", "m/s^2")]))
+    with cap.new_take("a", view=1, frame_shape=(8, 8), dtype=np.uint8, fps=500.0) as w:
+        for k in range(10):
+            w.append_frames(np.full((8, 8), k, np.uint8))
+        w.append_samples({"force": np.zeros(100), "acc": np.zeros(100)})
+        w.finalize()
+    return cap
 
 
 @pytest.fixture(scope="session")

@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import Any
 
 import click
-import numpy as np
 import pytest
 import tomli_w
 from click.testing import CliRunner
@@ -29,8 +28,10 @@ from odsplat.app.options import (
     settings_from,
 )
 from odsplat.spine.errors import InputError
-from odsplat.spine.manifest import ChannelInfo, Manifest, from_plain
+from odsplat.spine.manifest import from_plain
 from odsplat.spine.store import Capture
+
+from .conftest import tiny_capture
 
 # The flag values tried: past any bound either way, NaN, zero and small numbers, a word that is no choice, pairs in
 # and out of order. A settings class decides which it refuses; the command line must agree with it.
@@ -51,15 +52,7 @@ STAGE_CASES = _flags(STAGE_FLAGS)
 def small(tmp_path_factory) -> Capture:
     """A capture with one complete take of 10 tiny frames, a force and an acceleration channel: what the stage
     commands open before they read their settings."""
-    cap = Capture.create(tmp_path_factory.mktemp("cli_settings") / "cap", Manifest(
-        name="s", daq_sample_rate_hz=1000.0,
-        channels=[ChannelInfo("force", "force", "N"), ChannelInfo("acc", "acceleration", "m/s^2")]))
-    with cap.new_take("a", view=1, frame_shape=(8, 8), dtype=np.uint8, fps=500.0) as w:
-        for k in range(10):
-            w.append_frames(np.full((8, 8), k, np.uint8))
-        w.append_samples({"force": np.zeros(100), "acc": np.zeros(100)})
-        w.finalize()
-    return cap
+    return tiny_capture(tmp_path_factory.mktemp("cli_settings") / "cap")
 
 
 def _option(command: str, flag: Flag):

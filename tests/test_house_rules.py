@@ -4,6 +4,7 @@ application, every module in one; and the stages' rooms, entered only through a 
 tools/lint_imports.py on a copy laid out as installed. Nothing is written to the repo."""
 from __future__ import annotations
 
+import ast
 import importlib.util
 import shutil
 import subprocess
@@ -88,3 +89,24 @@ def test_a_stage_may_import_another_stages_package(tree):
     (tree / "analysis" / "_ok.py").write_text("from odsplat.sync import SyncSettings\n")
     proc = _lint_imports(tree)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+MAX_FILE_LINES = 800
+MAX_FUNCTION_LINES = 100
+
+
+def test_no_file_over_800_lines_and_no_function_over_100():
+    """Files that do one thing: the package, the bench, the tools and the tests."""
+    too_long = []
+    for folder in (*SOURCE_FOLDERS, "bench", "tools", "tests"):
+        for path in sorted((REPO / folder).rglob("*.py")):
+            text = path.read_text()
+            rel = path.relative_to(REPO)
+            if text.count("\n") > MAX_FILE_LINES:
+                too_long.append(f"{rel}: {text.count(chr(10))} lines")
+            for node in ast.walk(ast.parse(text)):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                    n = node.end_lineno - node.lineno + 1
+                    if n > MAX_FUNCTION_LINES:
+                        too_long.append(f"{rel}:{node.lineno}: {node.name} is {n} lines")
+    assert not too_long, "\n".join(too_long)

@@ -11,8 +11,9 @@ from odsplat.app.cli import main
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.spine.checks import POSITIVE, Range, check_number, maybe
 from odsplat.spine.errors import InputError
-from odsplat.spine.manifest import ChannelInfo, Manifest
 from odsplat.spine.store import Capture
+
+from .conftest import tiny_capture
 
 
 def _refused(root, *args, field: str) -> str:
@@ -31,14 +32,7 @@ def _refused(root, *args, field: str) -> str:
 @pytest.fixture()
 def small(tmp_path) -> Capture:
     """A capture with one complete take of 10 tiny frames and a force and an acceleration channel."""
-    cap = Capture.create(tmp_path / "cap", Manifest(name="s", daq_sample_rate_hz=1000.0, channels=[
-        ChannelInfo("force", "force", "N"), ChannelInfo("acc", "acceleration", "m/s^2")]))
-    with cap.new_take("a", view=1, frame_shape=(8, 8), dtype=np.uint8, fps=500.0) as w:
-        for k in range(10):
-            w.append_frames(np.full((8, 8), k, np.uint8))
-        w.append_samples({"force": np.zeros(100), "acc": np.zeros(100)})
-        w.finalize()
-    return cap
+    return tiny_capture(tmp_path / "cap")
 
 
 @pytest.mark.parametrize("args, field", [
