@@ -1,6 +1,10 @@
 """The `odsplat` command line: `odsplat run` for the whole pipeline, and one thin command per stage calling the
 same entry, made from the stage table (stages.py) with its options generated from the stage's settings (options.py);
-errors are one line naming the culprit."""
+errors are one line naming the culprit.
+
+What a command needs of the stages, the viewer (Qt), the demo or the batch (Dask) it imports when it runs: three
+stages load torch, and `odsplat --help`, `info`, `verify` and `qc` must start without it (the rule in stages.py).
+The spine and the pipeline are light and imported here."""
 from __future__ import annotations
 
 import json
@@ -25,9 +29,16 @@ from odsplat.app.options import (
     lay_over,
     settings_from,
 )
+from odsplat.app.pipeline import run, run_stage
+from odsplat.app.pipeline import status as stage_status
 from odsplat.app.stages import TABLE, Stage, resolve
 from odsplat.spine.checks import PLAYBACK_FPS, WORKERS, check_number, maybe
 from odsplat.spine.errors import InputError, OdsplatError, exit_if_hdf5_unclosed, storage_error
+from odsplat.spine.integrity import listed_take_problems, verify_capture
+from odsplat.spine.lock import capture_lock
+from odsplat.spine.sensors import apply_geometry, geometry_toml, read_geometry
+from odsplat.spine.store import Capture
+from odsplat.spine.summary import summarize
 
 
 class _Group(click.Group):
@@ -94,14 +105,12 @@ def _waits() -> bool:
 
 def _open(capture_dir: Path):
     """The capture, with its derived files where --derived says."""
-    from odsplat.spine.store import Capture
 
     return Capture.open(capture_dir, derived=click.get_current_context().meta.get("odsplat.derived"))
 
 
 def _locked(capture: Any):
     """The capture's lock for a command that writes it outside the pipeline (recover, geometry, render)."""
-    from odsplat.spine.lock import capture_lock
 
     return capture_lock(capture, wait=_waits())
 
@@ -109,7 +118,6 @@ def _locked(capture: Any):
 def _stage(capture_dir: Path, stage: str, flags: Sequence[Flag] = ()) -> tuple[Any, Any]:
     """Run one stage through the pipeline's entry: the capture's configuration with the flags given laid over it
     (the command line's layer, checked by the stage's settings as --set is). Returns (capture, the stage's result)."""
-    from odsplat.app.pipeline import run_stage
 
     cap = _open(capture_dir)
     config = lay_over(load_config(cap), stage, click.get_current_context(), flags)
@@ -127,7 +135,6 @@ def _settings(cls: type, flags: Sequence[Flag]) -> Any:
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
 def info(capture: Path, as_json: bool) -> None:
     """Summarise a capture: takes, frames, channels, sizes and QC flags."""
-    from odsplat.spine.summary import summarize
 
     summary = summarize(capture)
     click.echo(json.dumps(summary.to_dict(), indent=2) if as_json else summary.to_text())
@@ -140,7 +147,8 @@ def info(capture: Path, as_json: bool) -> None:
               help="Folder the rig's file names are relative to (default: the rig file's folder).")
 def import_(rig: Path, out: Path, data: Path | None) -> None:
     """Build a capture from recordings of other equipment described by a RIG file (TOML, see docs/import.md)."""
-    from odsplat.spine.importer import import_capture
+    from odsplat.spine.importer import import_capture  # its readers load numba (pyMRAW)
+
 
     capture = import_capture(rig, out, data_dir=data)
     click.echo(f"imported {len(capture.manifest.takes)} takes into {capture.root}")
@@ -151,7 +159,6 @@ def import_(rig: Path, out: Path, data: Path | None) -> None:
 @click.argument("capture", type=click.Path(path_type=Path))
 def recover(capture: Path) -> None:
     """Recover takes left unfinished by a crash, keeping every flushed frame and sample."""
-    from odsplat.spine.integrity import listed_take_problems
 
     cap = _open(capture)
     with _locked(cap):
@@ -174,7 +181,6 @@ def verify(capture: Path) -> None:
     """Read every take of CAPTURE whole through its checksums: each take OK, damaged (which frames or samples),
     missing, truncated, unfinished, not listed, or without checksums (an older take: readable, but damage cannot be
     detected). Exit 1 when anything is wrong."""
-    from odsplat.spine.integrity import verify_capture
 
     cap = _open(capture)
     checks = verify_capture(cap)
@@ -197,7 +203,6 @@ def geometry(capture_dir: Path, geometry_file: Path | None) -> None:
     """Place the sensors after the recording: with GEOMETRY_FILE (TOML [[sensors]] tables: name, position_m,
     direction), set their positions and directions in the capture; without it, print the capture's geometry in
     that format, to edit. The raw takes are untouched; `odsplat run` then redoes the analysis."""
-    from odsplat.spine.sensors import apply_geometry, geometry_toml, read_geometry
 
     cap = _open(capture_dir)
     if geometry_file is None:
@@ -232,7 +237,6 @@ def run_(capture_dir: Path, start: str | None, stop: str | None, force: tuple[st
          sets: tuple[str, ...]) -> None:
     """Run the pipeline on CAPTURE_DIR, from the raw takes to the report; stages whose outputs are current are
     skipped, stale ones rerun with everything downstream (docs/config.md)."""
-    from odsplat.app.pipeline import run
 
     cap = _open(capture_dir)
     config = load_config(cap, path=config_path, sets=sets)
@@ -283,7 +287,6 @@ def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], 
     config = load_config(cap, path=config_path, sets=sets)
     click.echo(config.to_toml(), nl=False)
     if status:
-        from odsplat.app.pipeline import status as stage_status
 
         click.echo("")
         for name, current, why in stage_status(cap, config):

@@ -23,10 +23,24 @@ from typing import Any
 
 import tomli_w
 
+from odsplat.acquisition import (
+    CaptureSession,
+    HammerTrigger,
+    PlanSettings,
+    QCLimits,
+    SessionSettings,
+    SimRigSettings,
+    TextFeedback,
+    choose_hammer,
+    open_bench,
+)
+from odsplat.analysis import read_analysis
 from odsplat.app.config import load_config
 from odsplat.app.pipeline import run as run_pipeline
 from odsplat.app.pipeline import run_stage
+from odsplat.reconstruction import DynamicScene, camera_path, parse_times, render_sequence
 from odsplat.spine.errors import InputError
+from odsplat.spine.importer import import_capture
 from odsplat.spine.store import Capture
 
 log = logging.getLogger(__name__)
@@ -142,7 +156,6 @@ class DemoResult:
 
 def summarize(capture: Capture, what: str, render: Path | None = None) -> CaptureSummary:
     """A capture's modes from its analysis.json, each with the video's MAC as the report's summary pairs them."""
-    from odsplat.analysis import read_analysis
 
     doc = read_analysis(capture)
     pairs = doc.pair_by_mode()
@@ -230,17 +243,6 @@ def simulated_capture(root: Path, scale: DemoScale, echo: Callable[[str], None],
     views, frames and faults; each take's verdict through `echo`. The set-up is opened as the command opens it
     (acquisition.open_bench). seed: the rig's and the camera's noise, the hammer's scatter (None: the capture's
     default, 0)."""
-    from odsplat.acquisition import (
-        CaptureSession,
-        HammerTrigger,
-        PlanSettings,
-        QCLimits,
-        SessionSettings,
-        SimRigSettings,
-        TextFeedback,
-        choose_hammer,
-        open_bench,
-    )
 
     d = dict(CAPTURE_DEFAULTS, **({} if seed is None else {"seed": seed}))
 
@@ -267,7 +269,6 @@ def simulated_capture(root: Path, scale: DemoScale, echo: Callable[[str], None],
 
 def render_orbit(capture: Capture, scale: DemoScale) -> Path:
     """`odsplat render --camera ORBIT --times A:B:N --alpha 30` over the trained window A..B; the mp4."""
-    from odsplat.reconstruction import DynamicScene, camera_path, parse_times, render_sequence
 
     scene = DynamicScene.load(capture)
     times = parse_times(f"{float(scene.times_s[0])!r}:{float(scene.times_s[-1])!r}:{scale.n_render}", scene.times_s)
@@ -331,7 +332,6 @@ def run_demo(out: Path, *, quick: bool = False, shared_data: Path | None = None,
         beam_root = out / BEAM_NAME
         step(5, "real recordings", f"the real LADISK beam recordings from {data} into {beam_root}")
         _replace(beam_root)
-        from odsplat.spine.importer import import_capture
 
         rig = resources.files("odsplat").joinpath("examples", "ladisk-beam.toml")
         with resources.as_file(rig) as rig_path:

@@ -5,7 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any
 
+from odsplat.app.viewer import default_state
 from odsplat.app.viewer.model import ALPHA_RANGE
+from odsplat.reconstruction import check_camera_spec
 from odsplat.spine.checks import (
     MAX_DURATION_S,
     MAX_MAGNIFICATION,
@@ -38,7 +40,6 @@ class RenderSettings:
     mp4: bool = True                # also write render.mp4 beside the PNG frames
 
     def __post_init__(self) -> None:
-        from odsplat.reconstruction import check_camera_spec
 
         # alpha 0 shows the rest state; above, the 2D magnification's bound (MAGNIFICATION), so one number rules both.
         check_fields(self, {"alpha": maybe(Range(at_least=0, at_most=MAX_MAGNIFICATION)), "width_px": maybe(WIDTH_PX),
@@ -85,8 +86,6 @@ class ViewSettings:
 def view_state(data: Any, s: ViewSettings) -> Any:
     """The viewer's state for `s` on a capture's `data` (viewer.load_viewer), checked against what it has: the
     mode or ODS line by its number, the motion only with a reconstruction, the camera by its index."""
-    from odsplat.app.viewer import default_state
-
     state = default_state(data, alpha=s.alpha, structure_only=s.structure_only, colour=s.colour,
                           width_px=s.size_px[0], height_px=s.size_px[1])
     if s.mode is not None or s.ods is not None:

@@ -29,6 +29,7 @@ import click
 from click.core import ParameterSource
 
 from odsplat.spine.errors import InputError
+from odsplat.spine.manifest import from_plain
 
 if TYPE_CHECKING:
     from odsplat.app.config import Config
@@ -73,7 +74,7 @@ def _all_takes(value: bool) -> str:
 
 
 def _magnifier_options(items: tuple[str, ...]) -> list[list[Any]]:
-    from odsplat.processing import parse_options
+    from odsplat.processing import parse_options  # when the flag is given: processing loads torch (cli.py's rule)
 
     return [list(kv) for kv in parse_options(items)]
 
@@ -390,8 +391,6 @@ def lay_over(config: Config, stage: str, ctx: click.Context, flags: Sequence[Fla
 def settings_from(cls: type, table: dict[str, Any], flags: Sequence[Flag], where: str = "the command line") -> Any:
     """Settings of class `cls` (not a stage's: render's, view's) from the flags' table, checked by the class, a
     refusal naming the flag."""
-    from odsplat.spine.manifest import from_plain
-
     try:
         return from_plain(cls, table, where)
     except InputError as exc:

@@ -28,6 +28,7 @@ from odsplat.spine.errors import InputError, OdsplatError
 from odsplat.spine.guard import lexically_inside, refuse_links
 from odsplat.spine.manifest import ChannelInfo, Manifest, TakeRecord, check_name
 from odsplat.spine.paths import DerivedPaths
+from odsplat.spine.qcfile import read_verdicts
 from odsplat.spine.recovery import RecoveryReport, recover_partial
 from odsplat.spine.take_reader import TakeReader
 from odsplat.spine.take_writer import PARTIAL_SUFFIX, TakeWriter
@@ -139,8 +140,6 @@ class Capture:
         """The verdict the qc stage gave each take from its file (`derived/qc.json`), {} before it ran. A take
         recorded as unchecked (an imported one) is selected by this verdict; a recorded verdict stands. The file's
         format (and its one reader) is odsplat.spine.qcfile."""
-        from odsplat.spine.qcfile import read_verdicts
-
         return read_verdicts(self.paths.qc_json, self.id)
 
     def next_take_name(self, view: int | None = None) -> str:

@@ -5,18 +5,18 @@ from __future__ import annotations
 
 import logging
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from odsplat.analysis import AnalysisDocument, AnalyzeSettings, read_analysis, read_results_h5, structure_mask
 from odsplat.app.viewer.model import Mode, Scene, SensorInfo, ViewerData
+from odsplat.reconstruction import Camera, DynamicScene, PoseResult
 from odsplat.spine.errors import InputError, OdsplatError
 from odsplat.spine.impulse import fit_pulse, impact_onsets
 from odsplat.spine.store import Capture
-
-if TYPE_CHECKING:
-    from odsplat.analysis import AnalysisDocument
+from odsplat.sync import AlignedTake, load_sync
 
 log = logging.getLogger(__name__)
 
@@ -65,7 +65,6 @@ def _sensors(capture: Capture) -> tuple[SensorInfo, ...]:
 
 def _analysis(capture: Capture, need: bool) -> tuple[AnalysisDocument | None, Any]:
     """The capture's analysis.json (typed and checked) and results.h5 (None where it has not been written)."""
-    from odsplat.analysis import read_analysis, read_results_h5
 
     if not capture.paths.analysis_json.exists():
         if need:
@@ -78,7 +77,6 @@ def _analysis(capture: Capture, need: bool) -> tuple[AnalysisDocument | None, An
 
 
 def _reconstruction(capture: Capture, notes: list[str]):
-    from odsplat.reconstruction import Camera, DynamicScene, PoseResult
 
     cameras = []
     if capture.paths.poses_json.exists():
@@ -100,7 +98,6 @@ def _reconstruction(capture: Capture, notes: list[str]):
 
 def _scene(capture: Capture, sc, doc: AnalysisDocument | None) -> Scene:
     """The DynamicScene's Gaussians in world metres, their physical motion, and which are the structure's."""
-    from odsplat.analysis import AnalyzeSettings, structure_mask
 
     r = sc.scene.radius
     g = sc.rest
@@ -223,7 +220,6 @@ def _frfs(results, sensors):
 def aligned_frame(data: ViewerData, take: str, time_s: float) -> np.ndarray | None:
     """(H, W) uint8: a capture camera's real frame on sync's common grid nearest time_s (impact-locked), or None
     where the capture has no aligned frames for that take."""
-    from odsplat.sync import AlignedTake, load_sync
 
     capture = data.capture
     path = capture.paths.frames("sync", take)

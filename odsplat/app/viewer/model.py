@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from odsplat.app.viewer.draw import draw_floor, draw_overlays, plasma
+from odsplat.reconstruction import Camera, quat_from_rotvec, quat_multiply, rasterize_image
 from odsplat.spine.geometry import camera_center_m, look_at
 from odsplat.spine.store import Capture
 
@@ -183,7 +184,6 @@ def default_state(data: ViewerData, **kw) -> ViewState:
 
 def camera_for(data: ViewerData, state: ViewState):
     """The reconstruction.Camera the state looks through, at the state's size."""
-    from odsplat.reconstruction import Camera
 
     w, h = state.width_px, state.height_px
     if state.snap is not None and 0 <= state.snap < len(data.cameras):
@@ -270,7 +270,6 @@ def render_view(data: ViewerData, state: ViewState, *, overlays: bool = True) ->
     """(H, W, 3) uint8: the reconstruction's Gaussians in the state (magnified in 3D at render time), or without a
     reconstruction the sensors' shapes on their positions; the capture cameras, the sensors' arrows and the colour
     bar drawn over it (overlays)."""
-    from odsplat.reconstruction import rasterize_image
 
     cam = camera_for(data, state)
     w, h = state.width_px, state.height_px
@@ -313,7 +312,6 @@ def _turned(quats: np.ndarray, rotvec_rad: np.ndarray) -> np.ndarray:
     """(N, 4) float32 orientations (w, x, y, z) turned by (N, 3) rotation vectors: reconstruction's quaternions."""
     import torch
 
-    from odsplat.reconstruction import quat_from_rotvec, quat_multiply
 
     turn = quat_from_rotvec(torch.from_numpy(np.ascontiguousarray(rotvec_rad, np.float32)))
     return quat_multiply(turn, torch.from_numpy(np.ascontiguousarray(quats, np.float32))).numpy()
