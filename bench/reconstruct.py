@@ -11,17 +11,18 @@ and renders the held-out views (at their estimated poses) at every timestep, mag
   (reconstruction/linear.py), magnified in 3D at render time;
 - paper_native (a control, not run by default): the paper order on hil_sim's noise-free renders of the true
   cameras with the motion multiplied by alpha, i.e. what a perfect 2D magnifier would give.
-Ground truth: hil_sim's noise-free renders from the true camera with the structure's motion multiplied by
-alpha. PSNR, SSIM and L2 are taken in the structure's box (the foreground), as the paper crops. Baseline in the
-same run: the rest state rendered at every time (what a static reconstruction would show). Displacement: each
-model's physical 3D displacement (its frames' magnification divided out) at the accelerometer and CAN-node
-points (read as the analysis reads them: the inverse-distance mean of the 16 nearest opaque Gaussians less the
-outliers among them) against the truth over the trained window;
-`dominant_amplitude` is the least-squares coefficient of the dominant mode when the model's displacement is
-regressed on every mode's true contribution (1 is exact); `point_gains`, per point, the model's motion projected on
-the true motion over the window; `dominant_amplitude_plain_readout`, the baseline readout (the 8 nearest, no
-outlier cut). Sensitivity, each varied on its own: training views,
-pose noise on the training views, rgb noise on the training images. Speed: the rasterizer (bench/raster.py).
+Ground truth: hil_sim's noise-free renders from the true camera with the structure's motion multiplied by alpha.
+PSNR, SSIM and L2 are taken in the structure's box (the foreground), as the paper crops; `motion` scores the motion
+alone there (each render less the render at rest, against the truth less the truth at rest: `motion_scores`).
+Baseline in the same run: the rest state rendered at every time (what a static reconstruction would show).
+Displacement: each model's physical 3D displacement (its frames' magnification divided out) at the accelerometer and
+CAN-node points (read as the analysis reads them: the inverse-distance mean of the 16 nearest opaque Gaussians less
+the outliers among them) against the truth over the trained window; `dominant_amplitude` is the least-squares
+coefficient of the dominant mode when the model's displacement is regressed on every mode's true contribution (1 is
+exact); `point_gains`, per point, the model's motion projected on the true motion over the window;
+`dominant_amplitude_plain_readout`, the baseline readout (the 8 nearest, no outlier cut). Sensitivity, each varied
+on its own: training views, pose noise on the training views, rgb noise on the training images. Speed: the
+rasterizer (bench/raster.py).
 
 `--seeds N` (default 3) records N captures (seeds seed..seed+N-1); the JSON line holds each run's figures (`runs`)
 and every figure's worst and median over them (`spread`, bench/spread.py: PSNR, SSIM and poses registered the
@@ -110,6 +111,19 @@ def scores(img: np.ndarray, ref: np.ndarray, crop) -> tuple[float, float, float]
     return psnr(a, b), ssim(a, b), float(torch.mean((a - b) ** 2))
 
 
+def motion_scores(model: np.ndarray, truth: np.ndarray) -> dict:
+    """The motion alone, each image less its rest image (render(t) - render(t0) against truth(t) - truth(t0)), over
+    the timesteps and the structure's box pooled: PSNR against the truth's motion peak (its largest |change|, so the
+    static texture both share weighs nothing) and the correlation of the two (1: the same motion up to a scale;
+    uncentred, since no change is the reference). `model`, `truth`: lists or arrays of equal-shape motion images."""
+    a = np.concatenate([np.ravel(m) for m in model]).astype(float)
+    b = np.concatenate([np.ravel(t) for t in truth]).astype(float)
+    mse, peak = float(np.mean((a - b) ** 2)), float(np.abs(b).max(initial=0.0))
+    norm = float(np.sqrt((a ** 2).sum() * (b ** 2).sum()))
+    return dict(psnr_db=float("inf") if mse == 0 else 10 * float(np.log10(peak ** 2 / mse)) if peak > 0 else None,
+                correlation=float((a * b).sum() / norm) if norm > 0 else None, truth_peak=peak)
+
+
 def surface_motion(scene) -> SurfaceMotion:
     """The model's physical motion over its Gaussians more than 30 % opaque, for reading at the sensor points."""
     opacity = scene.rest.opacities.numpy().reshape(-1)
@@ -152,6 +166,7 @@ def evaluate(model, poses: PoseResult, holdout: list[str], gts: dict[str, Ground
     """PSNR/SSIM/L2 of held-out renders (and of the rest state held still) in the foreground box, over timesteps."""
     scene = model.scene()
     rows = {"dynamic": [], "rest": [], "truth_still": []}
+    moved, moved_true = [], []                     # the motion images, the model's and the truth's (motion_scores)
     for name in holdout:
         cam = pose_camera(poses, name, width_px)
         ref0, mask0 = gts[name].image(float(scene.times_s[0]), alpha)
@@ -162,13 +177,18 @@ def evaluate(model, poses: PoseResult, holdout: list[str], gts: dict[str, Ground
             # The truth's own rest state against its moving state: how much the motion weighs in these metrics.
             rows["truth_still"].append(scores(ref0, ref, crop))
             rows["rest"].append(scores(still, ref, crop))
-            rows["dynamic"].append(scores(scene.render(cam, float(t), alpha=alpha)[..., 0], ref, crop))
+            img = scene.render(cam, float(t), alpha=alpha)[..., 0]
+            rows["dynamic"].append(scores(img, ref, crop))
+            if t != scene.times_s[0]:
+                moved.append(np.asarray(img[crop], float) - np.asarray(still[crop], float))
+                moved_true.append(np.asarray(ref[crop], float) - np.asarray(ref0[crop], float))
     out = {}
     for kind, r in rows.items():
         r = np.array(r)
         finite = np.isfinite(r[:, 0])
         out[kind] = dict(psnr_db=float(r[finite, 0].mean()) if finite.any() else float("inf"),
                          ssim=float(r[:, 1].mean()), l2=float(r[:, 2].mean()))
+    out["motion"] = motion_scores(moved, moved_true) if moved else None
     name = holdout[0]
     out["displacement"] = displacement_scores(scene, gts[name].truth, gts[name])
     return out
@@ -221,7 +241,8 @@ def run_config(capture, poses, settings: ReconstructSettings, holdout, gts, alph
                t0_s=model.stats_t0["seconds"], dynamic_s=model.seconds_dynamic)
     source = "native renders" if native is not None else settings.source
     print(f"  {settings.motion} on {source}, {len(vs.views)} views, rgb noise {rgb_noise}: held-out PSNR "
-          f"{res['dynamic']['psnr_db']:.2f} dB (rest {res['rest']['psnr_db']:.2f}), dominant mode amplitude "
+          f"{res['dynamic']['psnr_db']:.2f} dB (rest {res['rest']['psnr_db']:.2f}), motion alone "
+          f"{(res['motion'] or {}).get('psnr_db')} dB, dominant mode amplitude "
           f"{res['displacement']['dominant_amplitude']:.3f}, in {seconds:.0f} s", file=sys.stderr)
     return res
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 HIGHER_IS_BETTER = ("mac", "found", "psnr", "ssim", "r2", "n_identified", "snr", "registered", "n_points",
-                    "n_averages")
+                    "n_averages", "correlation")
 NEAR_ONE = ("scale_factor", "gain", "amplitude", "rms_ratio")
 
 
@@ -40,7 +40,8 @@ def _worst(key: str, values: list[float]) -> float:
     return float(v[np.argmax(np.abs(v))])          # errors, seconds, counts of misses: the largest
 
 
-def spread(runs: list[dict], skip: tuple[str, ...] = ("settings", "true_hz", "true_damping", "true_peak_um")
+def spread(runs: list[dict], skip: tuple[str, ...] = ("settings", "true_hz", "true_damping", "true_peak_um",
+                                                     "truth_peak")
            ) -> dict[str, dict]:
     """{path: {"worst", "median", "n"}} for every number present in at least one run (booleans: worst is False
     if any run is False); paths under `skip` are left out (the settings, the truth's own values)."""

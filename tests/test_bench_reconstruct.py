@@ -35,3 +35,26 @@ def test_displacement_scores_read_the_truth(sim_capture, gain, bench_script):
     assert np.allclose(res["point_gains"], gain, rtol=0.05), res["point_gains"]
     assert res["rms_ratio"] == pytest.approx(gain, rel=0.05)
     assert res["rel_error"] == pytest.approx(1 - gain, abs=0.05)
+
+
+def test_motion_scores_read_the_motion_alone(sim_capture, bench_script):
+    """The truth's own motion images (hil_sim's renders less the render at rest): exact reads inf dB and a
+    correlation of 1; half the motion still correlates 1 and loses 20 log10 of the ratio it leaves; no motion at
+    all (a static model) has no correlation and the PSNR of the motion's own rms."""
+    bench = bench_script("reconstruct")
+    take = sorted(sim_capture.takes_dir.glob("*.h5"))[0]
+    gt = bench.GroundTruth(SimRig(), TakeTruth.load(truth_path(take)), 64, SimCameraConfig(fps=2000.0))
+    rest, _ = gt.image(0.0, 30.0)
+    truth = [gt.image(t, 30.0)[0] - rest for t in np.arange(1, 12) * 0.5e-3]
+    b = np.concatenate([np.ravel(t) for t in truth]).astype(float)
+    peak, rms = np.abs(b).max(), np.sqrt(np.mean(b ** 2))
+    assert peak > 0.01                                   # the structure moves visibly at alpha 30
+    exact = bench.motion_scores(truth, truth)
+    assert exact["psnr_db"] == float("inf") and exact["correlation"] == pytest.approx(1.0)
+    half = bench.motion_scores([0.5 * t for t in truth], truth)
+    assert half["correlation"] == pytest.approx(1.0)
+    assert half["psnr_db"] == pytest.approx(20 * np.log10(peak / (0.5 * rms)), abs=1e-6)
+    still = bench.motion_scores([np.zeros_like(t) for t in truth], truth)
+    assert still["correlation"] is None and still["psnr_db"] == pytest.approx(20 * np.log10(peak / rms), abs=1e-6)
+    noisy = bench.motion_scores([t + np.random.default_rng(0).normal(0, rms, t.shape) for t in truth], truth)
+    assert 0.5 < noisy["correlation"] < 0.8 and noisy["psnr_db"] < half["psnr_db"]
