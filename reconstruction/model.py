@@ -14,7 +14,6 @@ from __future__ import annotations
 import json
 import logging
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -327,19 +326,11 @@ def modal_quats(basis, rot_shapes_rad, quats_rest, chunk: int = 16) -> np.ndarra
     return out.numpy()
 
 
-def _file(dest: DerivedPaths | Path, pick: Callable[[DerivedPaths], Path]) -> Path:
-    """The reconstruction file `pick` names in `Capture.paths`: in a capture's derived/reconstruction/ (`dest` its
-    `capture.paths`), or under the same name in a folder of its own (`dest` a folder: a test's, a bench's)."""
-    if isinstance(dest, DerivedPaths):
-        return pick(dest)
-    return Path(dest) / pick(DerivedPaths(Path(dest))).name
-
-
-def save_measured(dest: DerivedPaths | Path, times_s: np.ndarray, measured: NodeMotion | None,
+def save_measured(paths: DerivedPaths, times_s: np.ndarray, measured: NodeMotion | None,
                   capture_id: str | None = None) -> None:
     """`measured_motion.npz` from the linear solve (recording `capture_id`), or none: a stale one from an earlier
-    linear run goes, so that the analysis never pairs it with another model. `dest`: as `DynamicScene.save`."""
-    path = _file(dest, lambda p: p.measured_motion_npz)
+    linear run goes, so that the analysis never pairs it with another model."""
+    path = paths.measured_motion_npz
     if measured is None:
         path.unlink(missing_ok=True)
         return
@@ -470,11 +461,11 @@ class DynamicScene:
         return cls(np.asarray(vs.times_s, float), np.asarray(vs.frame_index), sc.to_world(means[0]), disp, quats,
                    rest, sc, vs.bit_depth, background.double().numpy(), float(vs.source_alpha), **extra)
 
-    def save(self, dest: DerivedPaths | Path, capture_id: str | None = None) -> None:
-        """The rest state as `gaussians_t0.ply` and the whole motion as `trajectories.npz`, world frame (metres),
-        each recording `capture_id` (the capture's) where given. `dest`: a capture's `capture.paths` (its
-        derived/reconstruction/), or a folder of its own, where the files take the same names."""
-        ply, npz = _file(dest, lambda p: p.gaussians_ply), _file(dest, lambda p: p.trajectories_npz)
+    def save(self, paths: DerivedPaths, capture_id: str | None = None) -> None:
+        """The rest state as `gaussians_t0.ply` and the whole motion as `trajectories.npz` in `paths`' reconstruction
+        folder (a capture's `capture.paths`, or `DerivedPaths(folder)` elsewhere), world frame (metres), each
+        recording `capture_id` (the capture's) where given."""
+        ply, npz = paths.gaussians_ply, paths.trajectories_npz
         DerivedPaths.ensure(npz.parent)
         sc = self.scene
         world = self.rest.transformed(sc.radius, sc.center)

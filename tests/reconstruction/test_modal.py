@@ -18,6 +18,7 @@ from odsplat.reconstruction.quaternion import quat_conjugate, quat_from_rotvec, 
 from odsplat.reconstruction.views import Camera, ViewSet
 from odsplat.spine.errors import InputError
 from odsplat.spine.geometry import spherical_eye
+from odsplat.spine.paths import DerivedPaths
 
 from .test_dynamic import TARGET, _train_views, surface_points
 
@@ -129,13 +130,13 @@ def test_scene_magnifies_in_3d_and_saves_the_modal_model(rig, tmp_path):
     # alpha = 0 is the rest state
     m0, _ = ds.state(t, alpha=0.0)
     assert torch.allclose(m0, rest, atol=1e-6)
-    ds.save(tmp_path)
-    back = DynamicScene.read(tmp_path / "trajectories.npz")
+    ds.save(DerivedPaths(tmp_path))
+    back = DynamicScene.read(DerivedPaths(tmp_path).trajectories_npz)
     assert back.motion == "modal" and back.source_alpha == 1.0
     assert np.allclose(back.shapes_m, ds.shapes_m) and np.allclose(back.basis, ds.basis)
     # The file holds the basis and shapes, not the (T, N, 3) and (T, N, 4) fields they multiply out to, and
     # reads back the same motion.
-    with np.load(tmp_path / "trajectories.npz") as z:
+    with np.load(DerivedPaths(tmp_path).trajectories_npz) as z:
         assert "displacement_m" not in z.files and "quats" not in z.files and z["quats_rest"].shape == (len(g0), 4)
         arrays = {k: z[k] for k in z.files}
     assert np.array_equal(back.displacement_m, ds.displacement_m) and np.allclose(back.quats, ds.quats, atol=1e-12)

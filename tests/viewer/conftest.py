@@ -60,8 +60,7 @@ def write_scene(cap: Capture, n_steps: int = 24) -> tuple[np.ndarray, np.ndarray
     quats = np.tile(np.array([1.0, 0, 0, 0], np.float32), (len(times), n, 1))
     scene = DynamicScene(np.asarray(times, float), np.arange(k0, k0 + len(times)), points, disp, quats, rest, frame, 8,
                          np.array([0.0]), 1.0)
-    dest = cap.paths.reconstruction_dir
-    scene.save(dest)
+    scene.save(cap.paths)
     return points, np.arange(n) >= len(struct)
 
 

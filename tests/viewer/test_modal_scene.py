@@ -8,6 +8,7 @@ import torch
 from odsplat.app.viewer.load import _scene
 from odsplat.reconstruction import DynamicScene, Gaussians, SceneFrame
 from odsplat.reconstruction.model import modal_quats
+from odsplat.spine.paths import DerivedPaths
 
 
 def test_a_modal_models_motion_and_turns_reach_the_viewer(captures, tmp_path):
@@ -27,8 +28,8 @@ def test_a_modal_models_motion_and_turns_reach_the_viewer(captures, tmp_path):
     alpha = 2.0
     scene = DynamicScene(np.arange(t) / 2000.0, np.arange(t), points, np.einsum("tk,nkc->tnc", basis, shapes),
                          modal_quats(basis, rot, q_rest), rest, frame, 8, np.array([0.0]), alpha, basis, shapes, rot)
-    scene.save(tmp_path)
-    back = DynamicScene.read(tmp_path / "trajectories.npz")
+    scene.save(DerivedPaths(tmp_path))
+    back = DynamicScene.read(DerivedPaths(tmp_path).trajectories_npz)
     view = _scene(cap, back, None)
     assert np.allclose(view.rotvec_rad, np.einsum("tk,nkc->tnc", basis, rot) / alpha, atol=1e-7)
     # the same turns as the orientations multiplied out give, read as the per-timestep model reads them
