@@ -246,22 +246,15 @@ class ImpactDetector:
         return idx - 1, floor
 
 
-def find_impacts(force_n: ArrayLike, *, fraction: float | None = None, min_peak_n: float = 0.0) -> np.ndarray:
-    """Sample indices of the impacts in a force record (`ImpactDetector`); `fraction`: the rebound fraction
-    (default REBOUND_FRACTION)."""
-    return ImpactDetector(_settings(fraction, min_peak_n)).peak_indices(force_n)
+def find_impacts(force_n: ArrayLike) -> np.ndarray:
+    """Sample indices of the impacts in a force record, by the default rule (`ImpactDetector`)."""
+    return ImpactDetector(ImpactSettings()).peak_indices(force_n)
 
 
-def impact_onsets(force_n: ArrayLike, sample_rate_hz: float, *, fraction: float | None = None,
-                  min_peak_n: float = 0.0) -> list[PulseFit]:
-    """Every impact in a force record (`ImpactDetector`), each fitted (`fit_pulse`): its onset, peak and impulse."""
-    return list(ImpactDetector(_settings(fraction, min_peak_n)).detect(force_n, sample_rate_hz).pulses)
-
-
-def _settings(fraction: float | None, min_peak_n: float) -> ImpactSettings:
-    if fraction is None:
-        return ImpactSettings(min_peak_n=min_peak_n)
-    return ImpactSettings(rebound_fraction=fraction, min_peak_n=min_peak_n)
+def impact_onsets(force_n: ArrayLike, sample_rate_hz: float) -> list[PulseFit]:
+    """Every impact in a force record by the default rule (`ImpactDetector`), each fitted (`fit_pulse`): its onset,
+    peak and impulse."""
+    return list(ImpactDetector(ImpactSettings()).detect(force_n, sample_rate_hz).pulses)
 
 
 def _pulse_end(g: np.ndarray, i: int, level: float) -> float:
