@@ -17,6 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from odsplat.spine._deps import resolve
 from odsplat.spine.checks import shown
 from odsplat.spine.errors import InputError
 
@@ -43,8 +44,7 @@ def check_backend(name: Any, where: str = "camera.driver") -> str:
 
 def backend(name: str, where: str = "camera.driver") -> Any:
     """The class `BACKENDS` names for `name`, imported now."""
-    module, _, attr = BACKENDS[check_backend(name, where)].partition(":")
-    return getattr(importlib.import_module(module), attr)
+    return resolve(BACKENDS[check_backend(name, where)])
 
 
 def open_camera(name: str, options: dict[str, Any], where: str = "camera") -> CameraDriver:

@@ -10,13 +10,12 @@ commands (`info`, `verify`, `qc`) import no stage that loads torch. The same imp
 """
 from __future__ import annotations
 
-import functools
-import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from odsplat.spine._deps import resolve
 from odsplat.spine.errors import InputError
 
 if TYPE_CHECKING:   # the table's import paths, for the tools (the rule above); resolved on use at run time
@@ -31,13 +30,6 @@ if TYPE_CHECKING:   # the table's import paths, for the tools (the rule above); 
     from odsplat.spine.store import Capture
     from odsplat.sync import SyncSettings  # noqa: F401
     from odsplat.sync import run as sync_run  # noqa: F401
-
-
-@functools.cache
-def resolve(path: str) -> Any:
-    """The object an import path names, "odsplat.package:name", imported on first use."""
-    module, _, name = path.partition(":")
-    return getattr(importlib.import_module(module), name)
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,13 @@
-"""The one place where pycolmap is imported, after cv2, because the other order can hang cv2."""
+"""Imports put off until they are needed: pycolmap, after cv2 (the other order can hang cv2), and `resolve`, an
+object named by its import path, which the application's stage table and acquisition's camera back ends use."""
 from __future__ import annotations
 
+import functools
 import importlib
 import logging
 import sys
 from types import ModuleType
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -19,3 +22,10 @@ def import_pycolmap() -> ModuleType:
     import cv2  # noqa: F401  (the import order is the point)
 
     return importlib.import_module("pycolmap")
+
+
+@functools.cache
+def resolve(path: str) -> Any:
+    """The object an import path names, "package.module:name", imported on first use."""
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
