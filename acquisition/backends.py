@@ -73,7 +73,7 @@ class SimRigSettings:
     fps: float = 2000.0                     # the camera's frame rate
     bit_depth: int = 12                     # 12 (in 16-bit words, as Photron writes them) or 8
     seed: int = 0                           # the rig's noise and the engineer's scatter
-    structure: str = "arm"                  # the rig: "arm" or "plate"
+    structure: str = "arm"                  # the rig: "arm", "plate", "frame" or "mast"
     texture: str = "speckle"                # the structure's: "speckle", "value_noise" or "checker"
     floor_tag_m: float = 0.12               # the floor tags' size: 0.12 is ~20 px at 256x256
     faults: str = ""                        # faults on takes of this run, e.g. "2:double_hit,5:disconnect"

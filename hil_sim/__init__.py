@@ -13,6 +13,7 @@ _EXPORTS = {
     "SimBench": "bench", "SimBenchSettings": "bench", "parse_faults": "bench", "simulate_capture": "bench",
     "RigConfig": "rig", "SimRig": "rig", "make_rig": "rig", "rig_config": "rig",
     "SceneSettings": "scene", "SimCameraConfig": "camera",
+    "STRUCTURES": "structure", "make_structure": "structure",   # the rigs by name: arm, plate, frame, mast
 }
 __all__ = sorted(_EXPORTS)
 

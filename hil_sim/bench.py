@@ -89,7 +89,7 @@ class SimBenchSettings:
     can_rate_hz: float | None = None  # the rig's CAN nodes, recorded at this rate (None: not wired to the session)
     can_range_m_s2: float = 490.3325  # +-50 g: the arm's node sees about 26 g from the default hit
     seed: int = 0
-    structure: str = "arm"            # the rig: "arm" or "plate" (hil_sim.structure), with its sensors and hammer
+    structure: str = "arm"            # the rig: "arm", "plate", "frame" or "mast" (hil_sim.structure)
     scene: SceneSettings = SceneSettings()  # tag sizes, the structure's texture
 
     def __post_init__(self) -> None:

@@ -1,7 +1,7 @@
 """The simulated impact-test rig: one structure, one hammer, one camera and every sensor on one time base.
 
-Two rigs are built in: the arm (the default) and the plate (`make_rig("plate")`), each with its own sensors
-and hammer point (`rig_config`, `HAMMER`).
+Four rigs are built in: the arm (the default), the plate, the frame and the mast (`make_rig("plate")`, ...),
+each with its own sensors and hammer point (`rig_config`, `HAMMER`).
 
 Rig time is physical time in seconds, zero at the DAQ's START (its sample 0). Everything else is
 placed on it:
@@ -102,9 +102,34 @@ PLATE_ACCELEROMETERS = (
     Accelerometer("acc_d_z", _PLATE.point(0.13, 0.20), (0.0, 0.0, 1.0)),
 )
 PLATE_CAN_NODES = (CANNodeMount(1, _PLATE.point(0.30, 0.60)), CANNodeMount(2, _PLATE.point(0.70, 0.30)))
-# Each rig's hammer point and direction: the plate is hit straight down off its nodal lines.
+
+# The frame (hil_sim.beams.frame_geometry; beam top at z = 0.61, stub tip at y = 0.15): every one of its five modes
+# moves one of these at least 43 % of its largest motion anywhere (tests/hil_sim/test_beams.py measures it).
+FRAME_ACCELEROMETERS = (
+    Accelerometer("acc_beam_z", (0.20, 0.0, 0.61), (0.0, 0.0, 1.0)),         # the beam's top, mid-span
+    Accelerometer("acc_stub_x", (0.215, 0.13, 0.60), (1.0, 0.0, 0.0)),      # the stub's side near its tip
+    Accelerometer("acc_top_y", (-0.02, -0.025, 0.60), (0.0, -1.0, 0.0)),    # the beam's side over column 0
+    Accelerometer("acc_col_y", (0.42, 0.0125, 0.34), (0.0, 1.0, 0.0)),      # column 1's side, half-way up
+)
+FRAME_CAN_NODES = (CANNodeMount(1, (0.38, 0.0, 0.61)), CANNodeMount(2, (-0.0325, 0.0, 0.35)))
+# The mast (hil_sim.beams.mast_geometry; 19.4 x 20 mm, x = 0.2, z = 0.09 to 0.72): x and y at its tip, x and y
+# below the second bending pair's node, so each mode moves one of them at least 92 % of its tip motion.
+MAST_ACCELEROMETERS = (
+    Accelerometer("acc_tip_x", (0.2097, 0.0, 0.71), (1.0, 0.0, 0.0)),
+    Accelerometer("acc_tip_y", (0.2, -0.01, 0.71), (0.0, -1.0, 0.0)),
+    Accelerometer("acc_mid_x", (0.1903, 0.0, 0.40), (-1.0, 0.0, 0.0)),
+    Accelerometer("acc_mid_y", (0.2, 0.01, 0.45), (0.0, 1.0, 0.0)),
+)
+MAST_CAN_NODES = (CANNodeMount(1, (0.2097, 0.0, 0.30)), CANNodeMount(2, (0.2, -0.01, 0.50)))
+_SENSORS = {"plate": (PLATE_ACCELEROMETERS, PLATE_CAN_NODES), "frame": (FRAME_ACCELEROMETERS, FRAME_CAN_NODES),
+            "mast": (MAST_ACCELEROMETERS, MAST_CAN_NODES)}
+# Each rig's hammer point and direction: the plate is hit straight down off its nodal lines, the frame obliquely on
+# its stub's tip (every mode gets at least 41 % of the best one's participation), the mast obliquely on an edge at
+# z = 0.45 m, below the second pair's node (at least 54 %).
 HAMMER = {"arm": (DEFAULT_HAMMER_POINT, DEFAULT_HAMMER_DIRECTION),
-          "plate": (_PLATE.point(0.22, 0.28), (0.0, 0.0, -1.0))}
+          "plate": (_PLATE.point(0.22, 0.28), (0.0, 0.0, -1.0)),
+          "frame": ((0.215, 0.15, 0.605), (-0.60, -0.65, -0.45)),
+          "mast": ((0.2097, -0.01, 0.45), (-0.62, 0.74, -0.26))}
 
 
 @dataclass(frozen=True)
@@ -140,13 +165,15 @@ def rig_config(structure: str = "arm", **kw) -> RigConfig:
     """The instrumentation of a built-in rig: its accelerometers and CAN nodes; other RigConfig fields by keyword."""
     if structure not in STRUCTURES:
         raise InputError("structure", f"expected one of {', '.join(STRUCTURES)}; got {structure!r}")
-    if structure == "plate":
-        kw = {"accelerometers": PLATE_ACCELEROMETERS, "can_nodes": PLATE_CAN_NODES, **kw}
+    if structure in _SENSORS:
+        accelerometers, nodes = _SENSORS[structure]
+        kw = {"accelerometers": accelerometers, "can_nodes": nodes, **kw}
     return RigConfig(**kw)
 
 
 def make_rig(structure: str = "arm", scene: SceneSettings | None = None, *, seed: int = 0) -> SimRig:
-    """A built-in rig by its structure's name ("arm" or "plate"), with its sensors and hammer, in a scene."""
+    """A built-in rig by its structure's name ("arm", "plate", "frame" or "mast"), with its sensors and hammer, in a
+    scene."""
     config = rig_config(structure, seed=seed)
     return SimRig(build_scene(make_structure(structure), scene), config)
 
@@ -500,7 +527,7 @@ class TakeTruth:
     frame_time_s: np.ndarray | None = None  # exposure starts
     dropped_counters: np.ndarray | None = None
     modal_q_frames: np.ndarray | None = None          # (n_modes, n_frames) at mid-exposure
-    structure: str | None = None            # the rig's structure: "arm" or "plate" (None: written before it was)
+    structure: str | None = None            # the rig's structure: "arm", "plate", ... (None: written before it was)
     format_version: int = 1
 
     @property
@@ -578,4 +605,5 @@ def truth_path(take_path: str | Path) -> Path:
 
 __all__ = ["Accelerometer", "CANNodeMount", "RigConfig", "SimRig", "TakeTruth", "truth_path", "TRUTH_SUFFIX",
            "DEFAULT_ACCELEROMETERS", "DEFAULT_CAN_NODES", "PLATE_ACCELEROMETERS", "PLATE_CAN_NODES", "HAMMER",
+           "FRAME_ACCELEROMETERS", "FRAME_CAN_NODES", "MAST_ACCELEROMETERS", "MAST_CAN_NODES",
            "make_rig", "rig_config"]

@@ -1,11 +1,12 @@
 """Structures with known modal models, and their exact response to hammer impacts.
 
-Two rigs (world frame: metres, z up, floor at z = 0). The default, `ModalStructure` ("arm"), is a column on
+Four rigs (world frame: metres, z up, floor at z = 0). The default, `ModalStructure` ("arm"), is a column on
 a base with an arm at the top; its motion is the superposition of a few damped modes whose 3D shapes follow
 beam kinematics (plane sections stay plane). The second, `PlateStructure` ("plate"), is a steel plate simply
 supported on four corner legs, with the closed-form Kirchhoff modes sin(m pi x / a) sin(n pi y / b). The
-response to half-sine hammer pulses is evaluated in closed form: there is no time-stepping error, so it is the
-ground truth for every other stage.
+"frame" (a portal frame) and the "mast" (a slender bar with closely spaced bending pairs) take their modes from
+a finite-element model of their members (hil_sim.beams). The response to half-sine hammer pulses is evaluated
+in closed form: there is no time-stepping error, so it is the ground truth for every other stage.
 """
 from __future__ import annotations
 
@@ -174,7 +175,7 @@ class _ModalModel(ABC):
 
     @abstractmethod
     def mode_shapes(self, points_m: np.ndarray) -> np.ndarray:
-        """(P, n_modes, 3) mass-normalised shapes at the points: the arm's and the plate's own."""
+        """(P, n_modes, 3) mass-normalised shapes at the points: each structure's own."""
 
     def participation(self, point_m: Sequence[float], direction: Sequence[float]) -> np.ndarray:
         """phi_r(point) . direction for every mode: how much a force there excites each mode."""
@@ -380,15 +381,19 @@ class PlateStructure(_ModalModel):
         return out
 
 
-STRUCTURES = ("arm", "plate")
+STRUCTURES = ("arm", "plate", "frame", "mast")
 
 
-def make_structure(name: str) -> ModalStructure | PlateStructure:
-    """The structure of a rig by its name: "arm" (the default) or "plate"."""
+def make_structure(name: str) -> _ModalModel:
+    """The structure of a rig by its name: "arm" (the default), "plate", "frame" or "mast"."""
     if name == "arm":
         return ModalStructure()
     if name == "plate":
         return PlateStructure()
+    if name in ("frame", "mast"):
+        from . import beams  # it builds on this module's _ModalModel
+
+        return beams.frame_structure() if name == "frame" else beams.mast_structure()
     raise InputError("structure", f"expected one of {', '.join(STRUCTURES)}; got {name!r}")
 
 

@@ -336,7 +336,8 @@ def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], 
                    "(double_hit, overload, dropped_packet, disconnect, dropped_frames; with the automatic hammer also "
                    "rebound, hammer_not_ready, hammer_stuck, hammer_no_response).")
 @click.option("--seed", type=int, default=0, show_default=True, help="With --sim: random seed of the rig and engineer.")
-@click.option("--structure", default="arm", show_default=True, help="With --sim: the rig, 'arm' or 'plate'.")
+@click.option("--structure", default="arm", show_default=True,
+              help="With --sim: the rig, 'arm', 'plate', 'frame' or 'mast'.")
 @click.option("--texture", default="speckle", show_default=True,
               help="With --sim: the structure's texture, 'speckle', 'value_noise' or 'checker'.")
 @click.option("--floor-tag-m", type=float, default=0.12, show_default=True,
