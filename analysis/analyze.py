@@ -33,7 +33,7 @@ from odsplat.spine.store import Capture
 from odsplat.sync import load_sync
 
 from .band import default_band_hz, frf_peaks
-from .correlation import Correlation, correlate
+from .correlation import Correlation, auto_mac, correlate
 from .crosscheck import crosscheck_views, views_seeing
 from .document import KIND, SCHEMA
 from .ema import ModalFit, fit_modes
@@ -44,6 +44,7 @@ from .notes import (
     BelowNoiseFloor,
     ComplexMode,
     ModesAboveVideoBand,
+    ModesNotDiscriminated,
     Note,
     OdsCarriedByNoise,
     UnplacedSensors,
@@ -61,7 +62,7 @@ from .ods import (
 )
 from .outputs import write_outputs
 from .result import AnalysisResult, Sensor, VideoModes
-from .verdict import Verdict, crosscheck_verdict, mac_verdict
+from .verdict import DISCRIMINATION, NOT_DISCRIMINATED, Verdict, crosscheck_verdict, mac_verdict
 
 log = logging.getLogger(__name__)
 
@@ -426,6 +427,8 @@ class _Comparison:
     correlation: Correlation | None = None
     mac_verdict: Verdict | None = None
     crosscheck_verdict: Verdict | None = None
+    reference_automac: np.ndarray | None = None      # (R, R) the accelerometer shapes' AutoMAC at the sensors
+    video_cross_mac: np.ndarray | None = None        # (R, R) the video's shapes' over every surface point
 
 
 def _read_inputs(capture: Capture, s: AnalyzeSettings) -> _Inputs:
@@ -478,10 +481,18 @@ def _compare(frf: FRFResult, modes: ModalFit, video: VideoModes | None, image: I
     corr = correlate(modes.shapes[video.mode_index], video.sensor_residues, freq_a_hz=f_acc, freq_b_hz=f_cam,
                      paired=True)
     paired = [j for _, j in corr.pairs]
+    # Whether the sensors can tell the modes apart (the reference's AutoMAC), and whether the video's full field
+    # does (its shapes' cross-MAC over every surface point): the verdict judges a mode only where the first holds.
+    automac = auto_mac(modes.shapes[video.mode_index])
+    surface = video.surface_residues
+    cross = auto_mac(surface) if surface.size and np.all(np.isfinite(surface)) else None
+    pick = np.ix_(paired, paired)
+    verdict = mac_verdict(f_acc[paired], corr.pair_mac, _below_floor(video)[paired], reference_automac=automac[pick],
+                          video_cross_mac=None if cross is None else cross[pick],
+                          modes=np.asarray(video.mode_index)[paired] + 1)
     return _Comparison(ods_f, ods_accel, receptance(video.sensor_residues, video.poles_rad_s, ods_f),
-                       receptance(video.surface_residues, video.poles_rad_s, ods_f), corr,
-                       mac_verdict(f_acc[paired], corr.pair_mac, _below_floor(video)[paired]),
-                       crosscheck_verdict(video.crosscheck))
+                       receptance(video.surface_residues, video.poles_rad_s, ods_f), corr, verdict,
+                       crosscheck_verdict(video.crosscheck), automac, cross)
 
 
 def _image(capture: Capture, s: AnalyzeSettings) -> ImagePoles | None:
@@ -510,7 +521,8 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     result = AnalysisResult(frf, modes, inputs.sensors, inputs.takes, video, cmp.correlation, cmp.ods_freq_hz,
                             cmp.ods_accel, cmp.ods_video, cmp.ods_surface, image, findings=tuple(findings),
                             mac_verdict=cmp.mac_verdict, crosscheck_verdict=cmp.crosscheck_verdict,
-                            reference=inputs.reference)
+                            reference=inputs.reference, reference_automac=cmp.reference_automac,
+                            video_cross_mac=cmp.video_cross_mac)
     return _write(capture, result, s)
 
 
@@ -518,8 +530,8 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
 
 def _video_findings(modes: ModalFit, video: VideoModes | None, cmp: _Comparison) -> list[Note]:
     """What the video's numbers cannot show (analysis/notes.py words each): modes above its band, modes below its
-    noise floor (for want of cycles in its window, or of amplitude), complex shapes, and ODS lines those modes
-    carry."""
+    noise floor (for want of cycles in its window, or of amplitude), complex shapes, ODS lines those modes carry,
+    and modes whose MAC the sensors cannot judge (alike at the sensors: verdict.NOT_DISCRIMINATED)."""
     if video is None:
         return []
     out: list[Note] = []
@@ -551,6 +563,13 @@ def _video_findings(modes: ModalFit, video: VideoModes | None, cmp: _Comparison)
             np.linalg.norm(cmp.ods_video.reshape(len(ods_f), -1), axis=1), 1e-300)
         out += [OdsCarriedByNoise(int(li) + 1, float(ods_f[li]), float(share[li]))
                 for li in np.flatnonzero(share > 0.5)]
+    alike = [s for s in (cmp.mac_verdict.modes if cmp.mac_verdict is not None else ())
+             if s.status == NOT_DISCRIMINATED]
+    if alike:
+        pairs = {(min(s.mode, j), max(s.mode, j)): a for s in alike for j, a in zip(s.confused_with, s.automac)}
+        out.append(ModesNotDiscriminated(tuple(s.mode for s in alike),
+                                         tuple((i, j, float(a)) for (i, j), a in sorted(pairs.items())),
+                                         int(video.sensor_residues.shape[1]), DISCRIMINATION))
     return out
 
 

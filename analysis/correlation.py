@@ -1,4 +1,5 @@
-"""Correlation of two sets of shapes at the same degrees of freedom: MAC, CoMAC, modal scale factor, pairing."""
+"""Correlation of two sets of shapes at the same degrees of freedom: MAC, AutoMAC, CoMAC, modal scale factor,
+pairing."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -35,6 +36,16 @@ def mac(a, b) -> np.ndarray:
     den = np.outer(np.sum(np.abs(a) ** 2, axis=1), np.sum(np.abs(b) ** 2, axis=1))
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+
+
+def auto_mac(shapes) -> np.ndarray:
+    """The MAC of a set of shapes with itself, (n, n): how alike each two of them are at their degrees of freedom.
+    shapes: (n, ...) per shape, flattened: (n, S) at sensors, or (n, N, 3) on a surface (complex or real)."""
+    a = np.asarray(shapes)
+    if a.ndim < 1 or a.shape[0] == 0:
+        raise InputError("auto_mac: shapes", f"expected at least one shape; got shape {a.shape}")
+    a = a.reshape(a.shape[0], -1)
+    return mac(a, a)
 
 
 def modal_scale_factor(a, b) -> np.ndarray:

@@ -26,10 +26,11 @@ from odsplat.spine.manifest import load_json
 from odsplat.spine.store import Capture
 
 from .crosscheck import ViewCheck
-from .verdict import Verdict
+from .verdict import ModeStatus, Verdict
 
 KIND = "odsplat.analysis"
-SCHEMA = 2
+SCHEMA = 3              # 3: the correlation's reference AutoMAC, the video's full-field cross-MAC, per-mode statuses
+READABLE_SCHEMAS = (2, 3)   # a schema 2 file reads with those absent (None)
 
 
 def _omitted(default: Any = None) -> Any:
@@ -157,7 +158,12 @@ class CorrelationSection:
 
     pairs: tuple[PairEntry, ...]
     comac: tuple[float, ...]                 # per sensor
-    verdict: Verdict | None = _omitted()     # the MAC target over the modes above the noise floor
+    verdict: Verdict | None = _omitted()     # the MAC target over the modes above the noise floor, and per mode
+    # (schema 3) indexed as the pairs: the MAC matrix, the accelerometer shapes' AutoMAC at the sensors, and the
+    # video's shapes' cross-MAC over every surface point (None: no surface)
+    mac_matrix: tuple[tuple[float, ...], ...] | None = _omitted()          # a (rows) against b (columns)
+    reference_automac: tuple[tuple[float, ...], ...] | None = _omitted()
+    video_cross_mac: tuple[tuple[float, ...], ...] | None = _omitted()
 
 
 @dataclass(frozen=True)
@@ -200,7 +206,9 @@ class AnalysisDocument:
     def from_json(cls, doc: Any, path: str | Path, *, capture_id: str | None = None) -> AnalysisDocument:
         """The document in `doc` (parsed JSON) read from `path`: its header checked (kind, schema, and the capture
         where `capture_id` is given), then every field; InputError naming the first field that is wrong."""
-        provenance = check(doc, path, kind=KIND, schema_version=SCHEMA, capture_id=capture_id)
+        version = doc.get("schema_version") if isinstance(doc, dict) else None
+        older = type(version) is int and version in READABLE_SCHEMAS
+        provenance = check(doc, path, kind=KIND, schema_version=version if older else SCHEMA, capture_id=capture_id)
         reader = _Reader(str(path))
         out = reader.fields(cls, doc, "", provenance=provenance)
         reader.check_structure_settings(out.settings)
@@ -377,7 +385,9 @@ class _Reader:
             if key not in d:
                 raise self.fail(f"{where}.{key}", "missing")
             self._scalar(str, d[key], f"{where}.{key}")
-        return Verdict(d["status"], d["line"], {k: v for k, v in d.items() if k not in ("status", "line")})
+        modes = self.read(tuple[ModeStatus, ...], d["modes"], f"{where}.modes") if "modes" in d else ()
+        return Verdict(d["status"], d["line"], {k: v for k, v in d.items() if k not in ("status", "line", "modes")},
+                       modes)
 
     def check_structure_settings(self, settings: dict[str, Any]) -> None:
         """The two settings the viewer reads back (the analysis's structure rule): a margin in metres, or null; a
@@ -398,6 +408,6 @@ def _key(where: str, key: str) -> str:
     return f"{where}.{key}" if key.isidentifier() else f"{where}[{shown(key)}]"
 
 
-__all__ = ["KIND", "SCHEMA", "AnalysisDocument", "CorrelationSection", "ImagePolesSection", "ModeEntry",
-           "NoiseFloorSection", "NoiseModeEntry", "OdsEntry", "PairEntry", "RealModeEntry", "RejectedHit",
+__all__ = ["KIND", "READABLE_SCHEMAS", "SCHEMA", "AnalysisDocument", "CorrelationSection", "ImagePolesSection",
+           "ModeEntry", "NoiseFloorSection", "NoiseModeEntry", "OdsEntry", "PairEntry", "RealModeEntry", "RejectedHit",
            "VideoSection", "read_analysis"]

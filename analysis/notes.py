@@ -150,8 +150,28 @@ class OdsCarriedByNoise:
                 "from the accelerometers")
 
 
+@dataclass(frozen=True)
+class ModesNotDiscriminated:
+    """Modes whose MAC reaches the target but whose reference shapes the sensors cannot tell from another mode's
+    (verdict.DISCRIMINATION): their MAC does not show which of the two shapes the video found."""
+
+    modes: tuple[int, ...]                        # their numbers
+    pairs: tuple[tuple[int, int, float], ...]     # (mode, mode, reference AutoMAC), each pair once
+    n_sensors: int
+    threshold: float
+
+    @property
+    def text(self) -> str:
+        many = len(self.modes) > 1
+        return (f"mode{'s' if many else ''} {', '.join(str(k) for k in self.modes)}: the {self.n_sensors} sensors "
+                f"cannot tell {'each' if many else 'it'} from another mode (reference AutoMAC above "
+                f"{self.threshold:g}: {', '.join(f'{i}/{j} {a:.2f}' for i, j, a in self.pairs)}), so the MAC does "
+                "not show which shape the video found: not discriminated, not met; sensors at other points or along "
+                "other directions would tell them apart (the report's AutoMAC table)")
+
+
 Note = (PeaksWithoutMode | PeaksOutsideBand | UnplacedSensors | ModesAboveVideoBand | WindowTooShort
-        | BelowNoiseFloor | ComplexMode | OdsCarriedByNoise)
+        | BelowNoiseFloor | ComplexMode | OdsCarriedByNoise | ModesNotDiscriminated)
 
 
 def band_findings(frf: FRFResult, band_hz: tuple[float, float], freq_hz: np.ndarray, *, given: bool,
@@ -176,5 +196,6 @@ def band_findings(frf: FRFResult, band_hz: tuple[float, float], freq_hz: np.ndar
     return out
 
 
-__all__ = ["BelowNoiseFloor", "ComplexMode", "ModesAboveVideoBand", "Note", "OdsCarriedByNoise", "PeaksOutsideBand",
-           "PeaksWithoutMode", "UnplacedSensors", "WindowTooShort", "band_findings", "length_text"]
+__all__ = ["BelowNoiseFloor", "ComplexMode", "ModesAboveVideoBand", "ModesNotDiscriminated", "Note",
+           "OdsCarriedByNoise", "PeaksOutsideBand", "PeaksWithoutMode", "UnplacedSensors", "WindowTooShort",
+           "band_findings", "length_text"]

@@ -37,7 +37,7 @@ from .document import (
     VideoSection,
     read_analysis,
 )
-from .verdict import Verdict
+from .verdict import DISCRIMINATION, FULL_FIELD_DISTINCT, NOT_DISCRIMINATED, ModeStatus, Verdict
 
 log = logging.getLogger(__name__)
 
@@ -100,20 +100,24 @@ def _fitted_mode(fitted: tuple[int, ...], b: int) -> int:
 def _summary(doc: AnalysisDocument, setup: dict) -> dict:
     """The page's top: the setup, the modes with their MAC, and the verdict line."""
     by_mode = doc.pair_by_mode()
+    verdict = doc.correlation.verdict if doc.correlation is not None else None
+    statuses = {s.mode: s for s in verdict.modes} if verdict is not None else {}
     rows = []
     for k, m in enumerate(doc.modes):
         p = by_mode.get(k)
+        st = statuses.get(k + 1)
         rows.append({"mode": str(k + 1), "freq": _num(m.freq_hz, ".2f"), "damping": _num(m.damping, ".2f", 100),
                      "mac": DASH if p is None else _num(p.mac, ".3f"),
                      "below": p is not None and bool(p.below_noise_floor),
-                     "scale": DASH if p is None else _num(p.scale_factor_abs, ".2f")})
-    verdict = doc.correlation.verdict if doc.correlation is not None else None
+                     "scale": DASH if p is None else _num(p.scale_factor_abs, ".2f"),
+                     "status": None if st is None else _status(st)})
     line = verdict.line if verdict is not None and verdict.line else None
     setup_rows = [[str(k), str(v)] for k, v in setup.items()]
     setup_rows += [["hits averaged", f"{doc.n_averages} of {len(doc.takes)}"], ["sensors", ", ".join(doc.sensors)],
                    ["fit band", f"{_num(doc.band_hz[0], '.0f')} to {_num(doc.band_hz[1], '.0f')} Hz"]]
-    return {"verdict": line, "css": "ok" if verdict is not None and verdict.status == "met" else
-            ("bad" if doc.notes or line else ""),
+    css = _verdict(verdict)["css"] if verdict is not None and verdict.status in _CSS else (
+        "bad" if doc.notes or line else "")
+    return {"verdict": line, "css": css, "statuses": bool(statuses),
             "video": doc.video is not None, "n_modes": len(doc.modes), "n_notes": len(doc.notes),
             "setup": setup_rows, "modes": rows}
 
@@ -177,11 +181,19 @@ def _video(doc: AnalysisDocument) -> dict | None:
     return out
 
 
+_CSS = {"met": "ok", "not met": "bad", NOT_DISCRIMINATED: "warn"}   # a status's colour; any other: grey
+
+
 def _verdict(v: Verdict | None) -> dict | None:
     """A verdict's line and status, with the CSS class of its colour."""
     if v is None:
         return None
-    return {"css": {"met": "ok", "not met": "bad"}.get(v.status, "meta"), "status": v.status, "line": v.line}
+    return {"css": _CSS.get(v.status, "meta"), "status": v.status, "line": v.line}
+
+
+def _status(s: ModeStatus) -> dict:
+    """A mode's status under the MAC target: its name, colour and words."""
+    return {"status": s.status, "css": _CSS.get(s.status, "meta"), "text": s.text}
 
 
 def _noise(nf: NoiseFloorSection | None) -> dict | None:
@@ -256,7 +268,7 @@ def _correlation(doc: AnalysisDocument) -> dict:
     c = doc.correlation
     modes = doc.modes
     fitted = doc.video.modes_fitted if doc.video is not None else ()
-    out = {"pairs": None, "verdict": None, "comac": [], "ods": []}
+    out = {"pairs": None, "verdict": None, "comac": [], "ods": [], "statuses": [], "matrices": []}
     if c is not None:
         out["pairs"] = [{"a": _mode_name(modes, _fitted_mode(fitted, p.a)),
                          "b": _mode_name(modes, _fitted_mode(fitted, p.b)),
@@ -268,8 +280,53 @@ def _correlation(doc: AnalysisDocument) -> dict:
                         for p in c.pairs]
         out["verdict"] = _verdict(c.verdict)
         out["comac"] = _sensor_rows(doc.sensors, c.comac)
+        out["statuses"] = [{"mode": _mode_name(modes, s.mode - 1) if _index(s.mode - 1, len(modes)) is not None
+                            else str(s.mode), **_status(s)}
+                           for s in (c.verdict.modes if c.verdict is not None else ())]
+        out["matrices"] = _matrices(doc)
     out["ods"] = [[str(i + 1), _num(o.freq_hz, ".2f"), _num(o.mac, ".3f")] for i, o in enumerate(doc.ods)]
     return out
+
+
+def _heat(x: float | None) -> str:
+    """The CSS class of a MAC cell's shade: h0 (0-0.1) to h9 (0.9-1); none where it is no finite number."""
+    v = _finite(x)
+    return "" if v is None else f"h{min(9, max(0, int(v * 10)))}"
+
+
+def _matrix(title: str, note: str, values, rows: list[str], cols: list[str], mark: float | None) -> dict | None:
+    """A MAC matrix as a small table whose cells are shaded by value: rows and cols name the modes; off the
+    diagonal a value above `mark` is outlined (modes alike there). None where the document holds none."""
+    if values is None:
+        return None
+    n_cols = max([len(cols)] + [len(r) for r in values])
+    cells = []
+    for i, row in enumerate(values):
+        line = []
+        for j in range(n_cols):
+            x = _finite(row[j]) if j < len(row) else None
+            over = mark is not None and i != j and x is not None and x > mark
+            line.append({"v": _num(x, ".2f"), "css": (_heat(x) + (" over" if over else "")).strip()})
+        cells.append({"label": rows[i] if i < len(rows) else str(i + 1), "cells": line})
+    return {"title": title, "note": note, "cols": [cols[j] if j < len(cols) else str(j + 1) for j in range(n_cols)],
+            "rows": cells}
+
+
+def _matrices(doc: AnalysisDocument) -> list[dict]:
+    """The MAC matrix (accelerometers against video), the reference's AutoMAC at the sensors and the video's
+    full-field cross-MAC, each mode named by its number (the pairs' indices are the video's fitted modes)."""
+    c = doc.correlation
+    fitted = doc.video.modes_fitted if doc.video is not None else ()
+    n = max([len(m) for m in (c.mac_matrix, c.reference_automac, c.video_cross_mac) if m is not None] + [0])
+    names = [str(_fitted_mode(fitted, i) + 1) for i in range(n)]
+    out = [_matrix("MAC: accelerometers (rows) vs video (columns)", "at the sensors", c.mac_matrix,
+                   [f"a {x}" for x in names], [f"b {x}" for x in names], None),
+           _matrix("AutoMAC, accelerometers", f"at the sensors; outlined: above {DISCRIMINATION:g}, the sensors "
+                   "cannot tell the two modes apart", c.reference_automac, names, names, DISCRIMINATION),
+           _matrix("Cross-MAC, video full field", f"over every surface point; outlined: above "
+                   f"{FULL_FIELD_DISTINCT:g}, the video does not tell the two apart", c.video_cross_mac, names, names,
+                   FULL_FIELD_DISTINCT)]
+    return [m for m in out if m is not None]
 
 
 # ---------------------------------------------------------------------------------------------- inlined files

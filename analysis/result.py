@@ -87,6 +87,11 @@ def _floats(x) -> tuple[float, ...]:
     return tuple(float(v) for v in np.ravel(x))
 
 
+def _matrix(m: np.ndarray | None) -> tuple[tuple[float, ...], ...] | None:
+    """A square matrix as rows of floats (JSON), None where there is none."""
+    return None if m is None else tuple(_floats(row) for row in np.asarray(m, float))
+
+
 def _noise_section(nf: NoiseFloor, freq_hz: np.ndarray) -> NoiseFloorSection:
     """The video's noise floor in micrometres, with each fitted mode (at freq_hz) against it."""
     return NoiseFloorSection(
@@ -147,7 +152,9 @@ def _correlation_section(result: AnalysisResult) -> CorrelationSection:
                                     noise_floor_um=float(1e6 * nf.mode_floor_m[j]), below_noise_floor=bool(nf.below[j]),
                                     expected_mac=float(nf.expected_mac[j]))
         pairs.append(p)
-    return CorrelationSection(pairs=tuple(pairs), comac=_floats(c.comac), verdict=result.mac_verdict)
+    return CorrelationSection(pairs=tuple(pairs), comac=_floats(c.comac), verdict=result.mac_verdict,
+                              mac_matrix=_matrix(c.mac), reference_automac=_matrix(result.reference_automac),
+                              video_cross_mac=_matrix(result.video_cross_mac))
 
 
 @dataclass(frozen=True)
@@ -171,6 +178,10 @@ class AnalysisResult:
     crosscheck_verdict: Verdict | None = None  # the 2D cross-check's gain and correlation against thresholds
     reference: Sensor | None = None      # the hammer (the force channel): the impact point and the force's direction
     #                                      on the structure where the capture records them (exports: node 100)
+    reference_automac: np.ndarray | None = None   # (R, R) the accelerometer shapes of the video's modes, AutoMAC at
+    #                                               the sensors: where two exceed verdict.DISCRIMINATION the MAC
+    #                                               cannot tell those modes apart
+    video_cross_mac: np.ndarray | None = None     # (R, R) the video's shapes' cross-MAC over every surface point
 
     @property
     def notes(self) -> tuple[str, ...]:
@@ -235,6 +246,7 @@ class AnalysisResult:
                 + ("; below the noise floor" if below is not None and below[j] else "") + ")"
                 for k, (i, j) in enumerate(c.pairs)))
             if self.mac_verdict is not None:
+                lines += [f"  mode {s.mode} ({s.freq_hz:.1f} Hz): {s.text}" for s in self.mac_verdict.modes]
                 lines.append(f"verdict ({self.mac_verdict.status}): {self.mac_verdict.line}")
         lines += [f"note: {n}" for n in self.notes]
         lines.append(f"-> {', '.join(self.files.values())}")

@@ -98,6 +98,8 @@ class ModeLine:
     damping: float                 # ratio
     mac: float | None = None
     below_noise_floor: bool = False
+    status: str | None = None      # under the MAC target (analysis.verdict.ModeStatus), where it was judged
+    confused_with: tuple[int, ...] = ()   # the modes the sensors cannot tell it from
 
 
 @dataclass
@@ -122,6 +124,10 @@ class CaptureSummary:
             if self.video:
                 line += "  " + ("-" if m.mac is None else f"{m.mac:.3f}"
                                 + (" (below the video's noise floor)" if m.below_noise_floor else ""))
+                if m.status is not None and not m.below_noise_floor:
+                    line += f"  {m.status}" + (f" (alike at the sensors: mode{'s' if len(m.confused_with) > 1 else ''} "
+                                               f"{', '.join(str(j) for j in m.confused_with)})"
+                                               if m.confused_with and m.status != "met" else "")
             out.append(line)
         if self.verdict:
             out.append(f"  verdict: {self.verdict}")
@@ -159,9 +165,13 @@ def summarize(capture: Capture, what: str, render: Path | None = None) -> Captur
 
     doc = read_analysis(capture)
     pairs = doc.pair_by_mode()
+    v = doc.correlation.verdict if doc.correlation is not None else None
+    statuses = {s.mode: s for s in v.modes} if v is not None else {}
     modes = [ModeLine(m.freq_hz, m.damping, pairs[k].mac if k in pairs else None,
-                      k in pairs and bool(pairs[k].below_noise_floor)) for k, m in enumerate(doc.modes)]
-    verdict = doc.correlation.verdict.line if doc.correlation is not None and doc.correlation.verdict else None
+                      k in pairs and bool(pairs[k].below_noise_floor),
+                      statuses[k + 1].status if k + 1 in statuses else None,
+                      statuses[k + 1].confused_with if k + 1 in statuses else ()) for k, m in enumerate(doc.modes)]
+    verdict = v.line if v is not None else None
     return CaptureSummary(capture.root.name, capture.root, what, modes, doc.video is not None, verdict,
                           capture.paths.report_html, render)
 

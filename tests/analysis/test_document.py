@@ -125,8 +125,10 @@ def test_from_json_checks_the_header_and_the_capture_only_where_given(tmp_path):
     assert doc.provenance.capture_id == capture.id and doc.capture == "bench-arm"
     with pytest.raises(InputError, match="belongs to another capture"):
         AnalysisDocument.from_json(data, "memory", capture_id="another")
-    with pytest.raises(InputError, match="schema 3 is newer"):
-        AnalysisDocument.from_json({**data, "schema_version": 3}, "memory")
+    with pytest.raises(InputError, match="schema 4 is newer"):
+        AnalysisDocument.from_json({**data, "schema_version": 4}, "memory")
+    with pytest.raises(InputError, match="schema 1 is older"):
+        AnalysisDocument.from_json({**data, "schema_version": 1}, "memory")
     with pytest.raises(InputError) as err:
         AnalysisDocument.from_json({k: v for k, v in data.items() if k != "created_utc"}, "memory")
     assert str(err.value) == "memory: created_utc: missing"
