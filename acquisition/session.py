@@ -219,6 +219,8 @@ class CaptureSession:
                      len(self._done(cap)))
             return cap, recovered
         cam = self.bench.camera.describe()
+        if self.settings.fps is not None:       # every take is filmed at the session's rate, not the camera's own
+            cam = replace(cam, fps=float(self.settings.fps))
         channels = [c.info() for c in self.bench.channels] + (self.can.channels() if self.can else [])
         manifest = Manifest(name=self.settings.name, camera=cam, channels=channels, tags=self.bench.tags,
                             views=list(self.views), notes="recorded by odsplat capture")

@@ -37,3 +37,18 @@ def test_a_small_27_view_capture_is_synced_and_posed_whole_with_the_defaults(tmp
         c, c_true = -v.R.T @ v.t, -R_true.T @ t_true
         angle = np.degrees(np.arccos(np.clip((np.trace(v.R @ R_true.T) - 1) / 2, -1, 1)))
         assert angle < 1.0 and np.linalg.norm(c - c_true) < 0.015 * np.linalg.norm(c_true - [0.2, 0, 0.3]), v.name
+
+
+def test_a_capture_filmed_at_another_frame_rate_says_so_and_syncs(tmp_path):
+    """`--fps` below the camera's own rate: the capture's record says the rate its takes were filmed at, so sync
+    takes every one (it refused them all as filmed at 1000 fps by a 2000 fps camera, issue 43)."""
+    out = tmp_path / "slow"
+    r = CliRunner().invoke(main, ["capture", str(out), "--sim", "--auto", "--no-window", "--views", "2",
+                                  "--fps", "1000", "--frames", "16", "--pretrigger-frames", "4"])
+    assert r.exit_code == 0, r.output
+    cap = Capture.open(out)
+    assert cap.manifest.camera.fps == 1000.0
+    run_stage(cap, "qc")
+    run_stage(cap, "sync")
+    sync = load_sync(cap)
+    assert len(sync.ok) == 2 and len(sync.takes) == 2
