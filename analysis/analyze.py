@@ -34,12 +34,13 @@ from odsplat.sync import load_sync
 
 from .band import default_band_hz, frf_peaks
 from .correlation import Correlation, auto_mac, correlate
+from .crlb import direction_floor, displacement_bound
 from .crosscheck import crosscheck_views, views_seeing
 from .document import KIND, SCHEMA
 from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_frf_hit, estimate_frf
 from .imagepoles import ImagePoles, image_poles
-from .noise import noise_floor, real_modes
+from .noise import design_gains, noise_floor, real_modes
 from .notes import (
     BelowNoiseFloor,
     ComplexMode,
@@ -314,6 +315,15 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
                             np.repeat(noise.point_sigma_m[on], 3), noise.spectrum_gain)
         fit = dataclasses.replace(fit, amplitudes=shapes.apply(fit.amplitudes))
     residues = fit.residues(F)
+    # The physical limit: the camera's Cramér-Rao bound on every point against the measured floor, and each mode's
+    # motion against a floor per direction (analysis/crlb.py).
+    bound = direction = None
+    if noise is not None:
+        bound = displacement_bound(capture, motion.points_m, noise.point_sigma_m, structure=keep, noise=noise,
+                                   sensors_m=pos, sensor_dirs=dirs, k=s.k_neighbours, outlier_factor=s.outlier_factor)
+        if bound is not None:
+            gain = design_gains(t, poles, t_min) * np.sqrt(noise.spectrum_gain)
+            direction = direction_floor(bound, fit.amplitudes[:, n_s:].reshape(len(poles), -1, 3), gain)
     disp = motion.displacement_m[:, ~keep]                                          # (T, N_bg, 3)
     background = float(np.median(np.sqrt(np.mean((disp - disp.mean(axis=0)) ** 2, axis=(0, 2))))) \
         if disp.shape[1] else float("nan")
@@ -324,7 +334,7 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     return VideoModes(poles, np.flatnonzero(use), residues[:, :n_s], motion.points_m[keep],
                       residues[:, n_s:].reshape(len(poles), -1, 3)[:, keep], fit.r2[:n_s], fit.condition, f_hz,
                       zeta, t, at_sensors, tuple(checks), shapes_from, noise, int((~keep).sum()), background, rule,
-                      *ratio, real_modes=shapes)
+                      *ratio, real_modes=shapes, bound=bound, direction=direction)
 
 
 def background_ratio(capture: Capture, points_m: np.ndarray, amplitudes: np.ndarray, keep: np.ndarray,

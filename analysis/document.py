@@ -29,7 +29,8 @@ from .crosscheck import ViewCheck
 from .verdict import ModeStatus, Verdict
 
 KIND = "odsplat.analysis"
-SCHEMA = 3              # 3: the correlation's reference AutoMAC, the video's full-field cross-MAC, per-mode statuses
+SCHEMA = 3              # 3: the correlation's reference AutoMAC, the video's full-field cross-MAC, per-mode statuses,
+#                          the video's physical limit (Cramér-Rao bound)
 READABLE_SCHEMAS = (2, 3)   # a schema 2 file reads with those absent (None)
 
 
@@ -118,6 +119,9 @@ class VideoSection:
     crosscheck_verdict: Verdict | None = _omitted()
     crosscheck_gain_median: float | None = _omitted()
     crosscheck_correlation_median: float | None = _omitted()
+    # the camera's Cramér-Rao bound against the measured floor, per point and mode, and each mode's motion below
+    # the floor per direction (analysis/crlb.py `physical_limit`; micrometres)
+    physical_limit: dict[str, Any] | None = _omitted()
 
 
 @dataclass(frozen=True, kw_only=True)

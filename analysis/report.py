@@ -163,7 +163,7 @@ def _video(doc: AnalysisDocument) -> dict | None:
            "window": [_num(v.window_s[0], ".1f", 1e3), _num(v.window_s[1], ".1f", 1e3)],
            "condition": _num(v.condition, ".3g"), "real": None, "r2": _sensor_rows(doc.sensors, v.sensor_r2),
            "poles": _poles(modes, v.freq_hz, v.damping, pairs), "image_poles": None, "noise": _noise(v.noise_floor),
-           "crosscheck": []}
+           "crosscheck": [], "limit": _limit(modes, v.physical_limit)}
     if v.real_modes:
         ratios = [r for r in (_finite(m.quadrature_over_noise) for m in v.real_modes if m.real) if r is not None]
         out["real"] = {"n_real": sum(m.real for m in v.real_modes), "n": len(v.real_modes),
@@ -194,6 +194,27 @@ def _verdict(v: Verdict | None) -> dict | None:
 def _status(s: ModeStatus) -> dict:
     """A mode's status under the MAC target: its name, colour and words."""
     return {"status": s.status, "css": _CSS.get(s.status, "meta"), "text": s.text}
+
+
+def _limit(modes: tuple[ModeEntry, ...], pl: dict | None) -> dict | None:
+    """The physical limit (analysis/crlb.py `physical_limit`): the bound against the floor, per point and mode."""
+    if not pl:
+        return None
+    noise = pl.get("noise") or {}
+    words = (f"gain {_num(noise.get('gain_dn_per_e'), '.3g')} DN per electron, read noise "
+             f"{_num(noise.get('read_dn'), '.3g')} DN, {noise.get('frames', 0)} frames"
+             if noise.get("measured") else "quantisation only: too few frames at rest")
+    rows = []
+    for m in pl.get("modes", ()):
+        k = next((i for i, e in enumerate(modes) if abs(e.freq_hz - m["freq_hz"]) < 1e-6 * m["freq_hz"]), None)
+        limit = m.get("limit") or ""
+        rows.append({"name": f"{k + 1} ({m['freq_hz']:.2f} Hz)" if k is not None else f"{m['freq_hz']:.2f} Hz",
+                     "floor": _num(m.get("floor_um"), ".3g"), "bound": _num(m.get("bound_floor_um"), ".3g"),
+                     "ratio": _num(m.get("ratio"), ".2g"), "limit": limit.partition(": ")[2] or limit})
+    return {"noise": words, "bound": _num(pl.get("bound_um"), ".3g"), "single": _num(pl.get("single_view_um"), ".3g"),
+            "measured": _num(pl.get("measured_um"), ".3g"), "ratio": _num(pl.get("ratio"), ".2g"),
+            "views": _num(pl.get("median_views"), ".0f"), "unresolved": pl.get("n_unresolved") or 0,
+            "modes": rows, "direction": list(pl.get("direction_lines", ()))}
 
 
 def _noise(nf: NoiseFloorSection | None) -> dict | None:

@@ -9,6 +9,7 @@ import numpy as np
 from odsplat.spine.contract import Provenance
 
 from .correlation import Correlation, mac
+from .crlb import DirectionFloor, DisplacementBound, physical_limit
 from .crosscheck import ViewCheck
 from .document import (
     AnalysisDocument,
@@ -77,6 +78,8 @@ class VideoModes:
     background_ratio_all: float = float("nan")
     n_background_reference: int = 0
     real_modes: RealModes | None = None      # the shapes as real modes where the noise allows (noise.real_modes)
+    bound: DisplacementBound | None = None   # the camera's Cramér-Rao bound against the floor (crlb.py)
+    direction: DirectionFloor | None = None  # each mode's motion against a floor per point and direction
 
 
 def _finite(x: float) -> float | None:
@@ -125,7 +128,9 @@ def _video_section(result: AnalysisResult) -> VideoSection:
         if v.real_modes is not None else None,
         crosscheck_verdict=result.crosscheck_verdict,
         crosscheck_gain_median=float(np.median(gains)) if gains else None,
-        crosscheck_correlation_median=float(np.median(corrs)) if corrs else None)
+        crosscheck_correlation_median=float(np.median(corrs)) if corrs else None,
+        physical_limit=physical_limit(v.bound, v.direction, freq, v.noise.below) if v.bound is not None and
+        v.noise is not None else None)
 
 
 def _image_section(im: ImagePoles) -> ImagePolesSection:

@@ -57,6 +57,7 @@ READERS = {
     "analysis/results_h5.py": "derived/analysis/results.h5 (its JSON attributes)",
     "odsplat/app/pipeline.py": "the stamps in derived/pipeline/",
     "bench/store.py": "its baseline: the same frames as one .npy, read whole",
+    "bench/sensitivity.py": "derived/poses.json, to move every camera by a rounding error before a rerun",
     "hil_sim/rig.py": "the simulated rig's ground truth (.npz), written beside the capture by hil_sim",
 }
 

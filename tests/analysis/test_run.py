@@ -367,6 +367,12 @@ def test_cli_analyze_and_report(capture):
     assert "data:image/png;base64," in html
     assert "2D tracks" in html and "v00_000" in html          # the cross-check table
     assert "Poles found in the raw frames alone (3 views" in html
+    # The physical limit: the camera's noise measured on the frames at rest, the bound per point, each mode's floor
+    # against the floor at the bound and what limits it (analysis/crlb.py), in the document and the report.
+    pl = json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text())["video"]["physical_limit"]
+    assert pl["noise"]["measured"] and pl["noise"]["frames"] >= 3 and 0 < pl["bound_um"] < 100
+    assert pl["n_structure"] > 0 and len(pl["modes"]) >= 5 and all(m["limit"] for m in pl["modes"])
+    assert "The physical limit" in html and "Cramér-Rao bound" in html
     r = CliRunner().invoke(main, ["report", str(capture.root)])
     assert r.exit_code == 0, r.output
     r = CliRunner().invoke(main, ["analyze", str(capture.root), "--no-image-poles", "--no-report"])
