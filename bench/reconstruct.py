@@ -114,13 +114,24 @@ def scores(img: np.ndarray, ref: np.ndarray, crop) -> tuple[float, float, float]
 def motion_scores(model: np.ndarray, truth: np.ndarray) -> dict:
     """The motion alone, each image less its rest image (render(t) - render(t0) against truth(t) - truth(t0)), over
     the timesteps and the structure's box pooled: PSNR against the truth's motion peak (its largest |change|, so the
-    static texture both share weighs nothing) and the correlation of the two (1: the same motion up to a scale;
-    uncentred, since no change is the reference). `model`, `truth`: lists or arrays of equal-shape motion images."""
+    static texture both share weighs nothing), the same PSNR for a model that does not move (`still_psnr_db`, the
+    baseline: the PSNR alone flatters a model that misses the motion), the truth motion's power over the error's
+    (`snr_db`, 0 dB for no motion) and the correlation of the two (1: the same motion up to a scale; uncentred,
+    since no change is the reference). `model`, `truth`: lists or arrays of equal-shape motion images."""
     a = np.concatenate([np.ravel(m) for m in model]).astype(float)
     b = np.concatenate([np.ravel(t) for t in truth]).astype(float)
     mse, peak = float(np.mean((a - b) ** 2)), float(np.abs(b).max(initial=0.0))
     norm = float(np.sqrt((a ** 2).sum() * (b ** 2).sum()))
-    return dict(psnr_db=float("inf") if mse == 0 else 10 * float(np.log10(peak ** 2 / mse)) if peak > 0 else None,
+    power = float(np.mean(b ** 2))
+
+    def db(ratio: float) -> float | None:
+        return float("inf") if ratio == np.inf else 10 * float(np.log10(ratio)) if ratio > 0 else None
+
+    # A model that shows no motion at all scores still_psnr_db (most of the box barely changes, so the PSNR against
+    # the peak is high for it too); snr_db is the truth motion's power over the error's: 0 dB for no motion.
+    return dict(psnr_db=db(peak ** 2 / mse if mse > 0 else np.inf) if peak > 0 else None,
+                still_psnr_db=db(peak ** 2 / power) if power > 0 else None,
+                snr_db=db(power / mse if mse > 0 else np.inf) if power > 0 else None,
                 correlation=float((a * b).sum() / norm) if norm > 0 else None, truth_peak=peak)
 
 

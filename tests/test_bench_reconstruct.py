@@ -40,7 +40,8 @@ def test_displacement_scores_read_the_truth(sim_capture, gain, bench_script):
 def test_motion_scores_read_the_motion_alone(sim_capture, bench_script):
     """The truth's own motion images (hil_sim's renders less the render at rest): exact reads inf dB and a
     correlation of 1; half the motion still correlates 1 and loses 20 log10 of the ratio it leaves; no motion at
-    all (a static model) has no correlation and the PSNR of the motion's own rms."""
+    all (a static model) has no correlation, the PSNR of the motion's own rms (the baseline every result carries,
+    `still_psnr_db`) and an SNR of 0 dB."""
     bench = bench_script("reconstruct")
     take = sorted(sim_capture.takes_dir.glob("*.h5"))[0]
     gt = bench.GroundTruth(SimRig(), TakeTruth.load(truth_path(take)), 64, SimCameraConfig(fps=2000.0))
@@ -56,5 +57,9 @@ def test_motion_scores_read_the_motion_alone(sim_capture, bench_script):
     assert half["psnr_db"] == pytest.approx(20 * np.log10(peak / (0.5 * rms)), abs=1e-6)
     still = bench.motion_scores([np.zeros_like(t) for t in truth], truth)
     assert still["correlation"] is None and still["psnr_db"] == pytest.approx(20 * np.log10(peak / rms), abs=1e-6)
+    # The baseline beside the PSNR: what the static model scores, and the motion's SNR (0 dB for no motion).
+    assert still["still_psnr_db"] == pytest.approx(still["psnr_db"], abs=1e-9) and still["snr_db"] == pytest.approx(0.0)
+    assert half["snr_db"] == pytest.approx(20 * np.log10(2), abs=1e-6)
+    assert exact["snr_db"] == float("inf") and exact["still_psnr_db"] == pytest.approx(still["psnr_db"])
     noisy = bench.motion_scores([t + np.random.default_rng(0).normal(0, rms, t.shape) for t in truth], truth)
     assert 0.5 < noisy["correlation"] < 0.8 and noisy["psnr_db"] < half["psnr_db"]
