@@ -100,6 +100,10 @@ class AnalyzeSettings:
     measured_motion: bool = True                     # fit the shapes to its unfiltered motion when it has one
     real_modes: bool = True                          # each mode's shape on its common phase where what lies out
     #                                                  of it is noise (noise.real_modes; complex modes stay)
+    direction_floor: bool = True                     # a mode's motion along a world axis that lies below the floor
+    #                                                  in that direction nearly everywhere (crlb.DirectionFloor
+    #                                                  .noise_axes) is the noise's: left out of its shape (zero), as
+    #                                                  the report says; the sensors' reading stays
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
     outlier_factor: float | None = 2.0               # drop those whose motion strays this far (SurfaceMotion.at_points)
@@ -324,6 +328,11 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
         if bound is not None:
             gain = design_gains(t, poles, t_min) * np.sqrt(noise.spectrum_gain)
             direction = direction_floor(bound, fit.amplitudes[:, n_s:].reshape(len(poles), -1, 3), gain)
+            if s.direction_floor:
+                amps = fit.amplitudes.copy()
+                surface = amps[:, n_s:].reshape(len(poles), -1, 3)
+                surface *= ~direction.noise_axes()[:, None, :]
+                residues = dataclasses.replace(fit, amplitudes=amps).residues(F)
     disp = motion.displacement_m[:, ~keep]                                          # (T, N_bg, 3)
     background = float(np.median(np.sqrt(np.mean((disp - disp.mean(axis=0)) ** 2, axis=(0, 2))))) \
         if disp.shape[1] else float("nan")

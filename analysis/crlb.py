@@ -45,6 +45,8 @@ RCOND = 1e-6               # a 3D direction whose information is below this time
 PERP_TOL = 2e-3            # an axis within this (radians) of perpendicular to every unresolved direction keeps a
 #                            finite sigma
 MIN_CELL_PX, MAX_CELL_PX = 3, 31   # the window's side: at least the derivative's support, at most a small patch
+NOISE_AXIS_SHARE = 0.9     # a mode's shape along a world axis with this share of its power below the floor there is
+#                            the noise's (DirectionFloor.noise_axes): the plate's in-plane motion, on hil_sim
 SENSOR_DRAWS = 256         # noise draws at the bound through the sensors' reading (SurfaceMotion.at_points)
 # The gradient is the derivative of the rest image's cubic B-spline interpolant at the pixels (the model the 2D
 # tracker fits, analysis/tracking.py). On hil_sim's speckle (about 3 px grains) it reads the true image derivative
@@ -650,6 +652,12 @@ class DirectionFloor:
     unresolved_share: np.ndarray        # (R,) share of the mode's motion power (structure's points) below its floor
     unresolved_axis_share: np.ndarray   # (R, 3) the same along each world axis, of that axis' power
     point_resolved: np.ndarray          # (R, N) bool: at the point, most of the mode's motion above its floor
+    below: np.ndarray                   # (R, N, 3) bool: the mode's motion at the point along the axis is below
+
+    def noise_axes(self, share: float = NOISE_AXIS_SHARE) -> np.ndarray:
+        """(R, 3) bool: the world axes along which at least `share` of the mode's motion power lies below the floor
+        there: that component of its shape is the noise's."""
+        return self.unresolved_axis_share >= share
 
     def lines(self, freq_hz: np.ndarray, min_share: float = 0.5) -> list[str]:
         """A sentence per mode with at least min_share of its motion along some axis below that axis' floor."""
@@ -682,7 +690,7 @@ def direction_floor(bound: DisplacementBound, amplitudes_m: np.ndarray, mode_gai
     point_power = np.maximum((amp ** 2).sum(axis=2), 1e-300)
     return DirectionFloor((power * below[:, s]).sum(axis=(1, 2)) / total,
                           (power * below[:, s]).sum(axis=1) / axis_total,
-                          (amp ** 2 * below).sum(axis=2) / point_power < 0.5)
+                          (amp ** 2 * below).sum(axis=2) / point_power < 0.5, below)
 
 
 def limit_lines(bound: DisplacementBound, freq_hz: np.ndarray, below_floor: np.ndarray,

@@ -298,3 +298,29 @@ def test_each_mode_floor_against_the_bound(two_views):
 def test_the_variance_never_falls_below_the_quantisation():
     model = NoiseModel(gain_dn=0.2, read_dn=0.0, step_dn=1.0, n_frames=10, n_pixels=100)
     assert model.variance(np.array([-5.0, 0.0, 100.0])) == pytest.approx([1 / 12, 1 / 12, 20 + 1 / 12])
+
+
+def test_the_floor_per_direction_follows_the_bound_and_flags_what_the_views_do_not_resolve():
+    """Points whose views resolve x and y ten times better than z: a mode moving 10 um along x stands above the
+    floor there, 5 um along z does not (the z floor is 10x the x floor); a mode moving 40 um along z stands above.
+    The shares, the per-point flags and the report's line follow; the shapes the analysis keeps drop what is below."""
+    from odsplat.analysis.crlb import DisplacementBound, bound_from_information, direction_floor
+
+    n = 20
+    sigma = np.array([1.0, 1.0, 10.0]) * 1e-6                                    # per frame, per axis
+    frame = bound_from_information(np.repeat(np.diag(1 / sigma ** 2)[None], n, axis=0))
+    measured = np.full(n, 1e-6)
+    bound = DisplacementBound(np.zeros((n, 3)), frame, frame.rms_m, measured, measured / frame.rms_m,
+                              np.ones(n, bool), np.full(n, 4), (), frame.rms_m, frame.rms_m)
+    amps = np.zeros((2, n, 3), complex)
+    amps[0, :, 0], amps[0, :, 2] = 5e-6, 2.5e-6                                   # 2|C| = 10 um along x, 5 um along z
+    amps[1, :, 2] = 20e-6                                                         # 40 um along z
+    d = direction_floor(bound, amps, np.ones(2))
+    # floor per axis: 4.36 x 1 um x sigma_axis / rms = 0.75, 0.75 and 7.5 um
+    assert d.below[0, :, 0].sum() == 0 and d.below[0, :, 2].all() and not d.below[1, :, 2].any()
+    assert d.unresolved_axis_share[0, 2] == pytest.approx(1.0) and d.unresolved_axis_share[0, 0] == pytest.approx(0)
+    assert d.unresolved_share[0] == pytest.approx(25 / 125) and d.unresolved_share[1] == pytest.approx(0)
+    assert d.point_resolved[0].all() and d.point_resolved[1].all()
+    assert d.noise_axes().tolist() == [[False, False, True], [False, False, False]]   # x, y: no motion, no power
+    lines = d.lines(np.array([30.0, 90.0]))
+    assert len(lines) == 1 and lines[0].startswith("30.0 Hz: its motion along z (100 %)")
