@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import os
 import shutil
+import sys
 from pathlib import Path
 
 import pytest
@@ -121,6 +122,7 @@ def bench_script():
     def load(name: str):
         spec = importlib.util.spec_from_file_location(f"bench_{name}", REPO / "bench" / f"{name}.py")
         module = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = module          # a dataclass in it looks its module up there
         spec.loader.exec_module(module)
         return module
     return load
