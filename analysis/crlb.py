@@ -653,17 +653,21 @@ class DirectionFloor:
     unresolved_axis_share: np.ndarray   # (R, 3) the same along each world axis, of that axis' power
     point_resolved: np.ndarray          # (R, N) bool: at the point, most of the mode's motion above its floor
     below: np.ndarray                   # (R, N, 3) bool: the mode's motion at the point along the axis is below
+    axis_power_share: np.ndarray        # (R, 3) each world axis' share of the mode's motion power
 
     def noise_axes(self, share: float = NOISE_AXIS_SHARE) -> np.ndarray:
         """(R, 3) bool: the world axes along which at least `share` of the mode's motion power lies below the floor
         there: that component of its shape is the noise's."""
         return self.unresolved_axis_share >= share
 
-    def lines(self, freq_hz: np.ndarray, min_share: float = 0.5) -> list[str]:
-        """A sentence per mode with at least min_share of its motion along some axis below that axis' floor."""
+    def lines(self, freq_hz: np.ndarray, min_share: float = 0.5, min_power: float = 0.05) -> list[str]:
+        """A sentence per mode with at least min_share of its motion along some axis below that axis' floor, of the
+        axes that carry at least min_power of the mode's motion (the others hardly move: nothing to read there)."""
         out = []
-        for f, share, axes in zip(np.asarray(freq_hz, float), self.unresolved_share, self.unresolved_axis_share):
-            bad = [f"{AXES[c]} ({100 * axes[c]:.0f} %)" for c in range(3) if axes[c] >= min_share]
+        for f, share, axes, power in zip(np.asarray(freq_hz, float), self.unresolved_share,
+                                         self.unresolved_axis_share, self.axis_power_share):
+            bad = [f"{AXES[c]} ({100 * axes[c]:.0f} %)" for c in range(3)
+                   if axes[c] >= min_share and power[c] >= min_power]
             if bad:
                 out.append(f"{f:.1f} Hz: its motion along {', '.join(bad)} lies below the video's floor in that "
                            f"direction ({100 * share:.0f} % of the mode's motion in all): the views do not resolve it "
@@ -690,7 +694,7 @@ def direction_floor(bound: DisplacementBound, amplitudes_m: np.ndarray, mode_gai
     point_power = np.maximum((amp ** 2).sum(axis=2), 1e-300)
     return DirectionFloor((power * below[:, s]).sum(axis=(1, 2)) / total,
                           (power * below[:, s]).sum(axis=1) / axis_total,
-                          (amp ** 2 * below).sum(axis=2) / point_power < 0.5, below)
+                          (amp ** 2 * below).sum(axis=2) / point_power < 0.5, below, axis_total / total[:, None])
 
 
 def limit_lines(bound: DisplacementBound, freq_hz: np.ndarray, below_floor: np.ndarray,
