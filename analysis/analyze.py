@@ -103,7 +103,8 @@ class AnalyzeSettings:
     direction_floor: bool = True                     # a mode's motion along a world axis that lies below the floor
     #                                                  in that direction nearly everywhere (crlb.DirectionFloor
     #                                                  .noise_axes) is the noise's: left out of its shape (zero), as
-    #                                                  the report says; the sensors' reading stays
+    #                                                  the report says, for the modes above the floor (those below
+    #                                                  it are flagged whole); the sensors' reading stays
     min_opacity: float = 0.5
     k_neighbours: int = 16                           # Gaussians read at each sensor
     outlier_factor: float | None = 2.0               # drop those whose motion strays this far (SurfaceMotion.at_points)
@@ -331,7 +332,8 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
             if s.direction_floor:
                 amps = fit.amplitudes.copy()
                 surface = amps[:, n_s:].reshape(len(poles), -1, 3)
-                surface *= ~direction.noise_axes()[:, None, :]
+                # modes below the floor keep their shape as fitted: it is flagged as the noise's as a whole
+                surface *= ~(direction.noise_axes() & ~noise.below[:, None])[:, None, :]
                 residues = dataclasses.replace(fit, amplitudes=amps).residues(F)
     disp = motion.displacement_m[:, ~keep]                                          # (T, N_bg, 3)
     background = float(np.median(np.sqrt(np.mean((disp - disp.mean(axis=0)) ** 2, axis=(0, 2))))) \

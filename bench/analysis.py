@@ -418,6 +418,11 @@ def _video_figures(res: AnalysisResult, st: ModalStructure, f_true: np.ndarray, 
     # as the analysis' own verdict: over the modes above the video's noise floor (the others are listed in `fitted`)
     judged = np.array([not x["below_noise_floor"] for x in rows], bool)
     targets["mac_ge_0.9"] = bool(np.all(macs[judged] >= MIN_MAC)) if judged.any() else None
+    # the analysis' own verdict per mode: a MAC at the sensors that the reference's AutoMAC cannot back is "not
+    # discriminated", never met (docs/analysis.md); min_mac_surface above says what the full field shows
+    verdict = res.mac_verdict
+    figs["video"]["verdict"] = verdict.status if verdict is not None else None
+    figs["video"]["statuses"] = [m.status for m in verdict.modes] if verdict is not None else []
     figs.update(targets=targets, baseline_s={**baseline_s, "dft": dft_s})
 
 def main(argv: list[str] | None = None) -> dict:
