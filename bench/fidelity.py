@@ -4,8 +4,8 @@ the structure's own modal truth over the whole visible surface, not only at the 
 Each case records a guided capture with `odsplat capture --sim --auto` (its structure, texture, image size, frame rate,
 bit depth, views and floor-tag size vary from case to case, docs/fidelity.md) and runs `odsplat run` on it with no
 settings file: what a user gets. Then, per true mode in the camera's band:
-- `found_hz`: the video's own pole nearest the true frequency (matrix pencil on the reconstruction's motion, no
-  accelerometer), and whether it lies within 1 %;
+- `found_hz`: the video's own pole nearest the true frequency (matrix pencil on the raw frames' most textured pixels
+  and on the reconstruction's motion, no accelerometer), and whether it lies within 1 %;
 - the full-field shape: the video's residues (m/N, results.h5 "video mode K") at every surface point the analysis
   kept on the structure, against the true residue there, phi_r(p) (phi_r(hammer) . d) / (2 i w_d) for the
   mass-normalised shapes (the point moved to the nearest point of the structure's surface, within SNAP_M; points
@@ -161,7 +161,9 @@ def score_modes(cap: Capture, structure) -> dict:
     out, off = [], 0
     for r, ft in enumerate(f_true):
         row: dict = {"mode": r + 1, "name": structure.modes[r].name, "true_hz": float(ft)}
-        own = np.asarray(v.freq_hz if v else (), float)
+        # the video alone: the poles of the raw frames (image poles) and of the reconstruction's motion
+        own = np.concatenate([np.asarray(doc.image_poles.freq_hz if doc.image_poles else (), float),
+                              np.asarray(v.freq_hz if v else (), float)])
         if own.size:
             k = int(np.argmin(np.abs(own - ft)))
             row["found_hz"] = float(own[k])
