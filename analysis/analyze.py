@@ -42,12 +42,14 @@ from .frf import FRFResult, FRFSettings, check_frf_hit, estimate_frf
 from .imagepoles import ImagePoles, image_poles
 from .noise import design_gains, noise_floor, real_modes
 from .notes import (
+    MIN_SENSOR_R2,
     BelowNoiseFloor,
     ComplexMode,
     ModesAboveVideoBand,
     ModesNotDiscriminated,
     Note,
     OdsCarriedByNoise,
+    SensorsNotSeen,
     UnplacedSensors,
     WindowTooShort,
     band_findings,
@@ -66,6 +68,8 @@ from .result import AnalysisResult, Sensor, VideoModes
 from .verdict import DISCRIMINATION, NOT_DISCRIMINATED, Verdict, crosscheck_verdict, mac_verdict
 
 log = logging.getLogger(__name__)
+
+DECAY_T_MIN_S = 1.5e-3    # the video's decay fit starts after a ~1 ms hammer pulse
 
 VIDEO_BAND = 0.45     # the camera's poles are sought below this fraction of its frame rate
 
@@ -295,7 +299,7 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     dirs = np.stack([sn.direction for sn in sensors])
     at_sensors = motion.at_points(pos, dirs, k=s.k_neighbours, outlier_factor=s.outlier_factor)  # (T, S)
     surface = motion.displacement_m.reshape(len(t), -1)                             # (T, N*3)
-    t_min = 1.5e-3                                                                   # after a ~1 ms pulse
+    t_min = DECAY_T_MIN_S
     n_s = at_sensors.shape[1]
     fit = fit_decay(t, np.concatenate([at_sensors, surface], axis=1), poles, t_min_s=t_min)  # one design matrix
     noise = noise_floor(t, at_sensors, surface, fit)
@@ -536,7 +540,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     video = video_modes(capture, modes, inputs.sensors, inputs.force, s) if not unplaced else None
     image = _image(capture, s)
     cmp = _compare(frf, modes, video, image, s)
-    findings += _video_findings(modes, video, cmp)
+    findings += _video_findings(modes, video, cmp, tuple(sn.name for sn in inputs.sensors))
     for note in findings:
         log.info("note: %s", note.text)
     result = AnalysisResult(frf, modes, inputs.sensors, inputs.takes, video, cmp.correlation, cmp.ods_freq_hz,
@@ -549,16 +553,27 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
 
 # ---------------------------------------------------------------------------------------------- the notes
 
-def _video_findings(modes: ModalFit, video: VideoModes | None, cmp: _Comparison) -> list[Note]:
+def _video_findings(modes: ModalFit, video: VideoModes | None, cmp: _Comparison,
+                    sensor_names: tuple[str, ...] = ()) -> list[Note]:
     """What the video's numbers cannot show (analysis/notes.py words each): modes above its band, modes below its
     noise floor (for want of cycles in its window, or of amplitude), complex shapes, ODS lines those modes carry,
-    and modes whose MAC the sensors cannot judge (alike at the sensors: verdict.NOT_DISCRIMINATED)."""
+    and modes whose MAC the sensors cannot judge (alike at the sensors: verdict.NOT_DISCRIMINATED); sensors where
+    the video does not see the structure move (the modes explain under MIN_SENSOR_R2 of its motion there)."""
     if video is None:
         return []
     out: list[Note] = []
     if len(video.mode_index) < modes.n_modes:
         fitted = set(video.mode_index.tolist())
         out.append(ModesAboveVideoBand(tuple(float(f) for i, f in enumerate(modes.freq_hz) if i not in fitted)))
+    # The share of each sensor's motion the modes explain, less what a fit of that many parameters explains of pure
+    # noise (adjusted R^2: 0 for noise alone, whatever the record's length)
+    n = int(np.sum(video.times_s >= DECAY_T_MIN_S))
+    p = 2 * len(video.poles_rad_s) + 1
+    adjusted = 1 - (1 - video.sensor_r2) * (n - 1) / max(n - p - 1, 1)
+    unseen = np.flatnonzero(adjusted < MIN_SENSOR_R2)
+    if len(unseen):
+        names = tuple(sensor_names[i] if i < len(sensor_names) else f"sensor {i + 1}" for i in unseen)
+        out.append(SensorsNotSeen(names, tuple(float(max(adjusted[i], 0.0)) for i in unseen)))
     f_acc = modes.freq_hz[video.mode_index]
     below = _below_floor(video)
     window_s = float(np.ptp(video.times_s)) if len(video.times_s) > 1 else 0.0

@@ -170,8 +170,31 @@ class ModesNotDiscriminated:
                 "other directions would tell them apart (the report's AutoMAC table)")
 
 
+MIN_SENSOR_R2 = 0.3   # below this share of a sensor's video motion explained by the modes (adjusted for the fit's
+#                       parameters: 0 for noise alone), the video does not see it move. Raw shares on hil_sim
+#                       (bench/fidelity.py): 0.02-0.06 on the frame and mast (members 4-7 px across, 241-256
+#                       timesteps: noise alone explains 0.04-0.05 there), 0.6-0.99 on the arm and the plate
+
+
+@dataclass(frozen=True)
+class SensorsNotSeen:
+    """Sensors where the modes explain little of the video's motion: the reconstruction does not see the structure
+    move there, and what it reads is its noise."""
+
+    names: tuple[str, ...]
+    r2: tuple[float, ...]          # adjusted R^2 of the modes' fit to the video's motion there (0: noise alone)
+
+    @property
+    def text(self) -> str:
+        return ("the video's motion at " + ", ".join(f"{n} ({100 * r:.0f} %)" for n, r in zip(self.names, self.r2))
+                + " is hardly the modes' (the share they explain beyond what they would of noise alone): the "
+                "reconstruction does not see the structure move "
+                "there (too few pixels across it, or too little texture), so its shapes there are its noise; film "
+                "closer or with a finer texture")
+
+
 Note = (PeaksWithoutMode | PeaksOutsideBand | UnplacedSensors | ModesAboveVideoBand | WindowTooShort
-        | BelowNoiseFloor | ComplexMode | OdsCarriedByNoise | ModesNotDiscriminated)
+        | BelowNoiseFloor | ComplexMode | OdsCarriedByNoise | ModesNotDiscriminated | SensorsNotSeen)
 
 
 def band_findings(frf: FRFResult, band_hz: tuple[float, float], freq_hz: np.ndarray, *, given: bool,

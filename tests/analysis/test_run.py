@@ -677,3 +677,22 @@ def test_the_report_opens_with_a_summary_and_plays_the_modes_inline(capture, tmp
                    capture_output=True)
     img = np.asarray(Image.open(shot).convert("L"), float)
     assert img.std() > 10                                              # a rendered page, not a blank one
+
+
+def test_sensors_the_video_does_not_see_move_are_named(capture):
+    """Noise 100 x the structure's motion on every point, as on a member a few pixels across: the modes explain
+    almost none of the video's motion at the sensors, and a note names each with its share (notes.SensorsNotSeen);
+    a reconstruction that sees the motion (the first test's) has no such note."""
+    _write_trajectories(capture)
+    clean = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False))
+    assert np.all(clean.video.sensor_r2 > 0.8)
+    assert not any(n.text.startswith("the video's motion at") for n in clean.findings)
+    _write_trajectories(capture, noise_m=5e-3)
+    try:
+        res = analyze_capture(capture, AnalyzeSettings(plots=False, crosscheck_views=0, image_poles=False))
+        assert np.all(res.video.sensor_r2 < 0.5)
+        note = next(n for n in res.findings if n.text.startswith("the video's motion at"))
+        assert note.names == tuple(s.name for s in res.sensors)
+        assert "acc_tip_z (" in note.text and "does not see the structure move" in note.text
+    finally:
+        _write_trajectories(capture)
