@@ -323,22 +323,23 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
         shapes = real_modes(fit, t, (n_s + 3 * on[:, None] + np.arange(3)).ravel(),
                             np.repeat(noise.point_sigma_m[on], 3), noise.spectrum_gain)
         fit = dataclasses.replace(fit, amplitudes=shapes.apply(fit.amplitudes))
-    residues = fit.residues(F)
     # The physical limit: the camera's Cramér-Rao bound on every point against the measured floor, and each mode's
     # motion against a floor per direction (analysis/crlb.py).
     bound = direction = None
+    amplitudes = fit.amplitudes          # the shapes': the fit's, less the axes the direction floor calls noise
     if noise is not None:
         bound = displacement_bound(capture, motion.points_m, noise.point_sigma_m, structure=keep, noise=noise,
                                    sensors_m=pos, sensor_dirs=dirs, k=s.k_neighbours, outlier_factor=s.outlier_factor)
         if bound is not None:
+            R = len(poles)
             gain = design_gains(t, poles, t_min) * np.sqrt(noise.spectrum_gain)
-            direction = direction_floor(bound, fit.amplitudes[:, n_s:].reshape(len(poles), -1, 3), gain)
+            direction = direction_floor(bound, fit.amplitudes[:, n_s:].reshape(R, -1, 3), gain)
             if s.direction_floor:
-                amps = fit.amplitudes.copy()
-                surface = amps[:, n_s:].reshape(len(poles), -1, 3)
                 # modes below the floor keep their shape as fitted: it is flagged as the noise's as a whole
-                surface *= ~(direction.noise_axes() & ~noise.below[:, None])[:, None, :]
-                residues = dataclasses.replace(fit, amplitudes=amps).residues(F)
+                kept_axes = ~(direction.noise_axes() & ~noise.below[:, None])                    # (R, 3)
+                amplitudes = amplitudes.copy()
+                amplitudes[:, n_s:] = (amplitudes[:, n_s:].reshape(R, -1, 3) * kept_axes[:, None, :]).reshape(R, -1)
+    residues = dataclasses.replace(fit, amplitudes=amplitudes).residues(F)
     disp = motion.displacement_m[:, ~keep]                                          # (T, N_bg, 3)
     background = float(np.median(np.sqrt(np.mean((disp - disp.mean(axis=0)) ** 2, axis=(0, 2))))) \
         if disp.shape[1] else float("nan")
