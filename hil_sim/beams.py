@@ -18,7 +18,7 @@ from scipy.sparse.csgraph import connected_components
 
 from odsplat.spine.errors import InputError
 
-from .structure import _ModalModel
+from .structure import ModeBase, _ModalModel
 
 _TOUCH_M = 1e-3  # how far off a box a point still belongs to it: the structure's tags float 0.5 mm off its faces
 
@@ -312,16 +312,8 @@ class BeamGeometry:
 
 
 @dataclass(frozen=True)
-class BeamMode:
+class BeamMode(ModeBase):
     """One mode of a beam rig: natural frequency (FE), damping ratio (set), and what it looks like."""
-
-    freq_hz: float
-    damping: float
-    name: str
-
-    @property
-    def omega(self) -> float:
-        return 2 * np.pi * self.freq_hz
 
 
 @dataclass

@@ -90,7 +90,20 @@ class Geometry:
 
 
 @dataclass(frozen=True)
-class Mode:
+class ModeBase:
+    """What every structure's mode has: its natural frequency, damping ratio and a name in words."""
+
+    freq_hz: float
+    damping: float
+    name: str
+
+    @property
+    def omega(self) -> float:
+        return 2 * np.pi * self.freq_hz
+
+
+@dataclass(frozen=True)
+class Mode(ModeBase):
     """One mode: natural frequency, damping ratio, and the beam-kinematics parameters of its shape.
 
     Column bending in x and y (`col_x`, `col_y`, cantilever mode `col_order`), column torsion at the
@@ -98,9 +111,6 @@ class Mode:
     unit modal coordinate. The shape is divided by sqrt(modal mass) to be mass-normalised.
     """
 
-    freq_hz: float
-    damping: float
-    name: str
     col_x: float = 0.0
     col_y: float = 0.0
     col_order: int = 1
@@ -109,10 +119,6 @@ class Mode:
     arm_y: float = 0.0
     arm_order: int = 1
     modal_mass_kg: float = 4.0
-
-    @property
-    def omega(self) -> float:
-        return 2 * np.pi * self.freq_hz
 
 
 DEFAULT_MODES = (
@@ -302,19 +308,12 @@ class PlateGeometry:
 
 
 @dataclass(frozen=True)
-class PlateMode:
+class PlateMode(ModeBase):
     """Mode (m, n) of the simply supported plate: m half waves along its length, n across its width."""
 
-    freq_hz: float
-    damping: float
-    name: str
     m: int
     n: int
     modal_mass_kg: float
-
-    @property
-    def omega(self) -> float:
-        return 2 * np.pi * self.freq_hz
 
 
 @dataclass(frozen=True)
