@@ -76,7 +76,7 @@ class LinearSettings:
     node_spacing_m: float | None = None   # None: 5 px of the views' footprint (at least scene radius / 100), widened
     #                                       until at most max_nodes nodes
     max_nodes: int = 4000
-    smoothing: float = 16.0               # prior weight, relative to the data term's mean diagonal (docs: sweep)
+    smoothing: float = 64.0               # prior weight, relative to the data term's mean diagonal (docs: sweep)
     blur_px: float = 0.0                  # Gaussian blur (sd) of both sides after the prefilter (0: none; on the demo
     #                                       1 px read the tip 1.16x and the floor 3.5 um, none 1.10x and 2.3 um)
     min_alpha: float = 0.5                # pixels the rest Gaussians cover at least this much
