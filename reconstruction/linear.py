@@ -7,7 +7,8 @@ point X_p seen there (the brightness-constancy, or optical-flow, constraint in 3
     I_t(p) - I_rest(p) = -grad I(p) . J_p u(X_p),
 
 with J_p (2x3) the derivative of the camera's projection at X_p. X_p is the rest Gaussians' rendered depth at p
-(pixels they cover at least `min_alpha`, away from depth edges, where an edge's motion is not the surface's);
+(pixels they cover at least `min_alpha`; near a depth edge only where the other side, within the filters' reach,
+has no more texture than the surfaces have: elsewhere there an edge's motion is not the surface's);
 grad I is taken on the mean of the take's frames with Farid and Simoncelli's matched prefilter and derivative
 (a central difference reads fine texture 15-20 % low, and so the motion that much high), and both sides pass the
 same prefilter and blur.
@@ -67,7 +68,8 @@ log = logging.getLogger(__name__)
 # Farid & Simoncelli (2004), 7 taps: a prefilter and the derivative of the signal it interpolates.
 PREFILTER = np.array([0.004711, 0.069321, 0.245410, 0.361117, 0.245410, 0.069321, 0.004711])
 DERIVATIVE = np.array([0.018708, 0.125376, 0.193091, 0.0, -0.193091, -0.125376, -0.018708])
-EDGE_MARGIN_PX = 3   # pixels this close to a depth edge are left out
+EDGE_MARGIN_PX = 3   # the filters' reach: a pixel this close to a depth edge sees the other side ...
+EDGE_TEXTURE = 1.0   # ... and is left out where the other side's gradient energy there passes the surfaces' median
 NODE_PX = 5          # default node spacing, in pixels of the views' median footprint on the Gaussians
 
 
@@ -344,8 +346,14 @@ def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: Vie
         zf = np.where(use, z, 0.0)
         step = np.maximum(np.abs(np.diff(zf, axis=0, append=zf[-1:])),
                           np.abs(np.diff(zf, axis=1, append=zf[:, -1:])))
-        use &= maximum_filter(step, size=2 * EDGE_MARGIN_PX + 1) < 1.5 * spacing
         energy = gx**2 + gy**2
+        near_edge = maximum_filter(step, size=2 * EDGE_MARGIN_PX + 1) >= 1.5 * spacing
+        inner = use & ~near_edge
+        if inner.any():            # near an edge only where the other side has no more texture than the surfaces
+            other = _other_surface_energy(z, use, energy, 1.5 * spacing)
+            use &= ~near_edge | (other <= EDGE_TEXTURE * np.median(energy[inner]))
+        else:
+            use &= ~near_edge
         if use.any():
             use &= energy > np.quantile(energy[use], s.gradient_quantile)
         vv, uu = np.nonzero(use)
@@ -362,6 +370,26 @@ def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: Vie
             d = np.stack([smooth(read(int(k), int(k) + 1)[0] - rest)[vv, uu] for k in idx], axis=1)
             rhs[:, a0:a0 + len(idx)] += A.T @ (d / noise)
     return A, ViewRows(name, int(len(vv)), noise), rhs
+
+
+def _other_surface_energy(z: np.ndarray, covered: np.ndarray, energy: np.ndarray, step_m: float) -> np.ndarray:
+    """At each pixel, the largest gradient energy within the filters' reach (EDGE_MARGIN_PX) on another surface
+    (uncovered, or more than step_m nearer or farther): that surface's texture, or the edge's own contrast seen from
+    its side. Where it is strong, the pixel's filtered change mixes in a motion that is not its surface's; where it
+    is weak (a plain background behind a thin member), the pixel is as good as any: a column 8-14 px wide keeps its
+    edges' pixels, which a fixed 3 px margin took (docs/reconstruction.md)."""
+    h, w = z.shape
+    m = EDGE_MARGIN_PX
+    zz = np.pad(np.where(covered, z, np.inf), m, constant_values=np.inf)
+    ee = np.pad(energy, m)
+    out = np.zeros((h, w))
+    for dy in range(-m, m + 1):
+        for dx in range(-m, m + 1):
+            zo = zz[m + dy:m + dy + h, m + dx:m + dx + w]
+            with np.errstate(invalid="ignore"):
+                other = ~(np.abs(zo - np.where(covered, z, np.inf)) <= step_m)
+            np.maximum(out, np.where(other, ee[m + dy:m + dy + h, m + dx:m + dx + w], 0.0), out=out)
+    return out
 
 
 def _temporal_basis(rhs: np.ndarray, solution: np.ndarray, at_rest: np.ndarray, s: LinearSettings

@@ -159,3 +159,26 @@ def test_linear_motion_needs_raw_frames():
         ReconstructSettings(source="magnified/phase", motion="linear")
     with pytest.raises(InputError, match="node_spacing_m"):
         LinearSettings(node_spacing_m=0.0)
+
+
+def test_edge_pixels_are_kept_where_the_other_side_is_plain():
+    """A member 10 px wide in front of a background: with a plain background its edge pixels see no other texture
+    within the filters' reach, and are as good as any; with a textured one they see it, and are left out. A fixed
+    3 px margin took 6 of the member's 10 columns of pixels."""
+    from odsplat.reconstruction.linear import EDGE_MARGIN_PX, _other_surface_energy
+
+    h, w = 20, 30
+    z = np.full((h, w), 5.0)                        # the background, 5 m away
+    z[:, 10:20] = 1.0                               # the member, 1 m away, columns 10-19
+    covered = np.ones((h, w), bool)
+    member = np.zeros((h, w))
+    member[:, 10:20] = 1.0                          # the member's own texture energy
+    plain = _other_surface_energy(z, covered, member, step_m=0.5)
+    assert np.all(plain[:, 10:20] == 0)             # nothing moves otherwise within reach of the member's pixels
+    textured = _other_surface_energy(z, covered, member + 4.0 * (member == 0), step_m=0.5)
+    near = textured[0, 10:20] > 0
+    assert near.tolist() == [True] * EDGE_MARGIN_PX + [False] * (10 - 2 * EDGE_MARGIN_PX) + [True] * EDGE_MARGIN_PX
+    assert np.all(textured[0, 10:20][near] == 4.0)
+    # An uncovered neighbour (no Gaussian there) counts as another surface too.
+    open_ = _other_surface_energy(z, z < 2, member + 4.0 * (member == 0), step_m=0.5)
+    assert np.array_equal(open_[:, 10:20] > 0, textured[:, 10:20] > 0)
