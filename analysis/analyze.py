@@ -555,7 +555,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
 # ---------------------------------------------------------------------------------------------- the notes
 
 def _video_findings(modes: ModalFit, video: VideoModes | None, cmp: _Comparison,
-                    sensor_names: tuple[str, ...] = ()) -> list[Note]:
+                    sensor_names: tuple[str, ...]) -> list[Note]:
     """What the video's numbers cannot show (analysis/notes.py words each): modes above its band, modes below its
     noise floor (for want of cycles in its window, or of amplitude), complex shapes, ODS lines those modes carry,
     and modes whose MAC the sensors cannot judge (alike at the sensors: verdict.NOT_DISCRIMINATED); sensors where
@@ -573,8 +573,8 @@ def _video_findings(modes: ModalFit, video: VideoModes | None, cmp: _Comparison,
     adjusted = 1 - (1 - video.sensor_r2) * (n - 1) / max(n - p - 1, 1)
     unseen = np.flatnonzero(adjusted < MIN_SENSOR_R2)
     if len(unseen):
-        names = tuple(sensor_names[i] if i < len(sensor_names) else f"sensor {i + 1}" for i in unseen)
-        out.append(SensorsNotSeen(names, tuple(float(max(adjusted[i], 0.0)) for i in unseen)))
+        out.append(SensorsNotSeen(tuple(sensor_names[i] for i in unseen),
+                                  tuple(float(max(adjusted[i], 0.0)) for i in unseen)))
     f_acc = modes.freq_hz[video.mode_index]
     below = _below_floor(video)
     window_s = float(np.ptp(video.times_s)) if len(video.times_s) > 1 else 0.0

@@ -348,12 +348,11 @@ def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: Vie
                           np.abs(np.diff(zf, axis=1, append=zf[:, -1:])))
         energy = gx**2 + gy**2
         near_edge = maximum_filter(step, size=2 * EDGE_MARGIN_PX + 1) >= 1.5 * spacing
-        inner = use & ~near_edge
+        keep = ~near_edge
+        inner = use & keep
         if inner.any():            # near an edge only where the other side has no more texture than the surfaces
-            other = _other_surface_energy(z, use, energy, 1.5 * spacing)
-            use &= ~near_edge | (other <= EDGE_TEXTURE * np.median(energy[inner]))
-        else:
-            use &= ~near_edge
+            keep |= _other_surface_energy(z, use, energy, 1.5 * spacing) <= EDGE_TEXTURE * np.median(energy[inner])
+        use &= keep
         if use.any():
             use &= energy > np.quantile(energy[use], s.gradient_quantile)
         vv, uu = np.nonzero(use)
@@ -381,13 +380,14 @@ def _other_surface_energy(z: np.ndarray, covered: np.ndarray, energy: np.ndarray
     h, w = z.shape
     m = EDGE_MARGIN_PX
     zz = np.pad(np.where(covered, z, np.inf), m, constant_values=np.inf)
+    zc = zz[m:m + h, m:m + w]                       # the pixel's own depth (inf: uncovered)
     ee = np.pad(energy, m)
     out = np.zeros((h, w))
     for dy in range(-m, m + 1):
         for dx in range(-m, m + 1):
             zo = zz[m + dy:m + dy + h, m + dx:m + dx + w]
             with np.errstate(invalid="ignore"):
-                other = ~(np.abs(zo - np.where(covered, z, np.inf)) <= step_m)
+                other = ~(np.abs(zo - zc) <= step_m)
             np.maximum(out, np.where(other, ee[m + dy:m + dy + h, m + dx:m + dx + w], 0.0), out=out)
     return out
 
