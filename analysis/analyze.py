@@ -40,13 +40,14 @@ from .document import KIND, SCHEMA
 from .ema import ModalFit, fit_modes
 from .frf import FRFResult, FRFSettings, check_frf_hit, estimate_frf
 from .imagepoles import ImagePoles, image_poles
-from .noise import design_gains, noise_floor, real_modes
+from .noise import MAX_SEPARATION_GAIN, design_gains, noise_floor, real_modes
 from .notes import (
     MIN_SENSOR_R2,
     BelowNoiseFloor,
     ComplexMode,
     ModesAboveVideoBand,
     ModesNotDiscriminated,
+    ModesNotSeparated,
     Note,
     OdsCarriedByNoise,
     SensorsNotSeen,
@@ -488,6 +489,11 @@ def _below_floor(video: VideoModes) -> np.ndarray:
     return video.noise.below if video.noise is not None else np.zeros(len(video.mode_index), bool)
 
 
+def _unseparated(video: VideoModes) -> np.ndarray:
+    """(R,) bool: the video's modes above its floor that its record cannot separate from a neighbour."""
+    return video.noise.unseparated if video.noise is not None else np.zeros(len(video.mode_index), bool)
+
+
 def _compare(frf: FRFResult, modes: ModalFit, video: VideoModes | None, image: ImagePoles | None,
              s: AnalyzeSettings) -> _Comparison:
     """The ODS lines of the accelerometers and, with a video side, the video's; its shapes' MAC against the
@@ -515,7 +521,7 @@ def _compare(frf: FRFResult, modes: ModalFit, video: VideoModes | None, image: I
     pick = np.ix_(paired, paired)
     verdict = mac_verdict(f_acc[paired], corr.pair_mac, _below_floor(video)[paired], reference_automac=automac[pick],
                           video_cross_mac=None if cross is None else cross[pick],
-                          modes=np.asarray(video.mode_index)[paired] + 1)
+                          modes=np.asarray(video.mode_index)[paired] + 1, unseparated=_unseparated(video)[paired])
     return _Comparison(ods_f, ods_accel, receptance(video.sensor_residues, video.poles_rad_s, ods_f),
                        receptance(video.surface_residues, video.poles_rad_s, ods_f), corr, verdict,
                        crosscheck_verdict(video.crosscheck), automac, cross)
@@ -588,6 +594,13 @@ def _video_findings(modes: ModalFit, video: VideoModes | None, cmp: _Comparison,
             continue
         out.append(BelowNoiseFloor(mode, f, float(nf.mode_amplitude_m[r]), float(nf.mode_floor_m[r]),
                                    float(nf.expected_mac[r]), rm is not None and bool(rm.real[r])))
+    apart = np.flatnonzero(_unseparated(video))
+    if len(apart):
+        out.append(ModesNotSeparated(tuple(int(video.mode_index[r]) + 1 for r in apart),
+                                     tuple(float(f_acc[r]) for r in apart),
+                                     tuple(float(nf.separation_gain[r]) for r in apart),
+                                     tuple(float(nf.record_needed_s[r]) for r in apart), window_s,
+                                     MAX_SEPARATION_GAIN))
     for r in np.flatnonzero(~rm.real if rm is not None else np.zeros(0, bool)):
         out.append(ComplexMode(int(video.mode_index[r]) + 1, float(f_acc[r]), float(rm.mpc[r]), float(rm.lost[r]),
                                float(rm.quadrature_ratio[r])))

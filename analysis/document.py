@@ -64,6 +64,9 @@ class NoiseModeEntry:
     floor_um: float
     spectrum_gain: float    # the noise's level at the mode over its mean
     below_floor: bool
+    separation_gain: float | None = _omitted()   # its fit's gain over its gain alone (noise.separation_gains)
+    not_separated: bool | None = _omitted()      # above the floor, not separated by the record: not judged
+    record_needed_s: float | None = _omitted()   # the record that would separate it (None: this one does, or none)
 
 
 @dataclass(frozen=True, kw_only=True)

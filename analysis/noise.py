@@ -35,6 +35,12 @@ log = logging.getLogger(__name__)
 
 FLOOR_MAC = 0.95        # the MAC the noise allows a mode at the floor (x^2 / (x^2 + n^2))
 FLOOR_SIGMAS = float(np.sqrt(FLOOR_MAC / (1 - FLOOR_MAC)))   # 4.36 noise standard deviations
+# A mode whose amplitude the decay fit reads with this many times the gain it would have alone (its poles too close
+# for the record: the variance inflation of its columns) is not separated from its neighbour: any error of the motion
+# that is not white noise (a gain error that drifts, the rest fit's) is amplified as much, and the floor does not
+# cover it. The rigs' separated modes read 1.00-1.33; the mast's pair 1.3 Hz apart in a 0.1 s record, 4.7 (with shapes
+# 2-3x too large and MAC 0.36-0.68 at 400 px, docs/fidelity.md).
+MAX_SEPARATION_GAIN = 2.0
 MIN_PRE_IMPACT = 3      # timesteps before the impact needed to measure the noise there
 SMOOTH_BINS = 2         # the residual's spectrum is averaged over this many lines either side
 
@@ -56,6 +62,8 @@ class NoiseFloor:
     mode_floor_m: np.ndarray         # (R,) FLOOR_SIGMAS x the noise's standard deviation of that amplitude
     static: np.ndarray | None = None  # (N,) bool: the points whose motion the modes do not explain at all
     moving: np.ndarray | None = None  # (N,) bool: the points whose modal amplitudes stand above their noise
+    separation_gain: np.ndarray | None = None  # (R,) its fit's gain over its gain alone (separation_gains)
+    record_needed_s: np.ndarray | None = None  # (R,) the record that separates it (NaN: this one does; inf: none)
 
     @property
     def expected_mac(self) -> np.ndarray:
@@ -70,6 +78,14 @@ class NoiseFloor:
     def below(self) -> np.ndarray:
         """(R,) bool: modes whose video amplitude does not stand above the floor."""
         return self.mode_amplitude_m < self.mode_floor_m
+
+    @property
+    def unseparated(self) -> np.ndarray:
+        """(R,) bool: modes above the floor that the record cannot separate from a neighbour (MAX_SEPARATION_GAIN):
+        their shapes are not judged either."""
+        if self.separation_gain is None:
+            return np.zeros(len(self.mode_amplitude_m), bool)
+        return ~self.below & (self.separation_gain > MAX_SEPARATION_GAIN)
 
     def point_floor_m(self, design_gain: np.ndarray) -> np.ndarray:
         """(R, N) the amplitude each mode needs at each surface point, from the fit's per-mode gains."""
@@ -115,6 +131,44 @@ def design_gains(times_s: np.ndarray, poles_rad_s: np.ndarray, t_min_s: float, o
     R = len(np.atleast_1d(poles_rad_s))
     d = np.diag(cov)
     return np.sqrt(np.maximum(d[:R] + d[R:2 * R], 0.0))
+
+
+def separation_gains(times_s: np.ndarray, poles_rad_s: np.ndarray, t_min_s: float) -> np.ndarray:
+    """(R,) each mode's design gain in the joint fit over its gain fitted alone: 1 for modes the record separates,
+    growing as two poles come closer than about 1 / record in frequency (the square root of the variance inflation)."""
+    poles = np.atleast_1d(np.asarray(poles_rad_s, complex))
+    joint = design_gains(times_s, poles, t_min_s)
+    alone = np.array([design_gains(times_s, poles[r:r + 1], t_min_s)[0] for r in range(len(poles))])
+    return joint / np.maximum(alone, 1e-300)
+
+
+def record_needed_s(times_s: np.ndarray, poles_rad_s: np.ndarray, t_min_s: float,
+                    max_gain: float = MAX_SEPARATION_GAIN, longest: float = 64.0) -> np.ndarray:
+    """(R,) the record (seconds from t_min_s, at the same time step) over which each mode's separation gain falls to
+    max_gain: NaN where this record already does; inf where none up to `longest` times it does (the decay ends
+    first: one hit cannot separate them)."""
+    t = np.asarray(times_s, float)
+    poles = np.atleast_1d(np.asarray(poles_rad_s, complex))
+    dt = float(np.median(np.diff(t)))
+    span = float(t[-1] - t_min_s)
+    out = np.full(len(poles), np.nan)
+    todo = separation_gains(t, poles, t_min_s) > max_gain
+    if not todo.any() or span <= 0:
+        return out
+
+    def gains(k: float) -> np.ndarray:
+        return separation_gains(np.arange(t_min_s, t_min_s + k * span + dt / 2, dt), poles, t_min_s)
+
+    lo, hi = 1.0, 2.0
+    while hi <= longest and (gains(hi)[todo] > max_gain).any():
+        lo, hi = hi, 2 * hi
+    for _ in range(12):              # to 1/4096 of the step in record length
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if (gains(mid)[todo] > max_gain).any() else (lo, mid)
+    g = gains(hi)
+    for r in np.flatnonzero(todo):
+        out[r] = hi * span if g[r] <= max_gain and hi <= longest else np.inf
+    return out
 
 
 QUADRATURE_SIGNIFICANT = 1.5  # a mode's energy out of phase, over the noise's there, above which it may be complex
@@ -244,9 +298,14 @@ def noise_floor(times_s, sensors_m, surface_m, fit: DecayFit, *, point_component
                      point_sigma, sensor_sigma, static_sigma, int(static.sum()), pre_sigma, int(pre.sum()),
                      gain, amplitude, floor, static,
                      moving_points(fit.amplitudes[:, S:], design_gains(t, poles, fit.t_min_s), point_sigma,
-                                   point_components))
+                                   point_components),
+                     separation_gains(t, poles, fit.t_min_s), record_needed_s(t, poles, fit.t_min_s))
     log.info("video noise floor: %.3g um per point (static points %.3g um, %d; before the impact %.3g um), "
              "%.3g um at the sensors; modes below it: %s", 1e6 * out.sigma_m, 1e6 * static_sigma, out.n_static,
              1e6 * pre_sigma, 1e6 * float(np.median(sensor_sigma)),
              ", ".join(f"{f:.1f} Hz" for f in pole_freq_hz(poles)[out.below]) or "none")
+    if out.unseparated.any():
+        log.info("modes the record cannot separate: %s", ", ".join(
+            f"{f:.1f} Hz (gain x{g:.1f})" for f, g in zip(pole_freq_hz(poles)[out.unseparated],
+                                                            out.separation_gain[out.unseparated])))
     return out

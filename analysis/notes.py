@@ -118,6 +118,31 @@ class BelowNoiseFloor:
 
 
 @dataclass(frozen=True)
+class ModesNotSeparated:
+    """Modes above the noise floor whose poles are too close for the video's record to separate their shapes."""
+
+    modes: tuple[int, ...]
+    freq_hz: tuple[float, ...]
+    gain: tuple[float, ...]             # each one's fit gain over its gain alone (noise.separation_gains)
+    record_needed_s: tuple[float, ...]  # the record that would separate it (inf: none up to 64 x this one)
+    window_s: float
+    max_gain: float
+
+    @property
+    def text(self) -> str:
+        modes = ", ".join(f"{m} ({f:.1f} Hz)" for m, f in zip(self.modes, self.freq_hz))
+        gains = "/".join(f"{g:.1f}" for g in self.gain)
+        need = max(self.record_needed_s)
+        fix = (f"a video record of at least {1e3 * need:.0f} ms separates them (the takes' length, and [reconstruct] "
+               "n_timesteps where it is set)"
+               if np.isfinite(need) else "their motion dies out before any record separates them: a second hit "
+               "point that excites one more than the other, or a sensor at a node of one, can")
+        return (f"modes {modes}: too close to one another for the video's {1e3 * self.window_s:.0f} ms window (the "
+                f"fit reads them with {gains} x the gain each has alone, above {self.max_gain:g}): their shapes mix, "
+                f"and any error of the motion is amplified as much (MAC and scale not judged); {fix}")
+
+
+@dataclass(frozen=True)
 class ComplexMode:
     """A video mode whose shape is complex beyond its noise: kept complex."""
 
@@ -194,7 +219,8 @@ class SensorsNotSeen:
 
 
 Note = (PeaksWithoutMode | PeaksOutsideBand | UnplacedSensors | ModesAboveVideoBand | WindowTooShort
-        | BelowNoiseFloor | ComplexMode | OdsCarriedByNoise | ModesNotDiscriminated | SensorsNotSeen)
+        | BelowNoiseFloor | ModesNotSeparated | ComplexMode | OdsCarriedByNoise | ModesNotDiscriminated
+        | SensorsNotSeen)
 
 
 def band_findings(frf: FRFResult, band_hz: tuple[float, float], freq_hz: np.ndarray, *, given: bool,
@@ -219,6 +245,6 @@ def band_findings(frf: FRFResult, band_hz: tuple[float, float], freq_hz: np.ndar
     return out
 
 
-__all__ = ["BelowNoiseFloor", "ComplexMode", "ModesAboveVideoBand", "ModesNotDiscriminated", "Note",
-           "OdsCarriedByNoise", "PeaksOutsideBand", "PeaksWithoutMode", "UnplacedSensors", "WindowTooShort",
+__all__ = ["BelowNoiseFloor", "ComplexMode", "ModesAboveVideoBand", "ModesNotDiscriminated", "ModesNotSeparated",
+           "Note", "OdsCarriedByNoise", "PeaksOutsideBand", "PeaksWithoutMode", "UnplacedSensors", "WindowTooShort",
            "band_findings", "length_text"]

@@ -290,10 +290,13 @@ def _correlation(doc: AnalysisDocument) -> dict:
     modes = doc.modes
     fitted = doc.video.modes_fitted if doc.video is not None else ()
     out = {"pairs": None, "verdict": None, "comac": [], "ods": [], "statuses": [], "matrices": []}
+    nf = doc.video.noise_floor if doc.video is not None else None
+    apart = {k for k, e in enumerate(nf.modes if nf is not None else ()) if e.not_separated}
     if c is not None:
         out["pairs"] = [{"a": _mode_name(modes, _fitted_mode(fitted, p.a)),
                          "b": _mode_name(modes, _fitted_mode(fitted, p.b)),
                          "mac": _num(p.mac, ".3f"), "below": p.below_noise_floor is True,
+                         "apart": p.b in apart,
                          "expected": _num(p.expected_mac, ".3f"), "amplitude": _num(p.video_amplitude_um, ".3g"),
                          "floor": _num(p.noise_floor_um, ".3g"), "scale": _num(p.scale_factor_abs, ".3g"),
                          "phase": _num(p.scale_factor_phase_deg, "+.1f"), "freq_a": _num(p.freq_a_hz, ".2f"),

@@ -104,8 +104,17 @@ def _noise_section(nf: NoiseFloor, freq_hz: np.ndarray) -> NoiseFloorSection:
         point_sigma_um_p10_p90=(float(1e6 * np.percentile(nf.point_sigma_m, 10)),
                                 float(1e6 * np.percentile(nf.point_sigma_m, 90))),
         floor_sigmas=float(FLOOR_SIGMAS), floor_mac=float(FLOOR_MAC),
-        modes=tuple(NoiseModeEntry(float(f), float(1e6 * a), float(1e6 * fl), float(g), bool(a < fl))
-                    for f, a, fl, g in zip(freq_hz, nf.mode_amplitude_m, nf.mode_floor_m, nf.spectrum_gain)))
+        modes=tuple(NoiseModeEntry(float(f), float(1e6 * a), float(1e6 * fl), float(g), bool(a < fl),
+                                   separation_gain=None if sg is None else float(sg), not_separated=bool(u),
+                                   record_needed_s=_finite(rn) if rn is not None else None)
+                    for f, a, fl, g, sg, u, rn in zip(freq_hz, nf.mode_amplitude_m, nf.mode_floor_m, nf.spectrum_gain,
+                                                      _each(nf.separation_gain, len(freq_hz)), nf.unseparated,
+                                                      _each(nf.record_needed_s, len(freq_hz)))))
+
+
+def _each(values: np.ndarray | None, n: int) -> list:
+    """values as a list, or n Nones where there are none."""
+    return [None] * n if values is None else list(values)
 
 
 def _video_section(result: AnalysisResult) -> VideoSection:

@@ -56,13 +56,15 @@ class Verdict:
 
 # A mode's status under the MAC target (ModeStatus), and the MAC verdict's overall status beside "not judged".
 MET, NOT_MET, NOT_DISCRIMINATED, BELOW_FLOOR = "met", "not met", "not discriminated", "below floor"
+NOT_SEPARATED = "not separated"   # above the floor, but the record cannot separate it from a neighbour (noise.py)
 
 
 @dataclass(frozen=True)
 class ModeStatus:
     """One mode under the MAC target: MET (MAC >= MIN_MAC and the sensors tell it from every other reference mode),
     NOT_MET (MAC under it), NOT_DISCRIMINATED (MAC >= MIN_MAC, but the reference AutoMAC with the modes in
-    `confused_with` is above DISCRIMINATION), or BELOW_FLOOR (below the video's noise floor: not judged). The modes
+    `confused_with` is above DISCRIMINATION), BELOW_FLOOR (below the video's noise floor: not judged), or NOT_SEPARATED
+    (above it, but too close to another mode for the record to separate their shapes: not judged). The modes
     it cannot be told from are listed whatever its status, each with the video's full-field cross-MAC."""
 
     mode: int                                        # the accelerometer mode's number (1, 2, ...)
@@ -80,6 +82,8 @@ class ModeStatus:
         mac = f"MAC {self.mac:.3f}"
         if self.status == BELOW_FLOOR:
             return f"below the video's noise floor: not judged ({mac})"
+        if self.status == NOT_SEPARATED:
+            return f"not separated from a mode beside it in the video's record: not judged ({mac})"
         if self.status == MET:
             return f"met: {mac}, and the sensors tell it from every other mode"
         if self.status == NOT_MET:
@@ -131,11 +135,13 @@ def _padded(values: tuple, like: tuple) -> tuple:
 
 
 def mode_statuses(freq_hz, pair_mac, below_floor, reference_automac, video_cross_mac=None, modes=None,
-                  min_mac: float = MIN_MAC) -> tuple[ModeStatus, ...]:
+                  min_mac: float = MIN_MAC, unseparated=None) -> tuple[ModeStatus, ...]:
     """Each mode's status (ModeStatus): freq_hz, pair_mac and below_floor per mode; reference_automac (n, n) the
     reference shapes' AutoMAC at the sensors and video_cross_mac (n, n) the video's full-field one (None: no full
-    field), both in the modes' order; modes: their numbers (None: 1..n)."""
+    field), both in the modes' order; modes: their numbers (None: 1..n); unseparated: per mode, above the floor but
+    not separated by the record (None: none)."""
     f, m, b = np.asarray(freq_hz, float), np.asarray(pair_mac, float), np.asarray(below_floor, bool)
+    u = np.zeros(len(f), bool) if unseparated is None else np.asarray(unseparated, bool)
     n = len(f)
     auto = np.asarray(reference_automac, float)
     cross = None if video_cross_mac is None else np.asarray(video_cross_mac, float)
@@ -143,14 +149,16 @@ def mode_statuses(freq_hz, pair_mac, below_floor, reference_automac, video_cross
     for name, a in (("reference_automac", auto), ("video_cross_mac", cross)):
         if a is not None and a.shape != (n, n):
             raise InputError(f"mode_statuses: {name}", f"expected ({n}, {n}), one row per mode; got {a.shape}")
-    if m.shape != (n,) or b.shape != (n,) or numbers.shape != (n,):
-        raise InputError("mode_statuses", f"expected {n} MACs, floor flags and mode numbers; got {m.shape}, "
-                                          f"{b.shape}, {numbers.shape}")
+    if m.shape != (n,) or b.shape != (n,) or numbers.shape != (n,) or u.shape != (n,):
+        raise InputError("mode_statuses", f"expected {n} MACs, floor flags, separation flags and mode numbers; got "
+                                          f"{m.shape}, {b.shape}, {u.shape}, {numbers.shape}")
     out = []
     for i in range(n):
         others = [j for j in range(n) if j != i and auto[i, j] > DISCRIMINATION]
         if b[i]:
             status = BELOW_FLOOR
+        elif u[i]:
+            status = NOT_SEPARATED
         elif not m[i] >= min_mac:
             status = NOT_MET
         else:
@@ -192,32 +200,40 @@ def _discrimination(statuses: tuple[ModeStatus, ...]) -> str:
 
 
 def mac_verdict(freq_hz, pair_mac, below_floor, min_mac: float = MIN_MAC, *, reference_automac=None,
-                video_cross_mac=None, modes=None) -> Verdict:
+                video_cross_mac=None, modes=None, unseparated=None) -> Verdict:
     """MAC >= min_mac for every mode above the noise floor, each also told from every other reference mode at the
     sensors where reference_automac (n, n) is given (mode_statuses: then "not discriminated" where all reach
-    min_mac but some cannot be told apart, named with what the video's full field says); the modes below the floor
-    are listed apart, not judged."""
+    min_mac but some cannot be told apart, named with what the video's full field says); the modes below the floor,
+    and those above it that the record cannot separate (unseparated, per mode), are listed apart, not judged."""
     f, m, b = np.asarray(freq_hz, float), np.asarray(pair_mac, float), np.asarray(below_floor, bool)
-    statuses = (mode_statuses(f, m, b, reference_automac, video_cross_mac, modes, min_mac)
+    u = (np.zeros(len(f), bool) if unseparated is None else np.asarray(unseparated, bool)) & ~b
+    statuses = (mode_statuses(f, m, b, reference_automac, video_cross_mac, modes, min_mac, u)
                 if reference_automac is not None else ())
     apart = "; below the video's noise floor, not judged: " + ", ".join(
         f"{fi:.1f} Hz (MAC {mi:.2f})" for fi, mi in zip(f[b], m[b])) if b.any() else ""
-    details = {"min_mac": min_mac, "judged_hz": f[~b].tolist(), "below_floor_hz": f[b].tolist(),
-               "worst_mac": float(m[~b].min()) if (~b).any() else None}
+    if u.any():
+        apart += ("; too close to a mode beside them for the video's record to separate, not judged: "
+                  + ", ".join(f"{fi:.1f} Hz (MAC {mi:.2f})" for fi, mi in zip(f[u], m[u])))
+    j = ~b & ~u                                          # the modes judged
+    details = {"min_mac": min_mac, "judged_hz": f[j].tolist(), "below_floor_hz": f[b].tolist(),
+               "not_separated_hz": f[u].tolist(), "worst_mac": float(m[j].min()) if j.any() else None}
     if statuses:
         details.update(discrimination=DISCRIMINATION, full_field_distinct=FULL_FIELD_DISTINCT,
                        not_discriminated_hz=[s.freq_hz for s in statuses if s.status == NOT_DISCRIMINATED])
-    if not (~b).any():
-        return Verdict("not judged", f"MAC: no mode stands above the video's noise floor{apart}", details, statuses)
-    k = int(np.argmin(np.where(b, np.inf, m)))
-    failing = [f"{fi:.1f} Hz ({mi:.3f})" for fi, mi, bi in zip(f, m, b) if not bi and not mi >= min_mac]
+    if not j.any():
+        head = ("no mode stands above the video's noise floor" if not u.any() else
+                "no mode above the video's noise floor is separated by its record")
+        return Verdict("not judged", f"MAC: {head}{apart}", details, statuses)
+    k = int(np.argmin(np.where(j, m, np.inf)))
+    failing = [f"{fi:.1f} Hz ({mi:.3f})" for fi, mi, ji in zip(f, m, j) if ji and not mi >= min_mac]
     confused = _discrimination(statuses)
+    judged = f"{int(j.sum())} modes above the video's noise floor" + (" and separated" if u.any() else "")
     if failing:
-        return Verdict(NOT_MET, f"MAC below {min_mac:g} at {', '.join(failing)} of the {int((~b).sum())} modes "
-                       f"above the video's noise floor{confused}{apart}", details, statuses)
+        return Verdict(NOT_MET, f"MAC below {min_mac:g} at {', '.join(failing)} of the {judged}{confused}{apart}",
+                       details, statuses)
     return Verdict(NOT_DISCRIMINATED if confused else MET,
-                   f"MAC >= {min_mac:g} for all {int((~b).sum())} modes above the video's noise floor "
-                   f"(lowest {m[k]:.3f} at {f[k]:.1f} Hz){confused}{apart}", details, statuses)
+                   f"MAC >= {min_mac:g} for all {judged} (lowest {m[k]:.3f} at {f[k]:.1f} Hz){confused}{apart}",
+                   details, statuses)
 
 
 def crosscheck_verdict(checks) -> Verdict | None:

@@ -275,10 +275,10 @@ def targets(rows: list[dict], demo: dict | None) -> dict:
         for m in row["modes"]:
             if not m.get("fitted"):
                 continue
-            if m.get("status") in ("below floor", "not discriminated"):
+            if m.get("status") in ("below floor", "not discriminated", "not separated"):
                 flagged_ok &= m.get("status") != "met"
-            if m.get("below_floor") or m.get("status") == "below floor":
-                continue
+            if m.get("below_floor") or m.get("status") in ("below floor", "not separated"):
+                continue                        # flagged: not judged
             judged += 1                         # every mode above the floor, discriminated or not
             ok = (m.get("mac_full", 0) >= MIN_MAC and abs(m.get("scale", 0) - 1) <= MAX_SCALE_ERR
                   and m.get("found_within_1pct"))

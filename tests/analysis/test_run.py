@@ -442,8 +442,12 @@ def test_noise_floor_reads_the_known_noise_and_flags_a_weak_mode(capture):
         # every mode above the floor meets the MAC target; on the rig's four accelerometers none of them can be told
         # from every other (reference AutoMAC above 0.5: 1/5, 1/6, 2/4, 5/6), so none is "met" (test_verdict.py)
         assert res.mac_verdict.status == "not discriminated" and res.mac_verdict.details["below_floor_hz"] == [f_weak]
+        # the record (32 ms after the impact) cannot separate 23.5 from 31 Hz: the fit reads them with 9-10x the gain
+        # each has alone, so they are not judged (noise.separation_gains), and a note names the record that would
+        assert list(np.flatnonzero(nf.unseparated)) == [0, 1] and np.all(nf.separation_gain[:2] > 5)
         assert [s.status for s in res.mac_verdict.modes] == [
-            "below floor" if rows[r] == weak else "not discriminated" for r in range(len(rows))]
+            "below floor" if rows[r] == weak else "not separated" if r < 2 else "not discriminated"
+            for r in range(len(rows))]
         summary = json.loads((capture.derived_dir / "analysis" / "analysis.json").read_text())
         pairs = summary["correlation"]["pairs"]
         assert [p["below_noise_floor"] for p in pairs] == [rows[p["b"]] == weak for p in pairs]
@@ -467,8 +471,12 @@ def test_noise_floor_reads_the_known_noise_and_flags_a_weak_mode(capture):
         # which modes the four sensors cannot tell apart
         assert "AutoMAC, accelerometers" in html and "Cross-MAC, video full field" in html
         assert summary["correlation"]["reference_automac"][2][5] > 0.95                  # modes 3/6: 0.99
-        assert any(n.startswith("modes 1, 2, 4, 5, 6: the 4 sensors cannot tell each from another mode")
+        assert any(n.startswith("modes 4, 5, 6: the 4 sensors cannot tell each from another mode")
                    for n in summary["notes"]), summary["notes"]
+        assert any(n.startswith("modes 1 (23.5 Hz), 2 (31.0 Hz): too close to one another for the video's 32 ms")
+                   and "a video record of at least 46 ms separates them" in n for n in summary["notes"]), \
+            summary["notes"]
+        assert html.count("not separated from a mode beside it in this record: not judged") == 2
     finally:
         _write_trajectories(capture)
 

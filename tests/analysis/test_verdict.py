@@ -20,6 +20,7 @@ from odsplat.analysis.verdict import (
     MIN_MAC,
     NOT_DISCRIMINATED,
     NOT_MET,
+    NOT_SEPARATED,
     ModeStatus,
     mac_verdict,
 )
@@ -130,6 +131,23 @@ def test_without_the_automac_the_verdict_reads_as_before():
                       "the video's noise floor, not judged: 86.0 Hz (MAC 0.30)")
     with pytest.raises(InputError, match="reference_automac"):
         mac_verdict([1.0, 2.0], [1, 1], [False, False], reference_automac=np.eye(3))
+
+
+def test_a_pair_the_record_cannot_separate_is_not_judged_whatever_its_mac():
+    """The mast's pair at 400 px (docs/fidelity.md): above the floor, MAC 0.74 and 0.50 at the sensors with full-field
+    shapes 2-3x too large; not separated by the record, so neither met nor not met, and the line says why."""
+    auto = np.array([[1.0, 0.1, 0.0], [0.1, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    v = mac_verdict([40.8, 42.1, 255.9], [0.74, 0.50, 0.99], [False, False, False], reference_automac=auto,
+                    unseparated=[True, True, False])
+    assert v.status == MET and [s.status for s in v.modes] == [NOT_SEPARATED, NOT_SEPARATED, MET]
+    assert v.details["judged_hz"] == [255.9] and v.details["not_separated_hz"] == [40.8, 42.1]
+    assert v.line.startswith("MAC >= 0.9 for all 1 modes above the video's noise floor and separated")
+    assert "too close to a mode beside them for the video's record to separate, not judged: 40.8 Hz (MAC 0.74)" \
+        in v.line
+    assert v.modes[0].text.startswith("not separated from a mode beside it")
+    none = mac_verdict([40.8, 42.1], [0.74, 0.50], [False, True], unseparated=[True, True])
+    assert none.status == "not judged" and none.details["not_separated_hz"] == [40.8]   # below the floor first
+    assert none.line.startswith("MAC: no mode above the video's noise floor is separated by its record")
 
 
 # ---------------------------------------------------------------------------------------------- the document
