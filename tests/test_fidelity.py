@@ -7,6 +7,7 @@ from click.testing import CliRunner
 
 from odsplat.app.cli import main
 from odsplat.app.pipeline import run_stage
+from odsplat.hil_sim.structure import make_structure
 from odsplat.reconstruction import PoseResult
 from odsplat.spine.store import Capture
 from odsplat.sync import load_sync
@@ -52,3 +53,33 @@ def test_a_capture_filmed_at_another_frame_rate_says_so_and_syncs(tmp_path):
     run_stage(cap, "sync")
     sync = load_sync(cap)
     assert len(sync.ok) == 2 and len(sync.takes) == 2
+
+
+def test_a_plate_the_defaults_were_not_tuned_to_reads_its_modes_right_or_does_not_call_them_met(tmp_path,
+                                                                                               bench_script):
+    """Issue 43's small version: hil_sim's plate (not the arm the defaults were tuned on), 8 views at 320x240,
+    1000 fps, 8-bit, value-noise paint, hit at 600 N; `odsplat capture` and `odsplat run` with the defaults, scored
+    by bench/fidelity.py against the plate's analytic modes over every surface point. Its three lowest modes stand
+    above the floor with the right shape and size (measured: full-field MAC 0.978 / 0.957 / 0.976, scale 0.987 /
+    0.968 / 0.971) and the video alone finds them within 1 %; no mode whose full field is wrong is called met
+    (the (3,1) and (3,2) modes read 0.93 and 0.84 there: "not discriminated" by the four sensors, docs/fidelity.md)."""
+    fid = bench_script("fidelity")
+    out = tmp_path / "plate"
+    case = fid.Case("plate_small", "plate", texture="value_noise", fps=1000.0, bit_depth=8, views=8,
+                    hammer_force_n=600.0)
+    r = CliRunner().invoke(main, ["capture", str(out), "--sim", "--auto", "--no-window", *case.capture_args()])
+    assert r.exit_code in (0, 1), r.output              # 1: a view whose takes QC refused (the plate hides tags)
+    r = CliRunner().invoke(main, ["run", str(out)])
+    assert r.exit_code == 0, r.output
+    cap = Capture.open(out)
+    scores = fid.score_modes(cap, make_structure("plate"))
+    modes = {m["mode"]: m for m in scores["modes"]}
+    for k in (1, 2, 3):
+        m = modes[k]
+        assert m["fitted"] and not m["below_floor"], m
+        assert m["mac_full"] >= fid.MIN_MAC and abs(m["scale"] - 1) <= fid.MAX_SCALE_ERR, m
+        assert m["found_within_1pct"], m
+    for m in scores["modes"]:
+        if m.get("status") == "met":
+            assert m["mac_full"] >= 0.9, m
+    assert fid.targets([{"case": case.name, **scores}], None)["below_floor_never_met"]
