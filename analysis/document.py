@@ -67,6 +67,8 @@ class NoiseModeEntry:
     separation_gain: float | None = _omitted()   # its fit's gain over its gain alone (noise.separation_gains)
     not_separated: bool | None = _omitted()      # above the floor, not separated by the record: not judged
     record_needed_s: float | None = _omitted()   # the record that would separate it (None: this one does, or none)
+    full_field_mac: float | None = _omitted()    # the MAC the noise allows its shape over the whole structure
+    below_at_sensors: bool | None = _omitted()   # below the floor at the sensors (below_floor: there or overall)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -64,6 +64,8 @@ class NoiseFloor:
     moving: np.ndarray | None = None  # (N,) bool: the points whose modal amplitudes stand above their noise
     separation_gain: np.ndarray | None = None  # (R,) its fit's gain over its gain alone (separation_gains)
     record_needed_s: np.ndarray | None = None  # (R,) the record that separates it (NaN: this one does; inf: none)
+    full_field_mac: np.ndarray | None = None   # (R,) the MAC the noise allows its shape over the whole structure
+    component_sigma_m: np.ndarray | None = None  # (N, components): point_sigma_m per axis (the views see some worse)
 
     @property
     def expected_mac(self) -> np.ndarray:
@@ -75,9 +77,17 @@ class NoiseFloor:
         return x2 / np.maximum(x2 + n2, 1e-300)
 
     @property
-    def below(self) -> np.ndarray:
-        """(R,) bool: modes whose video amplitude does not stand above the floor."""
+    def below_at_sensors(self) -> np.ndarray:
+        """(R,) bool: modes whose video amplitude at the sensors does not stand above the floor there."""
         return self.mode_amplitude_m < self.mode_floor_m
+
+    @property
+    def below(self) -> np.ndarray:
+        """(R,) bool: modes below the floor at the sensors, or over the full structure (where the noise allows their
+        shape a MAC under FLOOR_MAC: full_field_expected_mac), where that is known."""
+        if self.full_field_mac is None:
+            return self.below_at_sensors
+        return self.below_at_sensors | (self.full_field_mac < FLOOR_MAC)
 
     @property
     def unseparated(self) -> np.ndarray:
@@ -169,6 +179,32 @@ def record_needed_s(times_s: np.ndarray, poles_rad_s: np.ndarray, t_min_s: float
     for r in np.flatnonzero(todo):
         out[r] = hi * span if g[r] <= max_gain and hi <= longest else np.inf
     return out
+
+
+def full_field_expected_mac(amplitudes: np.ndarray, point_sigma_m: np.ndarray, mode_sd: np.ndarray,
+                            real: np.ndarray | None = None, kept: np.ndarray | None = None) -> np.ndarray:
+    """(R,) the MAC the noise allows each mode's shape over the whole structure (not only at the sensors), against
+    the exact shape: amplitudes (R, N, 3) the fit's complex amplitudes C at the structure's points; point_sigma_m
+    (N,) or (N, 3) each point's noise (per axis where given: the views see some axes worse); mode_sd (R,) the
+    standard deviation of 2|C| per unit noise (design_gains x the noise's spectrum gain); real (R,) modes projected
+    on their phase, which keeps half the noise; kept (R, N, 3) or any shape that broadcasts to it, the components
+    the shape keeps (the direction floor drops the others as the noise's, and their noise with them: None, all).
+
+    With the shape's energy E over the kept components and the noise's there N: (E - N) / E, the expected MAC of
+    shape + noise against the shape, x^2 / (x^2 + n^2) with x^2 = E - N. A mode large at the sensors but small over
+    most of the structure reads lower here. What the direction floor drops counts as noise, as it judges: where it
+    held true motion (tests/analysis/test_run.py, whose noise does not follow the cameras), the MAC against the
+    whole shape is lower by that motion's share."""
+    a = np.asarray(amplitudes)
+    R = a.shape[0]
+    keep = np.ones(a.shape, bool) if kept is None else np.broadcast_to(np.asarray(kept, bool), a.shape)
+    share = np.where(np.asarray(real, bool), 0.5, 1.0) if real is not None else np.ones(R)
+    sig = np.asarray(point_sigma_m, float)
+    sig = sig[:, None] if sig.ndim == 1 else sig
+    var = (sig ** 2)[None] * (np.asarray(mode_sd) ** 2 * share)[:, None, None]                          # (R, N, 3)
+    energy = np.sum(np.abs(2 * a) ** 2 * keep, axis=(1, 2))
+    noise = np.sum(var * keep, axis=(1, 2))
+    return np.clip(1 - noise / np.maximum(energy, 1e-300), 0.0, 1.0)
 
 
 QUADRATURE_SIGNIFICANT = 1.5  # a mode's energy out of phase, over the noise's there, above which it may be complex
@@ -299,7 +335,8 @@ def noise_floor(times_s, sensors_m, surface_m, fit: DecayFit, *, point_component
                      gain, amplitude, floor, static,
                      moving_points(fit.amplitudes[:, S:], design_gains(t, poles, fit.t_min_s), point_sigma,
                                    point_components),
-                     separation_gains(t, poles, fit.t_min_s), record_needed_s(t, poles, fit.t_min_s))
+                     separation_gains(t, poles, fit.t_min_s), record_needed_s(t, poles, fit.t_min_s),
+                     component_sigma_m=comp)
     log.info("video noise floor: %.3g um per point (static points %.3g um, %d; before the impact %.3g um), "
              "%.3g um at the sensors; modes below it: %s", 1e6 * out.sigma_m, 1e6 * static_sigma, out.n_static,
              1e6 * pre_sigma, 1e6 * float(np.median(sensor_sigma)),

@@ -99,21 +99,29 @@ class WindowTooShort:
 
 @dataclass(frozen=True)
 class BelowNoiseFloor:
-    """A mode whose amplitude at the sensors is below the video's noise floor there: its MAC is not judged."""
+    """A mode below the video's noise floor: its amplitude at the sensors below the floor there, or (full_field_mac
+    given) above it there but too small over the whole structure. Its MAC is not judged."""
 
     mode: int
     freq_hz: float
     amplitude_m: float
     floor_m: float
-    expected_mac: float      # the MAC the noise alone allows its shape
+    expected_mac: float      # the MAC the noise alone allows its shape at the sensors
     real: bool               # its shape is a real mode (which keeps half the noise)
+    full_field_mac: float | None = None   # set where only the full structure puts it below: the MAC allowed there
 
     @property
     def text(self) -> str:
+        shape = f"{'complex ' if self.real else ''}shape"
+        half = " (its real mode keeps half that noise)" if self.real else ""
+        if self.full_field_mac is not None:
+            return (f"mode {self.mode} ({self.freq_hz:.1f} Hz): above the video's noise floor at the sensors "
+                    f"({length_text(self.amplitude_m)} against {length_text(self.floor_m)}), but over the whole "
+                    f"structure, where most of its motion is smaller, the noise allows its shape a MAC of only "
+                    f"{self.full_field_mac:.2f}, too little to judge (MAC and scale not judged)")
         return (f"mode {self.mode} ({self.freq_hz:.1f} Hz): below the video's noise floor "
                 f"({length_text(self.amplitude_m)} against {length_text(self.floor_m)} at the sensors): the noise "
-                f"alone allows its {'complex ' if self.real else ''}shape a MAC of {self.expected_mac:.2f}"
-                f"{' (its real mode keeps half that noise)' if self.real else ''}, too little to judge (MAC and "
+                f"alone allows its {shape} a MAC of {self.expected_mac:.2f}{half}, too little to judge (MAC and "
                 "scale not judged)")
 
 
