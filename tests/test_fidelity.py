@@ -61,8 +61,9 @@ def test_a_plate_the_defaults_were_not_tuned_to_reads_its_modes_right_or_does_no
     1000 fps, 8-bit, value-noise paint, hit at 600 N; `odsplat capture` and `odsplat run` with the defaults, scored
     by bench/fidelity.py against the plate's analytic modes over every surface point. Its three lowest modes stand
     above the floor with the right shape and size (measured: full-field MAC 0.978 / 0.957 / 0.976, scale 0.987 /
-    0.968 / 0.971) and the video alone finds them within 1 %; no mode whose full field is wrong is called met
-    (the (3,1) and (3,2) modes read 0.93 and 0.84 there: "not discriminated" by the four sensors, docs/fidelity.md)."""
+    0.968 / 0.971) and the video alone finds them within 1 %. The (3,1) and (3,2) modes stand above the floor at the
+    sensors but not over the plate (the noise allows them 0.88 and 0.81 there; they read 0.93 and 0.84 when judged):
+    below the floor, never judged (docs/fidelity.md, "The floor over the full structure")."""
     fid = bench_script("fidelity")
     out = tmp_path / "plate"
     case = fid.Case("plate_small", "plate", texture="value_noise", fps=1000.0, bit_depth=8, views=8,
@@ -79,7 +80,8 @@ def test_a_plate_the_defaults_were_not_tuned_to_reads_its_modes_right_or_does_no
         assert m["fitted"] and not m["below_floor"], m
         assert m["mac_full"] >= fid.MIN_MAC and abs(m["scale"] - 1) <= fid.MAX_SCALE_ERR, m
         assert m["found_within_1pct"], m
+    assert modes[4]["below_floor"] and modes[6]["below_floor"], (modes[4], modes[6])
     for m in scores["modes"]:
-        if m.get("status") == "met":
-            assert m["mac_full"] >= 0.9, m
+        if m.get("fitted") and not m["below_floor"]:
+            assert m["mac_full"] >= fid.MIN_MAC and abs(m["scale"] - 1) <= fid.MAX_SCALE_ERR, m
     assert fid.targets([{"case": case.name, **scores}], None)["below_floor_never_met"]
