@@ -60,6 +60,7 @@ SNAP_M = 0.025           # a surface point farther than this from the structure'
 #                          Gaussians sit 4-15 mm off it (quartiles, arm at 320x240, 128 px training width)
 SURFACE_NODE0 = 1001     # analysis/outputs.py: the video's surface points are numbered from here
 MIN_MAC, MAX_SCALE_ERR, MAX_FREQ_ERR = 0.95, 0.10, 0.01
+TUNED_ON = "arm"         # the structure the defaults were tuned on (the demo's): not one of the issue's new ones
 
 
 @dataclass(frozen=True)
@@ -284,8 +285,11 @@ def targets(rows: list[dict], demo: dict | None) -> dict:
                   and m.get("found_within_1pct"))
             if not ok:
                 bad.append(f"{row['case']} mode {m['mode']} ({m['true_hz']:.1f} Hz)")
+    # the issue's goal is on the structures the defaults were not tuned to: the arm (the demo's rig) apart
+    tuned = {row["case"] for row in rows if row.get("structure") == TUNED_ON}
+    new = [b for b in bad if b.split(" mode ")[0] not in tuned]
     out = {"modes_above_floor_right": not bad and judged > 0, "n_judged": judged, "wrong": bad,
-           "below_floor_never_met": flagged_ok}
+           "new_structures_modes_right": not new and judged > 0, "below_floor_never_met": flagged_ok}
     if demo is not None:
         img, own = demo["images"], demo["same_texture"]
         out["demo_motion_db_ge_20"] = bool(img.get("psnr_db") is not None and img["psnr_db"] >= 20)

@@ -53,3 +53,22 @@ def test_scores_every_true_mode_of_a_piped_capture(piped_original, bench_script)
         if "mac_full" in m:
             assert 0.0 <= m["mac_full"] <= 1.0 + 1e-12 and m["scale"] >= 0 and m["field_rel_err"] >= 0
     assert fid.targets([{"case": "piped", **out}], None)["below_floor_never_met"]
+
+
+def test_targets_judge_every_mode_above_the_floor_and_keep_the_tuned_rig_apart(bench_script):
+    """A wrong mode above the floor fails the target wherever it is; the issue's goal (new structures) ignores the
+    arm the defaults were tuned on, and a mode flagged below the floor or not separated is never judged."""
+    fid = bench_script("fidelity")
+    good = {"fitted": True, "below_floor": False, "status": "met", "mac_full": 0.97, "scale": 1.05,
+            "found_within_1pct": True, "mode": 1, "true_hz": 59.4}
+    wrong = {**good, "mode": 2, "true_hz": 262.0, "mac_full": 0.93, "status": "not discriminated"}
+    flagged = {**wrong, "mode": 3, "below_floor": True, "status": "below floor"}
+    apart = {**wrong, "mode": 4, "status": "not separated"}
+    rows = [{"case": "plate", "structure": "plate", "modes": [good, flagged, apart]},
+            {"case": "arm", "structure": "arm", "modes": [good, wrong]}]
+    t = fid.targets(rows, None)
+    assert t["n_judged"] == 3 and t["wrong"] == ["arm mode 2 (262.0 Hz)"]
+    assert not t["modes_above_floor_right"] and t["new_structures_modes_right"]
+    rows[0]["modes"].append({**wrong, "mode": 5})
+    t = fid.targets(rows, None)
+    assert not t["new_structures_modes_right"] and "plate mode 5 (262.0 Hz)" in t["wrong"]
