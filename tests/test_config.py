@@ -52,3 +52,15 @@ def test_the_printed_configuration_reads_back(tmp_path):
     path = tmp_path / "odsplat.toml"
     path.write_text(text)
     assert load_config(path=path).to_dict() == c.to_dict()
+
+
+def test_magnify_does_one_view_unless_the_reconstruction_reads_magnified_frames():
+    """Issue 44: magnified frames are for watching, one view by default; a reconstruction from them (source
+    magnified/METHOD) needs every view's, so `odsplat run` magnifies them all then, unless views are named."""
+    from odsplat.app.config import Config
+    c = Config.defaults()
+    assert c.magnify.views == () and not c.magnify.every_view
+    t = Config(table={"reconstruct": {"motion": "timestep"}})
+    assert t.reconstruct.source == "magnified/phase" and t.magnify.every_view
+    named = Config(table={"reconstruct": {"source": "magnified/phase"}, "magnify": {"views": [3]}})
+    assert named.magnify.views == (3,) and not named.magnify.every_view

@@ -57,7 +57,12 @@ class Config:
             raise InputError("stage", f"expected one of {', '.join(STAGES)}; got {stage!r}")
         if stage in self.given:
             return self.given[stage]
-        return from_plain(settings_type(stage), self.table.get(stage, {}), f"{', '.join(self.sources)}: {stage}")
+        table = self.table.get(stage, {})
+        if stage == "magnify" and "views" not in table and "every_view" not in table \
+                and self.reconstruct.source != "sync":
+            # a reconstruction from magnified frames reads every view's: magnify them all (else only one, to watch)
+            table = {**table, "every_view": True}
+        return from_plain(settings_type(stage), table, f"{', '.join(self.sources)}: {stage}")
 
     qc = property(lambda self: self.settings("qc"))
     sync = property(lambda self: self.settings("sync"))

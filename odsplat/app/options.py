@@ -106,6 +106,9 @@ STAGE_FLAGS: dict[str, tuple[Flag, ...]] = {
         Flag("--source", "source", choices=("auto", "aligned", "raw")),
         Flag("--workers", "workers"),
         Flag("--take", "takes"),
+        Flag("--view", "views", multiple=True, type=int, help="Magnify this view's takes (repeatable; default: the "
+             "first view's, unless the reconstruction reads magnified frames)."),
+        Flag("--every-view", "every_view", is_flag=True, help="Magnify every view's takes."),
         Flag("--option", "options", multiple=True, metavar="KEY=VALUE", convert=_magnifier_options,
              help="A keyword of the method (e.g. n_orientations=8, cutoff_wavelength_px=4); repeatable."),
         Flag("--video/--no-video", "video"),

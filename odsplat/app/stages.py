@@ -97,8 +97,9 @@ TABLE: tuple[Stage, ...] = (
     Stage("magnify", "odsplat.processing:MagnifySettings", "odsplat.processing:run", upstream=_magnify_upstream,
           outputs=lambda cap, s: [cap.paths.magnified_dir(s.method)],
           summary=lambda r: r.summary(), volatile=("workers",), raw=True, needs_views=1, per_view=True,
-          doc="Magnify the motion in every view of CAPTURE_DIR into derived/magnified/METHOD/ (frames, and an mp4 to "
-              "watch); warns where alpha x the measured motion passes the method's bound."),
+          doc="Magnify the motion in the first view of CAPTURE_DIR (or the views named; every view where the "
+              "reconstruction reads magnified frames) into derived/magnified/METHOD/ (frames, and an mp4 to watch); "
+              "warns where alpha x the measured motion passes the method's bound."),
     Stage("poses", "odsplat.reconstruction:PoseSettings", "odsplat.reconstruction:run_poses",
           upstream=lambda c: ("qc",), outputs=lambda cap, s: [cap.paths.poses_json, cap.paths.points_npz],
           summary=lambda r: _lines(r.report_lines()), volatile=("threads",), raw=True, needs_views=2,

@@ -51,7 +51,8 @@ def _gain(cap: Capture, name: str, before: np.ndarray, after: np.ndarray, times_
     ("phase", (), (0.8, 9.6)),  # see docs/magnification-phase.md: the rig's fine texture and thin edges
 ])
 def test_every_view_is_magnified_on_the_common_grid(synced, method, options, gain_range):
-    res = magnify_capture(synced, MagnifySettings(method=method, alpha=8.0, workers=2, options=options), progress=False)
+    res = magnify_capture(synced, MagnifySettings(method=method, alpha=8.0, workers=2, options=options,
+                                                  every_view=True), progress=False)
     assert len(res.takes) == 4 and {t.source for t in res.takes} == {"aligned"}
     for t in res.takes:
         with MagnifiedVideo(synced.paths.root / t.file) as out, AlignedTake(synced.paths.aligned(t.name)) as src:
@@ -70,6 +71,9 @@ def test_raw_source_and_bad_settings(synced, tmp_path):
                           progress=False)
     view_of = {t.name: t.view for t in synced.manifest.takes}
     assert [view_of[t.name] for t in res.takes] == [2]
+    # by default, the first view's only: the one to watch (issue 44)
+    res = magnify_capture(synced, MagnifySettings(method="linear", alpha=4.0, workers=1, video=False), progress=False)
+    assert [view_of[t.name] for t in res.takes] == [min(view_of[n] for n in synced.take_names())]
     with pytest.raises(InputError, match=r"magnify.views: no take to magnify from views \[7\]"):
         magnify_capture(synced, MagnifySettings(views=(7,)), progress=False)
     with pytest.raises(InputError, match="views"):

@@ -1,0 +1,210 @@
+"""The pipeline at scale: each stage of `odsplat run` with the defaults on hil_sim captures of several sizes, its
+wall time, core-seconds, peak memory (of every process it starts, summed) and the bytes it writes; and the scaling
+exponent of each in frames, pixels and views, fitted over the sizes of a sweep (issue 44, docs/scaling.md).
+
+Each capture is generated once (`odsplat capture --sim --auto`, the arm, 12-bit frames in 16-bit words) under
+--out and reused by a later run of the bench. Each stage runs alone, as a user would run it (`odsplat run CAPTURE
+--from STAGE --to STAGE`, in its own process): its wall time, its core-seconds (user + system of the process and
+every child it waited for, from wait4), its peak resident memory (the sum over the process tree, sampled every
+SAMPLE_S, and the largest single process's from wait4), and the bytes it added under the capture's derived/.
+Baseline in the same run: reading every raw frame once (h5py, chunk by chunk), the I/O floor under every stage.
+
+    bench/scale.py --views 4 --frames 64 --size 256x256               # one capture
+    bench/scale.py --sweep frames=32,64,128 --views 4 --size 256x256  # and the exponent in frames
+    bench/scale.py --seed                                             # the seed's 27 x 640 x 1024^2 (22.5 GB raw)
+
+One JSON line per capture, then (with --sweep) one with each stage's exponent, on stdout; progress on stderr.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import h5py  # noqa: E402
+import hdf5plugin  # noqa: E402,F401  (derived frame files)
+
+log = logging.getLogger("bench.scale")
+
+STAGES = ("qc", "sync", "magnify", "poses", "reconstruct", "analyze", "report")
+SAMPLE_S = 0.1          # how often the process tree's memory is read
+SEED = {"views": 27, "frames": 640, "size": "1024x1024"}   # the paper's: a Nova S6, 1 s at 640 fps per view
+
+
+def tree_rss(proc: psutil.Process) -> int:
+    """Resident bytes of a process and all its descendants (0 for those gone meanwhile)."""
+    total = 0
+    try:
+        procs = [proc, *proc.children(recursive=True)]
+    except psutil.Error:
+        return 0
+    for p in procs:
+        try:
+            total += p.memory_info().rss
+        except psutil.Error:
+            pass
+    return total
+
+
+def measure(cmd: list[str], log_path: Path) -> dict:
+    """Run cmd, its output appended to log_path: wall seconds, core-seconds, peak summed RSS and the largest single
+    process's peak (bytes), exit status."""
+    peak = 0
+    t0 = time.perf_counter()
+    with open(log_path, "a") as out:
+        p = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT)
+        ps = psutil.Process(p.pid)
+        done = threading.Event()
+
+        def sample() -> None:
+            nonlocal peak
+            while not done.is_set():
+                peak = max(peak, tree_rss(ps))
+                done.wait(SAMPLE_S)
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        _, status, ru = os.wait4(p.pid, 0)
+        done.set()
+        sampler.join()
+        p.returncode = os.waitstatus_to_exitcode(status)
+    return {"wall_s": time.perf_counter() - t0, "core_s": ru.ru_utime + ru.ru_stime, "peak_rss_bytes": peak,
+            "max_process_rss_bytes": ru.ru_maxrss * 1024, "status": p.returncode}
+
+
+def tree_bytes(path: Path) -> int:
+    """Bytes of the regular files under path (links not followed)."""
+    total = 0
+    for root, _, files in os.walk(path):
+        for f in files:
+            try:
+                st = os.lstat(os.path.join(root, f))
+            except OSError:
+                continue
+            if not os.path.islink(os.path.join(root, f)):
+                total += st.st_size
+    return total
+
+
+def odsplat(*args: str) -> list[str]:
+    return [sys.executable, "-m", "odsplat", *args]
+
+
+def capture(out: Path, views: int, frames: int, size: str, logf: Path) -> dict:
+    """The capture at out, recorded unless it is there already: its record time (None: reused)."""
+    if (out / "capture.json").is_file():
+        return {"capture_s": None}
+    fig = measure(odsplat("capture", str(out), "--sim", "--auto", "--no-window", "--views", str(views),
+                          "--frames", str(frames), "--size", size, "--pretrigger-frames", str(min(10, frames // 4)),
+                          "--bit-depth", "12"), logf)
+    if fig["status"] not in (0, 1):            # 1: a view whose takes QC refused; the run goes on without it
+        raise SystemExit(f"odsplat capture failed with status {fig['status']}: see {logf}")
+    return {"capture_s": fig["wall_s"]}
+
+
+def read_all_frames(cap_dir: Path) -> dict:
+    """The baseline: every raw frame read once, chunk by chunk, as the stages read them."""
+    t0 = time.perf_counter()
+    n = 0
+    for f in sorted((cap_dir / "takes").glob("*.h5")):
+        with h5py.File(f, "r") as h:
+            frames = h["frames"] if "frames" in h else None
+            if frames is None:
+                continue
+            step = frames.chunks[0] if frames.chunks else 16
+            for a in range(0, frames.shape[0], step):
+                n += frames[a:a + step].nbytes
+    return {"wall_s": time.perf_counter() - t0, "bytes": n}
+
+
+def run_capture(root: Path, views: int, frames: int, size: str) -> dict:
+    name = f"v{views}_f{frames}_{size}"
+    out, logf = root / name, root / f"{name}.log"
+    root.mkdir(parents=True, exist_ok=True)
+    fig: dict = {"capture": name, "views": views, "frames": frames, "size": size, **capture(out, views, frames, size,
+                                                                                            logf)}
+    raw = tree_bytes(out / "takes")
+    fig["raw_bytes"] = raw
+    fig["baseline_read_raw"] = read_all_frames(out)
+    derived = out / "derived"
+    stages: dict = {}
+    for stage in STAGES:
+        before = tree_bytes(derived) if derived.exists() else 0
+        m = measure(odsplat("run", str(out), "--from", stage, "--to", stage), logf)
+        if m["status"] != 0:
+            raise SystemExit(f"odsplat run --from {stage} failed with status {m['status']}: see {logf}")
+        m["written_bytes"] = tree_bytes(derived) - before
+        stages[stage] = m
+        log.info("%s %s: %.1f s wall, %.1f core-s, peak %.2f GB, wrote %.1f MB", name, stage, m["wall_s"],
+                 m["core_s"], m["peak_rss_bytes"] / 1e9, m["written_bytes"] / 1e6)
+    fig["stages"] = stages
+    fig["total"] = {"wall_s": sum(m["wall_s"] for m in stages.values()),
+                    "core_s": sum(m["core_s"] for m in stages.values()),
+                    "peak_rss_bytes": max(m["peak_rss_bytes"] for m in stages.values()),
+                    "derived_bytes": tree_bytes(derived), "derived_over_raw": tree_bytes(derived) / max(raw, 1)}
+    return fig
+
+
+def exponents(rows: list[dict], axis: str) -> dict:
+    """Per stage (and the total), the slope of log(wall seconds), log(core-seconds) and log(peak RSS) against
+    log(the swept quantity): 1 is linear."""
+    x = np.log([_quantity(r, axis) for r in rows])
+    out = {}
+    for stage in (*STAGES, "total"):
+        per = [r["stages"][stage] if stage != "total" else r["total"] for r in rows]
+        out[stage] = {k: float(np.polyfit(x, np.log([max(p[k], 1e-9) for p in per]), 1)[0])
+                      for k in ("wall_s", "core_s", "peak_rss_bytes")}
+    return {"sweep": axis, "values": [_quantity(r, axis) for r in rows], "exponent": out}
+
+
+def _quantity(row: dict, axis: str) -> float:
+    if axis == "pixels":
+        w, h = (int(v) for v in row["size"].split("x"))
+        return float(w * h)
+    return float(row[axis])
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", type=Path, default=Path("bench-out/scale"))
+    ap.add_argument("--views", type=int, default=4)
+    ap.add_argument("--frames", type=int, default=64)
+    ap.add_argument("--size", default="256x256")
+    ap.add_argument("--sweep", help="AXIS=V1,V2,V3 with AXIS frames, views or size (sizes as WxH)")
+    ap.add_argument("--seed", action="store_true", help=f"the seed's capture: {SEED}")
+    a = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(name)s: %(message)s", stream=sys.stderr)
+    base = dict(SEED) if a.seed else {"views": a.views, "frames": a.frames, "size": a.size}
+    configs = [base]
+    axis = None
+    if a.sweep:
+        axis, _, values = a.sweep.partition("=")
+        if axis not in ("frames", "views", "size") or not values:
+            ap.error("--sweep: AXIS=V1,V2,... with AXIS frames, views or size")
+        configs = [{**base, axis: v if axis == "size" else int(v)} for v in values.split(",")]
+    rows = []
+    for c in configs:
+        row = run_capture(a.out, c["views"], c["frames"], c["size"])
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    if axis and len(rows) >= 2:
+        fit = exponents(rows, "pixels" if axis == "size" else axis)
+        print(json.dumps(fit), flush=True)
+        rows.append(fit)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
