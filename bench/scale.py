@@ -6,7 +6,8 @@ Each capture is generated once (`odsplat capture --sim --auto`, the arm, 12-bit 
 --out and reused by a later run of the bench. Each stage runs alone, as a user would run it (`odsplat run CAPTURE
 --from STAGE --to STAGE`, in its own process): its wall time, its core-seconds (user + system of the process and
 every child it waited for, from wait4), its peak resident memory (the sum over the process tree, sampled every
-SAMPLE_S, and the largest single process's from wait4), and the bytes it added under the capture's derived/.
+SAMPLE_S, and the largest single process's from wait4), and the bytes of the files it wrote under the capture's
+derived/.
 Baseline in the same run: reading every raw frame once (h5py, chunk by chunk), the I/O floor under every stage.
 
     bench/scale.py --views 4 --frames 64 --size 256x256               # one capture
@@ -84,8 +85,8 @@ def measure(cmd: list[str], log_path: Path) -> dict:
             "max_process_rss_bytes": ru.ru_maxrss * 1024, "status": p.returncode}
 
 
-def tree_bytes(path: Path) -> int:
-    """Bytes of the regular files under path (links not followed)."""
+def tree_bytes(path: Path, since: float | None = None) -> int:
+    """Bytes of the regular files under path (links not followed); since (a time.time()): only those written since."""
     total = 0
     for root, _, files in os.walk(path):
         for f in files:
@@ -93,7 +94,7 @@ def tree_bytes(path: Path) -> int:
                 st = os.lstat(os.path.join(root, f))
             except OSError:
                 continue
-            if not os.path.islink(os.path.join(root, f)):
+            if not os.path.islink(os.path.join(root, f)) and (since is None or st.st_mtime >= since):
                 total += st.st_size
     return total
 
@@ -141,11 +142,11 @@ def run_capture(root: Path, views: int, frames: int, size: str) -> dict:
     derived = out / "derived"
     stages: dict = {}
     for stage in STAGES:
-        before = tree_bytes(derived) if derived.exists() else 0
+        start = time.time()
         m = measure(odsplat("run", str(out), "--from", stage, "--to", stage), logf)
         if m["status"] != 0:
             raise SystemExit(f"odsplat run --from {stage} failed with status {m['status']}: see {logf}")
-        m["written_bytes"] = tree_bytes(derived) - before
+        m["written_bytes"] = tree_bytes(derived, since=start - 1.0)   # the files it wrote (mtime's resolution)
         stages[stage] = m
         log.info("%s %s: %.1f s wall, %.1f core-s, peak %.2f GB, wrote %.1f MB", name, stage, m["wall_s"],
                  m["core_s"], m["peak_rss_bytes"] / 1e9, m["written_bytes"] / 1e6)
