@@ -31,6 +31,7 @@ from odsplat.sync import AlignedTake, load_sync
 from .ods import default_ranks, stable_poles
 
 MIN_SNR = 10.0   # a principal component is used when its power is this many times the noise floor's
+CHUNK_FRAMES = 64  # frames read at a time
 
 log = logging.getLogger(__name__)
 
@@ -63,15 +64,29 @@ def pixel_channels(frames: np.ndarray, times_s: np.ndarray, *, t_min_s: float, f
     """(T', P) the textured pixels' intensities at times_s >= t_min_s, each less its mean and divided by its own
     noise (the rms of first differences over the whole take, over sqrt 2: nearly all noise at a high frame
     rate)."""
-    frames = np.asarray(frames, np.float32)
-    if frames.ndim == 4:
-        frames = frames.mean(axis=-1)
-    mask = textured_pixels(frames[0], fraction)
-    x = frames[:, mask]                                           # (T, P)
+    frames = _gray(np.asarray(frames, np.float32))
+    return normalised(frames[:, textured_pixels(frames[0], fraction)], times_s, t_min_s)
+
+
+def normalised(x: np.ndarray, times_s: np.ndarray, t_min_s: float) -> np.ndarray:
+    """pixel_channels' channels from the pixels' intensities x (T, P)."""
     noise = np.std(np.diff(x, axis=0), axis=0) / np.sqrt(2.0)
     use = np.asarray(times_s) >= t_min_s
     y = x[use] - x[use].mean(axis=0)
     return y / np.maximum(noise, 1e-6 * max(float(noise.max()), 1e-30))
+
+
+def _gray(frames: np.ndarray) -> np.ndarray:
+    return frames.mean(axis=-1) if frames.ndim == 4 else frames
+
+
+def textured_series(f, fraction: float, chunk_frames: int = CHUNK_FRAMES) -> np.ndarray:
+    """(T, P) float32: the intensities over the whole take of the textured pixels of its first frame
+    (pixel_channels' pixels), read CHUNK_FRAMES frames at a time: memory in the pixels kept, not in the frames (a
+    seed-size take, 640 frames of 1024^2, is 2.7 GB as float32)."""
+    mask = textured_pixels(_gray(np.asarray(f.read_frames(0, 1), np.float32))[0], fraction)
+    return np.concatenate([_gray(np.asarray(f.read_frames(a, a + chunk_frames), np.float32))[:, mask]
+                           for a in range(0, f.n_frames, chunk_frames)])
 
 
 def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] | None = None,
@@ -94,12 +109,12 @@ def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] | No
     for tk in tqdm(takes, desc="analysis: image poles", unit="take", disable=not progress):
         path = capture.paths.listed(tk.aligned_file)
         with AlignedTake(path, sync.generation, capture.id) as f:
-            frames, t = f.read_frames(), f.times_s
+            x, t = textured_series(f, pixel_fraction), f.times_s
         if times is None:
             times = t
         elif len(t) != len(times) or np.max(np.abs(t - times)) > 1e-9:
             raise InputError(f"{path}: times_s", "expected the capture's common sync grid, as the first take's")
-        y = pixel_channels(frames, t, t_min_s=t_min_s, fraction=pixel_fraction).astype(np.float64)
+        y = normalised(x, t, t_min_s).astype(np.float64)
         gram = y @ y.T if gram is None else gram + y @ y.T
         n_pix += y.shape[1]
     tt = times[times >= t_min_s]
@@ -119,4 +134,4 @@ def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] | No
     return ImagePoles(f_hz, zeta, len(takes), n_pix, tt, snr, y)
 
 
-__all__ = ["ImagePoles", "image_poles", "pixel_channels", "textured_pixels"]
+__all__ = ["ImagePoles", "image_poles", "normalised", "pixel_channels", "textured_pixels", "textured_series"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from odsplat.analysis.imagepoles import image_poles, pixel_channels, textured_pixels
+from odsplat.analysis.imagepoles import image_poles, normalised, pixel_channels, textured_pixels, textured_series
 from odsplat.analysis.ods import stable_poles
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.structure import ModalStructure
@@ -52,6 +52,24 @@ def test_pixel_channels_are_the_textured_pixels_scaled_by_their_noise():
     assert np.allclose(y.mean(axis=0), 0, atol=1e-4)
     # the flicker is 0.05 / 0.01 = 5 noise units at its peak
     assert 2.5 < np.median(np.std(y, axis=0)) < 5.0
+
+
+def test_a_take_read_in_chunks_gives_the_channels_of_the_take_read_whole(tmp_path):
+    """Issue 44: image poles read each aligned take CHUNK_FRAMES frames at a time and keep only the textured
+    pixels (a seed-size take is 2.7 GB as float32): the same channels as the whole take read at once."""
+    from odsplat.sync.aligned import AlignedTake, write_aligned
+    rng = np.random.default_rng(5)
+    frames = (2000 + 400 * rng.random((1, 48, 64)) + rng.normal(0, 3, (150, 48, 64))).astype(np.float32)
+    times = (np.arange(150) - 5) / 2000.0
+    path = tmp_path / "v00_000.h5"
+    with write_aligned(path, n_frames=150, frame_shape=(48, 64), band_rows=48, bit_depth=12, times_s=times,
+                       attrs={"take": "v00_000"}) as write_band:
+        write_band(slice(0, 48), frames)
+    with AlignedTake(path) as f:
+        whole = pixel_channels(f.read_frames(), times, t_min_s=0.0, fraction=0.05)
+        x = textured_series(f, 0.05, chunk_frames=16)                # 150 frames in 10 reads
+    assert x.shape == (150, whole.shape[1])
+    assert np.array_equal(normalised(x, times, 0.0), whole)
 
 
 @pytest.fixture(scope="module")
