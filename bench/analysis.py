@@ -112,7 +112,7 @@ def record_and_process(out: Path, args, figures: dict, perfect: bool) -> Capture
         return cap
     if args.motion == "timestep":                 # the paper's order: magnify in 2D, then fit the magnified views
         stage(figures, "magnify", cap.paths.magnified_dir("phase").exists(),
-              lambda: magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha,
+              lambda: magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha, every_view=True,
                                                            options=parse_options(args.magnify_option)),
                                       progress=False))
     stage(figures, "poses", cap.paths.poses_json.exists(), lambda: estimate_poses(cap).write(cap))

@@ -321,7 +321,7 @@ def run_seed(args, out: Path) -> dict:
     if not cap.paths.sync_json.exists():
         sync_capture(cap, SyncSettings())
     if not cap.paths.magnified_dir("phase").exists():
-        magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha,
+        magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha, every_view=True,
                                              options=parse_options(args.magnify_option)), progress=False)
     figures["sync_magnify_s"] = time.perf_counter() - t
     t = time.perf_counter()

@@ -8,7 +8,8 @@ Each capture is generated once (`odsplat capture --sim --auto`, the arm, 12-bit 
 every child it waited for, from wait4), its peak resident memory (the sum over the process tree, sampled every
 SAMPLE_S, and the largest single process's from wait4), and the bytes of the files it wrote under the capture's
 derived/.
-Baseline in the same run: reading every raw frame once (h5py, chunk by chunk), the I/O floor under every stage.
+Baseline in the same run: reading every raw frame once (the capture's reader, 16 frames at a time), the I/O
+floor under every stage.
 
     bench/scale.py --views 4 --frames 64 --size 256x256               # one capture
     bench/scale.py --sweep frames=32,64,128 --views 4 --size 256x256  # and the exponent in frames
@@ -34,8 +35,7 @@ import psutil
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import h5py  # noqa: E402
-import hdf5plugin  # noqa: E402,F401  (derived frame files)
+from odsplat.spine.store import Capture  # noqa: E402
 
 log = logging.getLogger("bench.scale")
 
@@ -115,18 +115,16 @@ def capture(out: Path, views: int, frames: int, size: str, logf: Path) -> dict:
     return {"capture_s": fig["wall_s"]}
 
 
-def read_all_frames(cap_dir: Path) -> dict:
+def read_all_frames(cap_dir: Path, chunk_frames: int = 16) -> dict:
     """The baseline: every raw frame read once, chunk by chunk, as the stages read them."""
+    cap = Capture.open(cap_dir)
     t0 = time.perf_counter()
     n = 0
-    for f in sorted((cap_dir / "takes").glob("*.h5")):
-        with h5py.File(f, "r") as h:
-            frames = h["frames"] if "frames" in h else None
-            if frames is None:
-                continue
-            step = frames.chunks[0] if frames.chunks else 16
-            for a in range(0, frames.shape[0], step):
-                n += frames[a:a + step].nbytes
+    for name in cap.take_names():
+        with cap.open_take(name) as take:
+            total = take.frames.shape[0]
+            for a in range(0, total, chunk_frames):
+                n += take.read_frames(a, min(a + chunk_frames, total)).nbytes
     return {"wall_s": time.perf_counter() - t0, "bytes": n}
 
 

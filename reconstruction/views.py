@@ -196,6 +196,13 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
     notes: list[str] = []
     views, grid, bit_depth, frames, alphas = [], None, None, None, set()
     generation = source_generation(capture, source)
+    missing = [vp.name for vp in take_poses if not source_path(capture, source, vp.name).exists()]
+    if source != "sync" and missing:
+        # magnify does the first view only unless told (a view to watch): a model from a few views is no result
+        raise InputError(capture.paths.frames(source, missing[0]).parent,
+                         f"no {source} frames for {len(missing)} of the {len(take_poses)} posed takes "
+                         f"({', '.join(missing[:4])}{', ...' if len(missing) > 4 else ''}): run `odsplat magnify "
+                         "--every-view` first (`odsplat run` does, for this source)")
     for vp in take_poses:
         path = source_path(capture, source, vp.name)
         if not path.exists():

@@ -25,6 +25,8 @@ from odsplat.spine.store import Capture
 N_VIEWS = 3
 # Test-sized, like tests/test_pipeline.py's: 48 px Gaussians, few iterations, a low LSCF order for 24-frame takes.
 CONFIG = """
+[magnify]
+every_view = true    # the default magnifies one view to watch; every view exercises magnify's per-view tasks
 [reconstruct]
 width_px = 48
 n_timesteps = 16
@@ -37,7 +39,7 @@ crosscheck_views = 0
 plots = false
 """
 # Above the 2000 fps camera's Nyquist: every view's magnifier refuses it, inside magnify's per-view tasks.
-BROKEN = CONFIG + "[magnify]\nband_hz = [20, 1500]\n"
+BROKEN = CONFIG.replace("[magnify]\n", "[magnify]\nband_hz = [20, 1500]\n")
 VOLATILE = {"created_utc", "generation", "run_id", "fingerprint", "seconds"}   # a run's ids and times
 
 

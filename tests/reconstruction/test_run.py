@@ -3,6 +3,7 @@ reconstruct, render; the saved files and their errors."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import cv2
@@ -37,7 +38,7 @@ def reconstructed(tmp_path_factory):
                               trigger=HammerTrigger(pretrigger_s=0.01, record_s=0.05), static_photos=True)
     assert CaptureSession(out, session, SimBench(settings=SimBenchSettings(seed=1))).run().complete
     _ok(["sync", out])
-    _ok(["magnify", out, "--alpha", "20", "--workers", "1"])
+    _ok(["magnify", out, "--alpha", "20", "--workers", "1", "--every-view"])
     _ok(["poses", out])
     text = _ok(["reconstruct", out, "--motion", "timestep", "--width", "64", "--timesteps", "3", "--iters-t0", "150",
                 "--iters-step", "15", "--holdout", "v05_000", "--threads", "1"])
@@ -182,3 +183,19 @@ def test_parse_times_and_frame_selection():
     assert ReconstructSettings().timesteps is None and ReconstructSettings(motion="modal").timesteps is None
     assert ReconstructSettings(motion="timestep").timesteps == 32
     assert ReconstructSettings(n_timesteps=5, motion="timestep").timesteps == 5
+
+
+def test_a_reconstruction_from_magnified_frames_stops_where_views_were_not_magnified(reconstructed, tmp_path):
+    """magnify does the first view only unless told (issue 44): the paper's order, reconstructing from magnified
+    frames, must not train on that one view in silence. One line naming the takes and the command, status 2."""
+    cap, _ = reconstructed
+    copy = tmp_path / "cap"
+    shutil.copytree(cap.root, copy)
+    _ok(["magnify", copy, "--alpha", "20", "--workers", "1", "--no-video"])        # the default: the first view
+    r = CliRunner().invoke(main, ["reconstruct", str(copy), "--motion", "timestep", "--width", "48",
+                                  "--timesteps", "2", "--iters-t0", "10", "--threads", "1"])
+    assert r.exit_code == 2, r.output
+    line = r.output.strip().splitlines()[-1]
+    m = re.search(r"no magnified/phase frames for (\d+) of the (\d+) posed takes \(v", line)
+    assert m and int(m.group(1)) == int(m.group(2)) - 1 >= 10, r.output
+    assert "run `odsplat magnify --every-view` first" in line and "Traceback" not in r.output
