@@ -64,8 +64,8 @@ def test_a_plate_the_defaults_were_not_tuned_to_reads_its_modes_right_or_does_no
     always judged (measured: 0.978, scale 0.987). The (2,1) and (1,2) modes stand near the full-field floor (0.974
     and 0.955 allowed in a run from the shell, where they read 0.957 and 0.976): judged right in some runs of the
     suite, flagged in others: the captures' DAQ records differ (real time through the sim's links; sync 0.27 us
-    apart) and the rest fit amplifies that (docs/fidelity.md). The (3,1) and (3,2) modes stand above the floor at the sensors
-    but not over the plate (the noise allows them 0.88 and 0.81 there; they read 0.93 and 0.84 when judged):
+    apart) and the rest fit amplifies that (docs/fidelity.md). The (3,1) and (3,2) modes stand above the floor at
+    the sensors but not over the plate (the noise allows them 0.88 and 0.81 there; they read 0.93 and 0.84 when judged):
     below the floor, never judged (docs/fidelity.md, "The floor over the full structure")."""
     fid = bench_script("fidelity")
     out = tmp_path / "plate"
