@@ -335,24 +335,23 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
         fit = dataclasses.replace(fit, amplitudes=shapes.apply(fit.amplitudes))
     # The physical limit: the camera's Cramér-Rao bound on every point against the measured floor, and each mode's
     # motion against a floor per direction (analysis/crlb.py).
-    bound = direction = None
+    bound = direction = kept_axes = None
     amplitudes = fit.amplitudes          # the shapes': the fit's, less the axes the direction floor calls noise
     if noise is not None:
+        R = len(poles)
+        gain = design_gains(t, poles, t_min) * np.sqrt(noise.spectrum_gain)   # each mode's sd per unit noise
         bound = displacement_bound(capture, motion.points_m, noise.point_sigma_m, structure=keep, noise=noise,
                                    sensors_m=pos, sensor_dirs=dirs, k=s.k_neighbours, outlier_factor=s.outlier_factor)
         if bound is not None:
-            R = len(poles)
-            gain = design_gains(t, poles, t_min) * np.sqrt(noise.spectrum_gain)
             direction = direction_floor(bound, fit.amplitudes[:, n_s:].reshape(R, -1, 3), gain)
             if s.direction_floor:
                 # modes below the floor keep their shape as fitted: it is flagged as the noise's as a whole
                 kept_axes = ~(direction.noise_axes() & ~noise.below[:, None])                    # (R, 3)
                 amplitudes = amplitudes.copy()
                 amplitudes[:, n_s:] = (amplitudes[:, n_s:].reshape(R, -1, 3) * kept_axes[:, None, :]).reshape(R, -1)
-    if noise is not None and keep.any():
-        noise, amplitudes = _full_field_floor(noise, fit, amplitudes, keep, n_s,
-                                              design_gains(t, poles, t_min) * np.sqrt(noise.spectrum_gain),
-                                              shapes.real if shapes is not None else None)
+        if keep.any():
+            noise, amplitudes = _full_field_floor(noise, fit, amplitudes, keep, n_s, gain,
+                                                  shapes.real if shapes is not None else None, kept_axes)
     residues = dataclasses.replace(fit, amplitudes=amplitudes).residues(F)
     disp = motion.displacement_m[:, ~keep]                                          # (T, N_bg, 3)
     background = float(np.median(np.sqrt(np.mean((disp - disp.mean(axis=0)) ** 2, axis=(0, 2))))) \
@@ -368,16 +367,17 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
 
 
 def _full_field_floor(noise: NoiseFloor, fit: DecayFit, amplitudes: np.ndarray, keep: np.ndarray, n_s: int,
-                      mode_sd: np.ndarray, real: np.ndarray | None) -> tuple[NoiseFloor, np.ndarray]:
+                      mode_sd: np.ndarray, real: np.ndarray | None,
+                      kept_axes: np.ndarray | None) -> tuple[NoiseFloor, np.ndarray]:
     """The floor over the full structure (noise.full_field_expected_mac) on the shapes as kept (amplitudes (R, M):
-    the sensors' n_s channels, then the points'): a mode above the floor at the sensors may be small over most of
-    the structure, where its shape is the noise's (the plate hit at 600 N: its (3,2) mode 1.04x its floor at the
-    sensors, 0.81 allowed over the plate, 0.84 measured against the truth, docs/fidelity.md). A mode it puts below
-    keeps its shape as fitted, as the others below do. The noise floor with it, and the amplitudes (fit.amplitudes
-    less the axes the direction floor dropped, per mode, where it did)."""
+    the sensors' n_s channels, then the points'; kept_axes (R, 3) the axes the direction floor left them, None:
+    all): a mode above the floor at the sensors may be small over most of the structure, where its shape is the
+    noise's (the plate hit at 600 N: its (3,2) mode 1.04x its floor at the sensors, 0.81 allowed over the plate,
+    0.84 measured against the truth, docs/fidelity.md). A mode it puts below keeps its shape as fitted, as the
+    others below do. The noise floor with it, and the amplitudes."""
     R = len(mode_sd)
     fitted = fit.amplitudes[:, n_s:].reshape(R, -1, 3)[:, keep]
-    kept = np.any(amplitudes[:, n_s:].reshape(R, -1, 3)[:, keep] != 0, axis=1, keepdims=True)    # (R, 1, 3)
+    kept = None if kept_axes is None else kept_axes[:, None, :]                                   # (R, 1, 3)
     sigma = noise.component_sigma_m if noise.component_sigma_m is not None else noise.point_sigma_m
     ff = full_field_expected_mac(fitted, sigma[keep], mode_sd, real, kept)
     newly = ~noise.below & (ff < FLOOR_MAC)

@@ -107,9 +107,9 @@ def _noise_section(nf: NoiseFloor, freq_hz: np.ndarray) -> NoiseFloorSection:
         modes=tuple(NoiseModeEntry(float(f), float(1e6 * a), float(1e6 * fl), float(g), bool(b),
                                    separation_gain=None if sg is None else float(sg), not_separated=bool(u),
                                    record_needed_s=_finite(rn) if rn is not None else None,
-                                   full_field_mac=None if ff is None else float(ff), below_at_sensors=bool(a < fl))
-                    for f, a, fl, g, b, sg, u, rn, ff in zip(
-                        freq_hz, nf.mode_amplitude_m, nf.mode_floor_m, nf.spectrum_gain, nf.below,
+                                   full_field_mac=None if ff is None else float(ff), below_at_sensors=bool(bs))
+                    for f, a, fl, g, b, bs, sg, u, rn, ff in zip(
+                        freq_hz, nf.mode_amplitude_m, nf.mode_floor_m, nf.spectrum_gain, nf.below, nf.below_at_sensors,
                         _each(nf.separation_gain, len(freq_hz)), nf.unseparated,
                         _each(nf.record_needed_s, len(freq_hz)), _each(nf.full_field_mac, len(freq_hz)))))
 

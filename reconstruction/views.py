@@ -205,7 +205,7 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
                          "--every-view` first (`odsplat run` does, for this source)")
     for vp in take_poses:
         path = source_path(capture, source, vp.name)
-        if not path.exists():
+        if vp.name in missing:
             notes.append(f"{vp.name}: no {source} frames, left out")
             continue
         with SourceFrames(path, generation, capture.id) as ff:
