@@ -89,8 +89,8 @@ class MagnifySettings:
     source: str = "auto"                         # aligned (sync's grid), raw (the takes), auto: aligned if synced
     chunk_frames: int = 16
     workers: int | None = None                   # default: one per core, at most one per take
-    takes: tuple[str, ...] = ()                  # only these takes (default: every take sync kept, else every
-    #                                              accepted take)
+    takes: tuple[str, ...] = ()                  # only these takes, all of them (default: every take sync kept,
+    #                                              else every accepted take; of those, the first view's or `views`)
     views: tuple[int, ...] = ()                  # only these viewpoints' takes (of those above); default: the
     #                                              first view's, the one to watch (every_view: all of them)
     every_view: bool = False                     # every view's takes: what a reconstruction from magnified frames
@@ -417,23 +417,24 @@ def _inputs(capture: Capture, s: MagnifySettings) -> tuple[list[tuple[str, str |
         missing = [n for n in names if n not in synced]
         if missing:
             raise InputError(sync_json, f"takes {missing} are not on sync's grid (excluded or not synced)")
-        return [(n, synced[n]) for n in _of_views(capture, names, s.views, s.every_view)], sync.generation
+        return [(n, synced[n]) for n in _of_views(capture, names, s)], sync.generation
     names = list(s.takes) or [t.name for t in capture.select_takes("accepted") if t.n_frames > 0]
     known = set(capture.take_names())
     missing = [n for n in names if n not in known]
     if missing:
         raise InputError(capture.root, f"no takes named {missing}")
-    return [(n, None) for n in _of_views(capture, names, s.views, s.every_view)], None
+    return [(n, None) for n in _of_views(capture, names, s)], None
 
 
-def _of_views(capture: Capture, names: list[str], views: tuple[int, ...], every_view: bool = False) -> list[str]:
-    """The takes of `names` filmed from one of `views`; without views, every take (every_view) or the first view's
-    (the lowest view number; the first take where the takes have none): a magnified view is for someone to watch,
-    and at the seed's scale (27 views x 640 frames x 1024^2) magnifying them all took most of the run (issue 44).
-    None is an error."""
+def _of_views(capture: Capture, names: list[str], s: MagnifySettings) -> list[str]:
+    """The takes of `names` filmed from one of `s.views`; without views, every take (s.every_view, or s.takes
+    named) or the first view's (the lowest view number; the first take where the takes have none): a magnified view
+    is for someone to watch, and at the seed's scale (27 views x 640 frames x 1024^2) magnifying them all took most
+    of the run (issue 44). None is an error."""
+    views = s.views
     view_of = {t.name: t.view for t in capture.manifest.takes}
     if not views:
-        if every_view or not names:
+        if s.every_view or s.takes or not names:
             return names
         numbered = [view_of.get(n) for n in names if view_of.get(n) is not None]
         if not numbered:

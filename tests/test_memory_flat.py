@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import sys
 
-import pytest
 from click.testing import CliRunner
 
 from odsplat.app.cli import main
@@ -14,8 +13,7 @@ from odsplat.app.cli import main
 BUDGET_MB = "16"     # a band of 256 x 192 px frames per take; 4096 (every take whole) fails this test
 
 
-@pytest.mark.parametrize("stage", ["sync"])
-def test_peak_memory_is_flat_in_the_number_of_frames(tmp_path, bench_script, stage):
+def test_sync_peak_memory_is_flat_in_the_number_of_frames(tmp_path, bench_script):
     scale = bench_script("scale")
     peaks = {}
     for frames in (64, 512):
@@ -23,7 +21,7 @@ def test_peak_memory_is_flat_in_the_number_of_frames(tmp_path, bench_script, sta
         r = CliRunner().invoke(main, ["capture", str(out), "--sim", "--auto", "--no-window", "--views", "2",
                                       "--frames", str(frames), "--size", "256x192", "--pretrigger-frames", "8"])
         assert r.exit_code == 0, r.output
-        m = scale.measure([sys.executable, "-m", "odsplat", "run", str(out), "--to", stage,
+        m = scale.measure([sys.executable, "-m", "odsplat", "run", str(out), "--to", "sync",
                            "--set", "sync.max_memory_mb=" + BUDGET_MB], tmp_path / "log")
         assert m["status"] == 0, (tmp_path / "log").read_text()[-2000:]
         peaks[frames] = m["peak_rss_bytes"]

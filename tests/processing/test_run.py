@@ -74,6 +74,11 @@ def test_raw_source_and_bad_settings(synced, tmp_path):
     # by default, the first view's only: the one to watch (issue 44)
     res = magnify_capture(synced, MagnifySettings(method="linear", alpha=4.0, workers=1, video=False), progress=False)
     assert [view_of[t.name] for t in res.takes] == [min(view_of[n] for n in synced.take_names())]
+    # takes named are all magnified, whatever their views
+    named = tuple(sorted(synced.take_names())[-2:])
+    res = magnify_capture(synced, MagnifySettings(method="linear", alpha=4.0, workers=1, video=False, takes=named),
+                          progress=False)
+    assert sorted(t.name for t in res.takes) == list(named)
     with pytest.raises(InputError, match=r"magnify.views: no take to magnify from views \[7\]"):
         magnify_capture(synced, MagnifySettings(views=(7,)), progress=False)
     with pytest.raises(InputError, match="views"):
