@@ -76,6 +76,18 @@ def _to_pixels(points_m: np.ndarray, K, R, t) -> tuple[np.ndarray, np.ndarray]:
     return cam, (cam @ np.asarray(K, float).T)[:, :2] / np.where(z > 0, z, 1.0)
 
 
+def _structure_box(points_m: np.ndarray, K, R, t, shape: tuple[int, int], pad_px: int) -> tuple[int, int, int, int]:
+    """(y0, y1, x0, x1): the pixels of a frame of `shape` that the points in front of the camera fall on, padded;
+    the whole frame when none do."""
+    cam, uv = _to_pixels(points_m, K, R, t)
+    h, w = shape
+    on = (cam[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    if not on.any():
+        return 0, h, 0, w
+    lo, hi = np.floor(uv[on].min(axis=0)).astype(int) - pad_px, np.ceil(uv[on].max(axis=0)).astype(int) + pad_px
+    return max(lo[1], 0), min(hi[1] + 1, h), max(lo[0], 0), min(hi[0] + 1, w)
+
+
 def _visible(points_cam: np.ndarray, uv: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Points nearest the camera on their pixel (a z-buffer over the surface points, 3x3 neighbourhood)."""
     h, w = shape
@@ -175,12 +187,20 @@ def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int 
     chosen = [takes[int(i)] for i in np.unique(np.linspace(0, len(takes) - 1, min(max_views, len(takes))).round())]
     out = []
     for tk in chosen:
-        with AlignedTake(capture.paths.listed(tk.aligned_file), sync.generation) as ff:
-            frames, times = ff.read_frames(), ff.times_s
-        if frames.ndim == 4:
-            frames = frames.mean(axis=-1)
         p = poses[tk.name]
-        check = check_view(frames, times, motion, p["K"], p["R"], p["t"], take=tk.name, n_points=n_points,
+        with AlignedTake(capture, capture.paths.listed(tk.aligned_file), sync.generation) as ff:
+            # only the structure's box is read (sync filters the pixels it is asked for): memory in the box
+            y0, y1, x0, x1 = _structure_box(motion.points_m, p["K"], p["R"], p["t"], ff.frame_shape[:2], pad_px=32)
+
+            def box(frame: np.ndarray, y0=y0, y1=y1, x0=x0, x1=x1) -> np.ndarray:
+                frame = frame[y0:y1, x0:x1]
+                return frame.mean(axis=-1) if frame.ndim == 3 else frame
+
+            frames, times = ff.read_frames(spatial=box), ff.times_s
+        K = np.asarray(p["K"], float).copy()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        check = check_view(frames, times, motion, K, p["R"], p["t"], take=tk.name, n_points=n_points,
                            method=method, force_ratio=float(np.nan_to_num(impulse[tk.name] / mean_impulse, nan=1.0)),
                            k=k, outlier_factor=outlier_factor)
         if check is not None:

@@ -82,10 +82,15 @@ def _gray(frames: np.ndarray) -> np.ndarray:
 
 def textured_series(f, fraction: float, chunk_frames: int = CHUNK_FRAMES) -> np.ndarray:
     """(T, P) float32: the intensities over the whole take of the textured pixels of its first frame
-    (pixel_channels' pixels), read CHUNK_FRAMES frames at a time: memory in the pixels kept, not in the frames (a
-    seed-size take, 640 frames of 1024^2, is 2.7 GB as float32)."""
+    (pixel_channels' pixels), read CHUNK_FRAMES frames at a time, the pixels chosen before sync's time filter:
+    memory and work in the pixels kept, not in the frames (a seed-size take, 640 frames of 1024^2, is 2.7 GB as
+    float32)."""
     mask = textured_pixels(_gray(np.asarray(f.read_frames(0, 1), np.float32))[0], fraction)
-    return np.concatenate([_gray(np.asarray(f.read_frames(a, a + chunk_frames), np.float32))[:, mask]
+
+    def kept(frame: np.ndarray) -> np.ndarray:
+        return (frame.mean(axis=-1) if frame.ndim == 3 else frame)[mask]
+
+    return np.concatenate([np.asarray(f.read_frames(a, a + chunk_frames, kept), np.float32)
                            for a in range(0, f.n_frames, chunk_frames)])
 
 
@@ -108,7 +113,7 @@ def image_poles(capture: Capture, *, fmax_hz: float, ranks: tuple[int, ...] | No
     gram, times, n_pix = None, None, 0
     for tk in tqdm(takes, desc="analysis: image poles", unit="take", disable=not progress):
         path = capture.paths.listed(tk.aligned_file)
-        with AlignedTake(path, sync.generation, capture.id) as f:
+        with AlignedTake(capture, path, sync.generation) as f:
             x, t = textured_series(f, pixel_fraction), f.times_s
         if times is None:
             times = t

@@ -272,7 +272,7 @@ class _Source:
         self.name = name
         if aligned_file:
 
-            self._r = AlignedTake(Path(aligned_file), sync_generation, capture.id)
+            self._r = AlignedTake(capture, Path(aligned_file), sync_generation)
             self.kind = "aligned"
             self.bit_depth = int(self._r.attrs["bit_depth"])
             self.times_s = self._r.times_s

@@ -49,7 +49,7 @@ def _open(capture: Capture, take: str, source: str):
         files = {t.name: t.aligned_file for t in sync.ok if t.aligned_file}
         if take not in files:
             raise InputError("--take", f"sync has no aligned frames of {take!r} (it has {', '.join(files) or 'none'})")
-        reader = AlignedTake(capture.paths.listed(files[take]), sync.generation, capture.id)
+        reader = AlignedTake(capture, capture.paths.listed(files[take]), sync.generation)
         return reader, _rate(reader.times_s), None
     method = source.partition("/")[2]
     result = MagnifyResult.read(capture, method)

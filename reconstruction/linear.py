@@ -61,7 +61,7 @@ from odsplat.spine.store import Capture
 from .dynamic import render
 from .gaussians import Gaussians
 from .modal import ModalMotion
-from .views import Camera, SceneFrame, SourceFrames, ViewSet, pose_camera, source_generation, source_path
+from .views import Camera, SceneFrame, ViewSet, open_frames, pose_camera, source_generation, source_path
 
 log = logging.getLogger(__name__)
 
@@ -303,7 +303,7 @@ def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: Vie
     pixels are usable."""
     frames = np.asarray(vs.frame_index)
     path = source_path(capture, "sync", name)
-    with SourceFrames(path, generation, capture.id) as ff:
+    with open_frames(capture, "sync", name, generation) as ff:
         times = ff.times_s
         if frames.max() >= len(times) or not np.allclose(times[frames], vs.times_s, atol=1e-9):
             raise InputError(path, "times_s differ from the training grid's")

@@ -9,27 +9,26 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
 
 import cv2
 import numpy as np
 import torch
 
-from odsplat.processing import MagnifyResult
+from odsplat.processing import MagnifiedVideo, MagnifyResult
 from odsplat.spine.errors import InputError
-from odsplat.spine.framefile import ALIGNED_KIND, MAGNIFIED_KIND, FrameFile
 from odsplat.spine.geometry import camera_center_m
 from odsplat.spine.store import Capture
-from odsplat.sync import load_sync
+from odsplat.sync import AlignedTake, load_sync
 
 log = logging.getLogger(__name__)
 
-class SourceFrames(FrameFile):
-    """A take's frames on the common grid: sync's aligned take or processing's magnified one."""
-
-    KINDS: ClassVar[tuple[str, ...]] = (ALIGNED_KIND, MAGNIFIED_KIND)
-    WHAT = "aligned or magnified take"
-    MISSING = "no such frame file (run `odsplat sync`, and `odsplat magnify` for a magnified source)"
+def open_frames(capture: Capture, source: str, name: str, generation: str | None) -> AlignedTake | MagnifiedVideo:
+    """A take's frames on the common grid: sync's aligned take or processing's magnified one (`read_frames`,
+    `iter_frames`, `times_s`, `frame_shape`, `attrs`)."""
+    path = source_path(capture, source, name)
+    if source == "sync":
+        return AlignedTake(capture, path, generation)
+    return MagnifiedVideo(path, generation, capture.id)
 
 
 def source_generation(capture: Capture, source: str) -> str:
@@ -177,6 +176,18 @@ def select_frames(times_s: np.ndarray, n_timesteps: int | None, step: int = 1, s
     return idx
 
 
+def _read_selected(ff, frames: np.ndarray, spatial, chunk_frames: int = 32) -> np.ndarray:
+    """The frames at the (increasing) grid indices `frames`, each through `spatial`, read chunk by chunk over their
+    span."""
+    out, frames = [], np.asarray(frames, int)
+    for a in range(int(frames[0]), int(frames[-1]) + 1, chunk_frames):
+        b = min(a + chunk_frames, int(frames[-1]) + 1)
+        wanted = frames[(frames >= a) & (frames < b)]
+        if len(wanted):
+            out.append(ff.read_frames(a, b, spatial)[wanted - a])
+    return np.concatenate(out)
+
+
 def _resize(image: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
     out = cv2.resize(image, (width_px, height_px), interpolation=cv2.INTER_AREA)
     return out[..., None] if out.ndim == 2 else out
@@ -208,27 +219,30 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
         if vp.name in missing:
             notes.append(f"{vp.name}: no {source} frames, left out")
             continue
-        with SourceFrames(path, generation, capture.id) as ff:
+        cam = Camera(vp.K, vp.R, vp.t, vp.width_px, vp.height_px, vp.name)
+        small = cam.resized(width_px)
+        with open_frames(capture, source, vp.name, generation) as ff:
             times = ff.times_s
             if grid is None:
                 grid, bit_depth = times, int(ff.attrs["bit_depth"])
                 frames = select_frames(grid, n_timesteps, step, start, max_timesteps)
             elif len(times) != len(grid) or not np.allclose(times, grid, atol=1e-9):
                 raise InputError(path, "times_s differ from the other takes' (not on one sync grid)")
-            data = np.stack([ff.read_frames(int(k), int(k) + 1)[0] for k in frames])
+            if tuple(ff.frame_shape[:2]) != (cam.height_px, cam.width_px):
+                raise InputError(path, f"frames are {ff.frame_shape[1]}x{ff.frame_shape[0]} px, the pose says "
+                                       f"{cam.width_px}x{cam.height_px}")
+
+            def shrink(frame: np.ndarray, small=small) -> np.ndarray:   # linear: it commutes with sync's filter
+                return _resize(frame, small.width_px, small.height_px)
+
+            data = _read_selected(ff, frames, shrink)
             before = np.flatnonzero(times < 0)
-            rest = ff.read_frames(int(before[0]), int(before[-1]) + 1).astype(np.float64).mean(axis=0) \
+            rest = ff.read_frames(int(before[0]), int(before[-1]) + 1, shrink).astype(np.float64).mean(axis=0) \
                 if len(before) else None
             alphas.add(float(ff.attrs.get("alpha", 1.0)))
         full = 2.0 ** bit_depth - 1
-        cam = Camera(vp.K, vp.R, vp.t, vp.width_px, vp.height_px, vp.name)
-        if data.shape[1:3] != (cam.height_px, cam.width_px):
-            raise InputError(path, f"frames are {data.shape[2]}x{data.shape[1]} px, the pose says "
-                                   f"{cam.width_px}x{cam.height_px}")
-        small = cam.resized(width_px)
-        imgs = np.stack([_resize(f / full, small.width_px, small.height_px) for f in data])
-        rest_t = None if rest is None else torch.as_tensor(
-            np.clip(_resize(rest / full, small.width_px, small.height_px), 0, 1), dtype=dtype)
+        imgs = data / full
+        rest_t = None if rest is None else torch.as_tensor(np.clip(rest / full, 0, 1), dtype=dtype)
         views.append(TrainView(small, torch.as_tensor(np.clip(imgs, 0, 1), dtype=dtype), rest=rest_t))
     if not views:
         raise InputError(capture.paths.frames_dir(source), f"no frame files for the posed takes ({'; '.join(notes)})")
@@ -271,5 +285,5 @@ def _read_photo(path: Path) -> np.ndarray:
     return img[..., ::-1].copy() if img.ndim == 3 else img
 
 
-__all__ = ["Camera", "SceneFrame", "SourceFrames", "TrainView", "ViewSet", "load_views", "pose_camera", "select_frames",
+__all__ = ["Camera", "SceneFrame", "open_frames", "TrainView", "ViewSet", "load_views", "pose_camera", "select_frames",
            "source_path"]

@@ -38,7 +38,7 @@ from odsplat.spine.take_reader import TakeReader
 
 from .aligned import write_aligned
 from .image import DisplacementBasis, fit_frame_times, motion_gram, noise_sd
-from .resample import fill_dropped, fractional_shift, interpolate_gaps
+from .resample import fill_dropped, fractional_shift
 from .strobe import fit_strobe
 
 log = logging.getLogger(__name__)
@@ -54,7 +54,7 @@ class SyncSettings:
     method: str = "auto"                  # auto: the strobe when a take has a ttl channel, else the images
     takes: str = "accepted"               # which takes: those QC accepted, or all
     normalize_impulse: bool = False       # scale each take's motion to the median impulse (the structure is linear)
-    write_frames: bool = True             # the aligned frames, derived/sync/NAME.h5
+    write_frames: bool = True             # the aligned takes, derived/sync/NAME.h5 (computed from the raw take)
     check_with_image: bool = True         # strobe-timed takes: date them from the images too, as a check
     camera_trigger_delay_s: float = 0.0   # from the DAQ's trigger to the camera latching it
     search_frames: float = 1.5            # image method: how far around the trigger frame to look
@@ -416,30 +416,29 @@ def _write_aligned(capture: Capture, t: TakeSync, reader: TakeReader, rest_count
     if t.drift_frames > 0.02:
         t.flags.append("rate_drift")
         t.notes.append(f"one shift per take leaves {t.drift_frames:.3f} frame of timing error at the grid's ends")
-    whole = math.floor(mean_shift)
-    frac = mean_shift - whole
-    present = np.zeros(full.size, bool)
-    present[pos] = True
-    shape = reader.frame_shape
-    row_bytes = full.size * int(np.prod(shape[1:])) * 8 * 4
-    band = max(1, min(shape[0], int(settings.max_memory_mb * 1e6 // row_bytes)))
+    source_frame = np.full(full.size, -1, np.int64)
+    source_frame[pos] = np.arange(len(pos))
+    rest_dn = None
+    if t.impulse_scale not in (None, 1.0):
+        rest_dn = _mean_frames(reader, np.flatnonzero(np.isin(counters, rest_counters)), settings.max_memory_mb)
     path = out_dir / f"{t.name}.h5"
-    with write_aligned(path, n_frames=n_grid, frame_shape=shape, band_rows=band, bit_depth=reader.bit_depth,
-                       times_s=grid, attrs=dict(take=t.name, view=t.view, offset_s=t.offset_s, method=t.method,
-                                                impulse_scale=t.impulse_scale or 1.0,
-                                                grid_shift_frames=mean_shift, generation=generation),
-                       capture_id=capture.id) as write_band:
-        for r0 in range(0, shape[0], band):
-            rows = slice(r0, min(r0 + band, shape[0]))
-            x = np.empty((full.size, rows.stop - r0, *shape[1:]), np.float64)
-            x[pos] = reader.frames[:, rows]
-            x = interpolate_gaps(x, present)
-            if t.impulse_scale not in (None, 1.0):
-                rest = x[np.isin(full, rest_counters)].mean(axis=0)
-                x = rest + (x - rest) * t.impulse_scale
-            y = fractional_shift(x, frac, axis=0)
-            write_band(rows, y[whole:whole + n_grid])
+    write_aligned(path, take=t.name, times_s=grid, source_frame=source_frame, grid_shift_frames=mean_shift,
+                  bit_depth=reader.bit_depth, rest_dn=rest_dn,
+                  attrs=dict(view=t.view, offset_s=t.offset_s, method=t.method, impulse_scale=t.impulse_scale or 1.0,
+                             generation=generation), capture_id=capture.id)
     t.aligned_file = os.path.relpath(path, capture.paths.root)  # relative to the derived root
+
+
+def _mean_frames(reader: TakeReader, index: np.ndarray, max_memory_mb: float) -> np.ndarray | None:
+    """The mean of the raw frames at `index`, read within the memory budget; None for none."""
+    if not len(index):
+        return None
+    step = max(1, int(max_memory_mb * 1e6 // (np.prod(reader.frame_shape) * 4)))
+    total = np.zeros(reader.frame_shape, np.float64)
+    for a in range(int(index[0]), int(index[-1]) + 1, step):
+        block = reader.read_frames(a, min(a + step, int(index[-1]) + 1))
+        total += np.asarray(block[np.isin(np.arange(a, a + len(block)), index)], np.float64).sum(axis=0)
+    return (total / len(index)).astype(np.float32)
 
 
 class _Serial:
@@ -476,8 +475,7 @@ def sync_capture(capture: Capture, settings: SyncSettings | None = None, *, prog
         raise OdsplatError(f"{capture.root}: no {'' if s.takes == 'all' else 'accepted '}takes to sync"
                            + ("" if s.takes == "all" else capture.unchecked_hint()))
     out_dir = capture.paths.aligned_dir
-    takes = [capture.root / r.file for r in records if r.n_frames] if s.write_frames else []
-    generation = begin_outputs(capture.paths.sync_json, out_dir, takes, "the aligned frames")
+    generation = begin_outputs(capture.paths.sync_json, out_dir)
     try:
         return _sync(capture, s, records, generation, out_dir, progress, executor)
     except BaseException:

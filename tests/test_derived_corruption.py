@@ -56,7 +56,7 @@ class Kind:
 
 
 def _read_frames(reader, generation: str, cap: Capture, path: Path) -> None:
-    with reader(path, generation, cap.id) as f:
+    with (AlignedTake(cap, path, generation) if reader is AlignedTake else reader(path, generation, cap.id)) as f:
         f.read_frames()
 
 
@@ -106,7 +106,7 @@ NPZ_EDITS = {"trajectories.npz": ("times_s", ("means_rest_m", lambda a: a[:, :2]
              "measured_motion.npz": ("displacement_m", ("displacement_m", lambda a: a[:, :-1]), "opacity_logits"),
              "points.npz": ("points_m", ("points_m", lambda a: a[:, :2]), "points_m")}
 H5_EDITS = {"results.h5": ("geometry/node_ids", ("geometry/coords_m", lambda a: a[:, :2]), "geometry/coords_m"),
-            "sync/TAKE.h5": ("times_s", ("times_s", lambda a: a[:-1]), "frames"),
+            "sync/TAKE.h5": ("times_s", ("times_s", lambda a: a[:-1]), "source_frame"),
             "magnified/TAKE.h5": ("times_s", ("times_s", lambda a: a[:-1]), "frames")}
 
 
@@ -231,8 +231,27 @@ BYTES = {
 CASES = [(kind, what) for kind in KINDS for what in (*BYTES, *SEMANTIC)]
 
 
+# Files whose middle is free space (a small HDF5 file's allocation): the flip goes to the middle of this dataset's
+# stored bytes instead, where a change is a change of content.
+FLIP_IN = {"sync/TAKE.h5": "source_frame"}
+
+
+def _flip_dataset(name: str):
+    def corrupt(src: Path, dst: Path, cap: Capture) -> None:
+        import h5py
+        with h5py.File(src, "r") as f:
+            info = f[name].id.get_chunk_info(0)
+        b = bytearray(src.read_bytes())
+        mid = info.byte_offset + info.size // 2 - 32
+        b[mid:mid + 64] = bytes(x ^ 0xFF for x in b[mid:mid + 64])
+        dst.write_bytes(bytes(b))
+    return corrupt
+
+
 def _corrupt(kind: str, what: str, src: Path, dst: Path, cap: Capture) -> None:
     dst.unlink(missing_ok=True)   # a new file: never an edit through a link to the original
+    if what == "bytes flipped in the middle" and kind in FLIP_IN:
+        return _flip_dataset(FLIP_IN[kind])(src, dst, cap)
     (BYTES[what] if what in BYTES else _semantic(kind, what))(src, dst, cap)
 
 

@@ -39,7 +39,7 @@ OWNERS = {
 READERS = {
     "odsplat/spine/manifest.py": "load_json: the one checked JSON reader (capture.json, rig files, every index)",
     "odsplat/spine/contract.py": "read_npz: the one checked reader of a derived .npz",
-    "odsplat/spine/framefile.py": "the derived frame files (sync/, magnified/): one layout, one reader",
+    "odsplat/spine/framefile.py": "the derived frame files (magnified/): one layout, one reader",
     "odsplat/spine/take_reader.py": "the raw takes (takes/*.h5) and their JSON attributes",
     "odsplat/spine/take_writer.py": "the take being written (SWMR)",
     "odsplat/spine/recovery.py": "a crashed take's .partial file",
@@ -48,6 +48,7 @@ READERS = {
     "odsplat/spine/lock.py": "the lock file's holder",
     "odsplat/spine/qcfile.py": "derived/qc.json",
     "sync/align.py": "derived/sync.json",
+    "sync/aligned.py": "derived/sync/NAME.h5: how each take is aligned (its frames are computed from the raw take)",
     "processing/magnify.py": "derived/magnified/METHOD/magnify.json; parses --option values (no file)",
     "reconstruction/pose_result.py": "derived/poses.json and points.npz",
     "reconstruction/model.py": "derived/reconstruction/: its index and the motion .npz files",

@@ -132,7 +132,7 @@ def test_changed_settings_rerun_that_stage_and_what_depends_on_it(piped, tmp_pat
 def test_sigkill_during_a_stage_then_run_gives_a_complete_correct_result(piped, tmp_path):
     cap = _copy(piped, tmp_path)
     sync_before = load_sync(cap)
-    frames_before = {t.name: AlignedTake(cap.paths.aligned(t.name)).read_frames() for t in sync_before.ok[:3]}
+    frames_before = {t.name: AlignedTake(cap, cap.paths.aligned(t.name)).read_frames() for t in sync_before.ok[:3]}
     stamp = cap.paths.stamp("sync")
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen([sys.executable, "-m", "odsplat", "run", str(cap.root), "--force", "sync"], env=env,
@@ -155,7 +155,7 @@ def test_sigkill_during_a_stage_then_run_gives_a_complete_correct_result(piped, 
     assert [t.name for t in after.ok] == [t.name for t in sync_before.ok]
     np.testing.assert_allclose([t.offset_s for t in after.ok], [t.offset_s for t in sync_before.ok], atol=1e-9)
     for name, frames in frames_before.items():
-        np.testing.assert_array_equal(AlignedTake(cap.paths.aligned(name)).read_frames(), frames)
+        np.testing.assert_array_equal(AlignedTake(cap, cap.paths.aligned(name)).read_frames(), frames)
     assert all(current for _, current, _ in status(cap))
 
 
@@ -185,7 +185,7 @@ def test_sync_and_magnify_killed_at_random_points_then_rerun_leave_one_consisten
     stage's run), the index is gone or lists only files of its own run, and the rerun gives the same result as
     an uninterrupted run with no temporaries left."""
     cap = _copy(piped, tmp_path)
-    before = {t.name: AlignedTake(cap.paths.aligned(t.name)).read_frames() for t in load_sync(cap).ok[:2]}
+    before = {t.name: AlignedTake(cap, cap.paths.aligned(t.name)).read_frames() for t in load_sync(cap).ok[:2]}
     files_before = _derived_files(cap)
     rng = np.random.default_rng(29)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
@@ -211,7 +211,7 @@ def test_sync_and_magnify_killed_at_random_points_then_rerun_leave_one_consisten
     assert not [p for p in cap.paths.root.rglob("*.tmp")]
     assert _derived_files(cap) == files_before
     for name, frames in before.items():
-        np.testing.assert_array_equal(AlignedTake(cap.paths.aligned(name)).read_frames(), frames)
+        np.testing.assert_array_equal(AlignedTake(cap, cap.paths.aligned(name)).read_frames(), frames)
 
 
 def test_a_frame_file_of_another_run_is_refused(piped, tmp_path):

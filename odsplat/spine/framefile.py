@@ -1,5 +1,6 @@
-"""Derived frame files (`derived/sync/NAME.h5`, `derived/magnified/METHOD/NAME.h5`): frames computed from a
-take, written once (temporary file, fsync, rename) and read back in chunks. One layout for every stage.
+"""Derived frame files (`derived/magnified/METHOD/NAME.h5`): frames computed from a take, written once (temporary
+file, fsync, rename) and read back in chunks. Sync's aligned takes (`derived/sync/NAME.h5`) share the folder rules
+and the kind's name here, but hold how to compute their frames, not the frames (`odsplat.sync.aligned`).
 
 Layout (HDF5): attributes `kind` (what the file holds: `ALIGNED_KIND` or `MAGNIFIED_KIND`) and `schema_version`
 (`SCHEMA`), as every derived file describes itself (odsplat.spine.contract), and `generation`, the id of the stage
@@ -233,14 +234,16 @@ class FrameFile:
     def times_s(self) -> np.ndarray:
         return self._times.copy()
 
-    def read_frames(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+    def read_frames(self, start: int = 0, stop: int | None = None, spatial=None) -> np.ndarray:
+        """Frames start..stop-1 as float32 DN; `spatial`: a map applied to each (as sync's aligned takes take it)."""
         stop = self.n_frames if stop is None else min(stop, self.n_frames)
         try:
             stored = self._file["frames"][start:stop]
         except H5_ERRORS as exc:
             raise InputError(self.path, f"frames {start}-{stop - 1}: unreadable, cut short or damaged "
                                         f"({' '.join(str(exc).split())[:200]}); run its stage again") from None
-        return stored.astype(np.float32) / self.scale
+        frames = stored.astype(np.float32) / self.scale
+        return frames if spatial is None or not len(frames) else np.stack([spatial(f) for f in frames])
 
     def iter_frames(self, chunk_frames: int = 16) -> Iterator[np.ndarray]:
         for k in range(0, self.n_frames, chunk_frames):

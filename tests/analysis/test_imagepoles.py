@@ -10,7 +10,7 @@ from odsplat.analysis.ods import stable_poles
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.structure import ModalStructure
 from odsplat.spine.store import Capture
-from odsplat.sync import SyncSettings, sync_capture
+from odsplat.sync import AlignedTake, SyncSettings, load_sync, sync_capture
 
 F0 = np.array([23.5, 31.0, 86.0, 262.0])
 Z0 = np.array([0.01, 0.008, 0.015, 0.02])
@@ -54,24 +54,6 @@ def test_pixel_channels_are_the_textured_pixels_scaled_by_their_noise():
     assert 2.5 < np.median(np.std(y, axis=0)) < 5.0
 
 
-def test_a_take_read_in_chunks_gives_the_channels_of_the_take_read_whole(tmp_path):
-    """Issue 44: image poles read each aligned take CHUNK_FRAMES frames at a time and keep only the textured
-    pixels (a seed-size take is 2.7 GB as float32): the same channels as the whole take read at once."""
-    from odsplat.sync.aligned import AlignedTake, write_aligned
-    rng = np.random.default_rng(5)
-    frames = (2000 + 400 * rng.random((1, 48, 64)) + rng.normal(0, 3, (150, 48, 64))).astype(np.float32)
-    times = (np.arange(150) - 5) / 2000.0
-    path = tmp_path / "v00_000.h5"
-    with write_aligned(path, n_frames=150, frame_shape=(48, 64), band_rows=48, bit_depth=12, times_s=times,
-                       attrs={"take": "v00_000"}) as write_band:
-        write_band(slice(0, 48), frames)
-    with AlignedTake(path) as f:
-        whole = pixel_channels(f.read_frames(), times, t_min_s=0.0, fraction=0.05)
-        x = textured_series(f, 0.05, chunk_frames=16)                # 150 frames in 10 reads
-    assert x.shape == (150, whole.shape[1])
-    assert np.array_equal(normalised(x, times, 0.0), whole)
-
-
 @pytest.fixture(scope="module")
 def long_takes(tmp_path_factory) -> Capture:
     """Three views of 400 frames (200 ms at 2000 fps), synced: long enough for 23.5 and 31 Hz."""
@@ -94,6 +76,18 @@ def test_image_poles_of_a_simulated_capture(long_takes):
         assert np.min(np.abs(f_true - f) / f_true) < 0.005, res.freq_hz
     found = [f0 for f0 in f_true if len(res.freq_hz) and np.min(np.abs(res.freq_hz - f0)) < 0.005 * f0]
     assert {23.5, 31.0, 86.0, 262.0} <= set(found), res.freq_hz
+
+
+def test_a_take_read_in_chunks_gives_the_channels_of_the_take_read_whole(long_takes):
+    """Issue 44: image poles read each aligned take CHUNK_FRAMES frames at a time and keep only the textured
+    pixels (a seed-size take is 2.7 GB as float32): the same channels as the whole take read at once."""
+    take = load_sync(long_takes).ok[0]
+    with AlignedTake(long_takes, long_takes.paths.listed(take.aligned_file)) as f:
+        times = f.times_s
+        whole = pixel_channels(f.read_frames(), times, t_min_s=0.0, fraction=0.05)
+        x = textured_series(f, 0.05, chunk_frames=64)                # 400 frames in 7 reads
+    assert x.shape == (len(times), whole.shape[1])
+    np.testing.assert_allclose(normalised(x, times, 0.0), whole, rtol=0, atol=1e-5)
 
 
 def test_no_image_poles_without_synced_frames(tmp_path):

@@ -55,7 +55,8 @@ def test_every_view_is_magnified_on_the_common_grid(synced, method, options, gai
                                                   every_view=True), progress=False)
     assert len(res.takes) == 4 and {t.source for t in res.takes} == {"aligned"}
     for t in res.takes:
-        with MagnifiedVideo(synced.paths.root / t.file) as out, AlignedTake(synced.paths.aligned(t.name)) as src:
+        with (MagnifiedVideo(synced.paths.root / t.file) as out,
+              AlignedTake(synced, synced.paths.aligned(t.name)) as src):
             assert out.n_frames == src.n_frames
             np.testing.assert_allclose(out.times_s, src.times_s)
             gain = _gain(synced, t.name, src.read_frames(), out.read_frames(), src.times_s)

@@ -100,9 +100,13 @@ def moving_beam(tmp_path_factory):
             with torch.no_grad():
                 frames.append(render(g, cam, means=means, background=0.3).image[..., 0].numpy())
         dn = np.clip(np.stack(frames) + rng.normal(0, 0.002, (len(q), H, W)), 0, 1) * 4095
-        with write_aligned(cap.derived_dir / "sync" / f"{name}.h5", n_frames=len(q), frame_shape=(H, W),
-                           band_rows=H, bit_depth=12, times_s=times, attrs={"take": name, "generation": "g1"}) as write:
-            write(slice(0, H), dn)
+        # the raw take, and sync's alignment of it: on the grid as recorded (no shift)
+        with cap.new_take(name, view=k, frame_shape=(H, W), bit_depth=12, fps=FPS, channels=()) as take:
+            take.append_frames(np.rint(dn).astype(np.uint16), times_s=times)
+            take.finalize()
+        write_aligned(cap.derived_dir / "sync" / f"{name}.h5", take=name, times_s=times,
+                      source_frame=np.arange(len(q)), grid_shift_frames=0.0, bit_depth=12, rest_dn=None,
+                      attrs={"generation": "g1"}, capture_id=cap.id)
         views.append(ViewPose(name, "take", k, "tags", K, R, tvec, W, H, None, None, None))
     # The index the frame files belong to: sync's, with their generation.
     SyncResult(capture=cap.manifest.name, fps=FPS, n_frames=len(q), t0_s=float(times[0]), frame_shape=[H, W],

@@ -72,8 +72,8 @@ def test_render_a_take_camera_matches_its_frame(reconstructed, tmp_path):
     pngs = sorted((tmp_path / "r").glob("frame_*.png"))
     assert len(pngs) == 3 and (tmp_path / "r" / "render.mp4").stat().st_size > 0
     img = cv2.imread(str(pngs[0]), cv2.IMREAD_UNCHANGED).astype(float) / 255
-    from odsplat.reconstruction.views import SourceFrames
-    with SourceFrames(cap.derived_dir / "magnified" / "phase" / "v03_000.h5") as f:
+    from odsplat.processing import MagnifiedVideo
+    with MagnifiedVideo(cap.derived_dir / "magnified" / "phase" / "v03_000.h5") as f:
         frame = f.read_frames(int(select_frames(f.times_s, 3)[0]))[0] / (2 ** int(f.attrs["bit_depth"]) - 1)
     small = cv2.resize(frame.astype(np.float32), (64, 48), interpolation=cv2.INTER_AREA)
     psnr = 10 * np.log10(1 / np.mean((img - small) ** 2))

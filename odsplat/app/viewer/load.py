@@ -231,7 +231,7 @@ def aligned_frame(data: ViewerData, take: str, time_s: float) -> np.ndarray | No
         log.warning("sync's index could not be read (%s); the aligned frames are shown unchecked", e)
         generation = None
     try:
-        with AlignedTake(path, generation, capture.id) as f:
+        with AlignedTake(capture, path, generation) as f:
             k = int(np.argmin(np.abs(f.times_s - time_s)))
             frame = np.asarray(f.read_frames(k, k + 1)[0], float)
     except OdsplatError as e:
