@@ -194,7 +194,9 @@ def full_field_expected_mac(amplitudes: np.ndarray, point_sigma_m: np.ndarray, m
     shape + noise against the shape, x^2 / (x^2 + n^2) with x^2 = E - N. A mode large at the sensors but small over
     most of the structure reads lower here. What the direction floor drops counts as noise, as it judges: where it
     held true motion (tests/analysis/test_run.py, whose noise does not follow the cameras), the MAC against the
-    whole shape is lower by that motion's share."""
+    whole shape is lower by that motion's share. A shape with no energy left on what it keeps allows 0 (before,
+    1: no noise there either, which let three modes of the plate whose every axis the direction floor had dropped
+    stand above the floor, judged with nothing to judge)."""
     a = np.asarray(amplitudes)
     R = a.shape[0]
     keep = np.ones(a.shape, bool) if kept is None else np.broadcast_to(np.asarray(kept, bool), a.shape)
@@ -204,7 +206,8 @@ def full_field_expected_mac(amplitudes: np.ndarray, point_sigma_m: np.ndarray, m
     var = (sig ** 2)[None] * (np.asarray(mode_sd) ** 2 * share)[:, None, None]                          # (R, N, 3)
     energy = np.sum(np.abs(2 * a) ** 2 * keep, axis=(1, 2))
     noise = np.sum(var * keep, axis=(1, 2))
-    return np.clip(1 - noise / np.maximum(energy, 1e-300), 0.0, 1.0)
+    # a shape with nothing left (the direction floor dropped every component as the noise's) allows nothing: 0
+    return np.where(energy > 0, np.clip(1 - noise / np.maximum(energy, 1e-300), 0.0, 1.0), 0.0)
 
 
 QUADRATURE_SIGNIFICANT = 1.5  # a mode's energy out of phase, over the noise's there, above which it may be complex

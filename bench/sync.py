@@ -39,6 +39,39 @@ def rms(x) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
 
 
+def _alignment(cap: Capture, delay_s: float):
+    """Sync writes how each take is aligned, and a reader computes the frames as it streams them (32-tap windowed
+    sinc, chunks of 16 frames); the baseline is the whole take shifted in memory by the FFT (what sync stored before
+    issue 44). The two agree to within the interpolators' difference near the Nyquist frequency. Returns the times,
+    traced peaks, the differences (DN) on a sample of pixels and sync's result."""
+    aligned = sync_capture(cap, SyncSettings(method="ttl", camera_trigger_delay_s=delay_s, check_with_image=False))
+    tracemalloc.start()
+    t = time.perf_counter()
+    streamed = {}
+    for tk in aligned.ok:
+        with AlignedTake(cap, cap.paths.listed(tk.aligned_file)) as a:
+            streamed[tk.name] = [x[:, ::8, ::8].copy() for x in a.iter_frames(16)]   # a sample to compare
+    stream_s = time.perf_counter() - t
+    _, stream_peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    tracemalloc.start()
+    t = time.perf_counter()
+    diff = []
+    for tk in aligned.ok:
+        with cap.open_take(tk.name) as r:
+            whole = r.read_frames().astype(np.float64)
+            shifted = fractional_shift(whole, tk.grid_shift_frames % 1.0, axis=0)
+        if not tk.dropped_counters:
+            k = int(np.floor(tk.grid_shift_frames))
+            y = shifted[k:k + aligned.n_frames, ::8, ::8]
+            diff.append((np.concatenate(streamed[tk.name]) - y).ravel())
+    whole_s = time.perf_counter() - t
+    _, whole_peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    diff = np.concatenate(diff) if diff else np.zeros(0)
+    return stream_s, stream_peak, whole_s, whole_peak, diff, aligned
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--views", type=int, default=27)
@@ -88,34 +121,7 @@ def main() -> None:
         base_start = trig + delay_s + 0.5 / fps  # the trigger frame alone: somewhere in the frame after the trigger
         frame_base_err.append((base_start + 0.5 * exposure - tr.impact_time_s[0] - true_offset(t.name)) * fps)
 
-    # Alignment: sync writes how each take is aligned, and a reader computes the frames as it streams them (32-tap
-    # windowed sinc, chunks of 16 frames); the baseline is the whole take shifted in memory by the FFT (what sync
-    # stored before issue 44). The two agree to within the interpolators' difference near the Nyquist frequency.
-    aligned = sync_capture(cap, SyncSettings(method="ttl", camera_trigger_delay_s=delay_s, check_with_image=False))
-    tracemalloc.start()
-    t = time.perf_counter()
-    streamed = {}
-    for tk in aligned.ok:
-        with AlignedTake(cap, cap.paths.listed(tk.aligned_file)) as a:
-            streamed[tk.name] = [x[:, ::8, ::8].copy() for x in a.iter_frames(16)]   # a sample to compare
-    stream_s = time.perf_counter() - t
-    _, stream_peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    tracemalloc.start()
-    t = time.perf_counter()
-    diff = []
-    for tk in aligned.ok:
-        with cap.open_take(tk.name) as r:
-            whole = r.read_frames().astype(np.float64)
-            shifted = fractional_shift(whole, tk.grid_shift_frames % 1.0, axis=0)
-        if not tk.dropped_counters:
-            k = int(np.floor(tk.grid_shift_frames))
-            y = shifted[k:k + aligned.n_frames, ::8, ::8]
-            diff.append((np.concatenate(streamed[tk.name]) - y).ravel())
-    whole_s = time.perf_counter() - t
-    _, whole_peak = tracemalloc.get_traced_memory()
-    tracemalloc.stop()
-    diff = np.concatenate(diff) if diff else np.zeros(0)
+    stream_s, stream_peak, whole_s, whole_peak, diff, aligned = _alignment(cap, delay_s)
     n_px = int(np.prod(aligned.frame_shape)) * args.frames * len(aligned.ok)
     print(json.dumps({
         "bench": "sync",

@@ -226,3 +226,6 @@ def test_the_full_field_floor_predicts_the_mac_of_a_shape_small_over_most_of_the
     assert 0.3 < measured.min() < 0.9                          # the test means something: the noise matters
     big = full_field_expected_mac(a[:, :10], np.full(10, sigma), sd)
     assert np.all(big > 0.95) and np.all(big > measured + 0.1), (big, measured)
+    # a shape the direction floor left nothing of allows nothing (it read 1: no energy, and no noise either)
+    nothing = full_field_expected_mac(a[:, :10], np.full(10, sigma), sd, kept=np.zeros(3, bool))
+    assert np.all(nothing == 0.0), nothing
