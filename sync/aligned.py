@@ -74,7 +74,7 @@ def write_aligned(path: Path, *, take: str, times_s: np.ndarray, source_frame: n
 
 def _filter(x: np.ndarray, weights: np.ndarray, n: int, block: int = 16) -> np.ndarray:
     """y[i] = sum_j weights[j] x[i + j] for i < n, as a banded matrix product per `block` output frames (a BLAS
-    product: ten times the speed of one pass per tap on this machine, `bench/scale.py`)."""
+    product: 3-4 ms per 1024^2 frame on this machine against 35 ms for one pass per tap)."""
     taps = len(weights)
     flat = x.reshape(len(x), -1)
     y = np.empty((n, flat.shape[1]), np.float32)
@@ -108,10 +108,15 @@ class AlignedTake:
             raise InputError(self.path, f"not a readable {self.WHAT}, cut short or damaged ({type(exc).__name__}: "
                                         f"{' '.join(str(exc).split())[:200]}); run `odsplat sync` again") from None
         self._raw = capture.open_take(self._attrs["take"])
+        problem = None
         if self._source.max(initial=-1) >= self._raw.n_frames:
+            problem = (f"lists raw frames up to {self._source.max()}, but take {self._attrs['take']!r} has "
+                       f"{self._raw.n_frames}")
+        elif self._rest is not None and self._rest.shape != tuple(self._raw.frame_shape):
+            problem = f"rest_dn is {self._rest.shape}, the take's frames {tuple(self._raw.frame_shape)}"
+        if problem:
             self._raw.close()
-            raise InputError(self.path, f"lists raw frames up to {self._source.max()}, but take "
-                                        f"{self._attrs['take']!r} has {self._raw.n_frames}: run `odsplat sync` again")
+            raise InputError(self.path, f"{problem}: run `odsplat sync` again")
         self._memo: tuple[int, np.ndarray] = (0, np.zeros((0, *self.frame_shape), np.float32))
 
     def _read_recipe(self, f: h5py.File, generation: str | None, capture_id: str) -> None:
