@@ -34,6 +34,7 @@ KIND = ALIGNED_KIND
 SCHEMA = 4          # 4: the frames computed from the raw take on reading (3 stored them)
 HALF_TAPS = 16      # the filter's taps each side of the sample: 32 in all
 KAISER_BETA = 8.0
+READ_FRAMES = 64    # the longest run of grid frames computed at once
 
 Spatial = Callable[[np.ndarray], np.ndarray]
 
@@ -194,12 +195,20 @@ class AlignedTake:
 
     def read_frames(self, start: int = 0, stop: int | None = None, spatial: Spatial | None = None) -> np.ndarray:
         """Grid frames start..stop-1, (n, H, W[, C]) float32 DN. `spatial`: a linear map of one frame (a resize, a
-        choice of pixels), applied before the time filter: the same result for less work on fewer pixels."""
+        choice of pixels), applied before the time filter: the same result for less work on fewer pixels. A long
+        range goes READ_FRAMES at a time: the raw frames in memory are those of one chunk, whatever is asked for
+        (a seed-size take read whole through a crop held 10 GB)."""
         stop = self.n_frames if stop is None else min(stop, self.n_frames)
         if not 0 <= start <= stop:
             raise InputError(self.path, f"frame range {start}:{stop} outside 0:{self.n_frames}")
         if start == stop:
             return np.zeros((0, *self.frame_shape), np.float32)
+        if stop - start > READ_FRAMES:
+            return np.concatenate([self._read(a, min(a + READ_FRAMES, stop), spatial)
+                                   for a in range(start, stop, READ_FRAMES)])
+        return self._read(start, stop, spatial)
+
+    def _read(self, start: int, stop: int, spatial: Spatial | None) -> np.ndarray:
         filled = mirror(np.arange(start + self._whole + self._offsets[0], stop + self._whole + self._offsets[-1]),
                         len(self._source))
         lo, hi, w = self._lo[filled], self._hi[filled], self._w_hi[filled]
