@@ -126,20 +126,19 @@ def atomic_h5(path: str | Path) -> Iterator[h5py.File]:
 
 
 def create_frames(f: h5py.File, kind: str, *, frame_shape: tuple[int, ...], bit_depth: int, times_s: np.ndarray,
-                  n_frames: int | None = None, chunk_rows: int | None = None,
+                  n_frames: int | None = None,
                   attrs: Mapping[str, Any] | None = None, capture_id: str | None = None) -> tuple[h5py.Dataset, float]:
     """The `frames` dataset (n_frames long, or growable from 0 when None) and `times_s`, with the file's
     attributes (`capture_id`: the capture's, which a reader given the capture checks); returns the dataset and its
-    value scale. Chunks are one frame, or bands of `chunk_rows` rows for writers that go band by band."""
+    value scale. Chunks are one frame."""
     scale = value_scale(bit_depth)
     f.attrs.update(kind=kind, schema_version=SCHEMA, bit_depth=int(bit_depth), value_scale=scale,
                    **{k: v for k, v in (attrs or {}).items() if v is not None})
     if capture_id is not None:
         f.attrs[CAPTURE_KEY] = capture_id
-    rows = frame_shape[0] if chunk_rows is None else min(chunk_rows, frame_shape[0])
     n = 0 if n_frames is None else n_frames
     ds = f.create_dataset("frames", shape=(n, *frame_shape), maxshape=(n_frames, *frame_shape), dtype=np.uint16,
-                          chunks=(1, rows, *frame_shape[1:]), fletcher32=True, **frame_compression())
+                          chunks=(1, *frame_shape), fletcher32=True, **frame_compression())
     f.create_dataset("times_s", data=np.asarray(times_s, float))
     return ds, scale
 
