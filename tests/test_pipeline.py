@@ -134,16 +134,11 @@ def test_sigkill_during_a_stage_then_run_gives_a_complete_correct_result(piped, 
     sync_before = load_sync(cap)
     frames_before = {t.name: AlignedTake(cap, cap.paths.aligned(t.name)).read_frames() for t in sync_before.ok[:3]}
     stamp = cap.paths.stamp("sync")
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "odsplat", "run", str(cap.root), "--force", "sync"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 60
-    while stamp.exists() and time.monotonic() < deadline:   # the stage has begun once its stamp is gone
-        time.sleep(0.05)
-    time.sleep(2.0)                                          # well inside sync's ~6 s
-    assert proc.poll() is None, "sync finished before it could be killed"
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    for _ in range(3):      # sync writes its files within a few hundred ms: a try that misses them tries again
+        if _kill_once_sync_writes(cap, stamp):
+            break
+    else:
+        pytest.fail("sync finished three times before it could be killed while writing")
     assert _processes_on(cap.root, within_s=30) == [], "a killed run's pool workers outlived it"
     assert not stamp.exists()
     assert dict((n, c) for n, c, _ in status(cap))["sync"] is False
@@ -157,6 +152,28 @@ def test_sigkill_during_a_stage_then_run_gives_a_complete_correct_result(piped, 
     for name, frames in frames_before.items():
         np.testing.assert_array_equal(AlignedTake(cap, cap.paths.aligned(name)).read_frames(), frames)
     assert all(current for _, current, _ in status(cap))
+
+
+def _kill_once_sync_writes(cap: Capture, stamp: Path) -> bool:
+    """Run `odsplat run --force sync` and SIGKILL it as soon as sync has rewritten one of its files (the stage has
+    begun, its stamp is gone, and its results are half old, half new); False if the stage ended first."""
+    started_ns = time.time_ns()
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "odsplat", "run", str(cap.root), "--force", "sync"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    folder, deadline, begun = cap.paths.aligned_dir, time.monotonic() + 120, False
+    try:
+        while proc.poll() is None and time.monotonic() < deadline:
+            begun = begun or not stamp.exists()
+            if begun and stamp.exists():
+                return False                                   # the stage ended between two looks
+            if begun and any(f.stat().st_mtime_ns > started_ns for f in folder.glob("*.h5")):
+                return True
+            time.sleep(0.002)
+        return False
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
 
 
 def _processes_on(path: Path, within_s: float) -> list[str]:
