@@ -309,10 +309,11 @@ def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: Vie
             raise InputError(path, "times_s differ from the training grid's")
         full = 2.0 ** int(ff.attrs["bit_depth"]) - 1
 
-        def read(a, b, ff=ff, full=full):
-            """Frames a..b as grey levels in [0, 1] (colour: the mean of the channels)."""
-            x = np.asarray(ff.read_frames(a, b), np.float64).reshape(b - a, *ff.frame_shape[:2], -1)
-            return x.mean(axis=-1) / full
+        def read(a, b, box=(slice(None), slice(None)), ff=ff, full=full):
+            """Frames a..b as grey levels in [0, 1] (colour: the mean of the channels), within `box` (two slices)."""
+            whole = box == (slice(None), slice(None))
+            x = np.asarray(ff.read_frames(a, b, spatial=None if whole else lambda f: f[box]), np.float64)
+            return x.reshape(*x.shape[:3], -1).mean(axis=-1) / full
 
         before = times < 0
         if not before.any():
@@ -364,11 +365,27 @@ def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: Vie
         X, a = _projection_rows(cam, uu, vv, z[vv, uu], gx[vv, uu], gy[vv, uu])
         A = graph.rows(X, a / noise)
         rhs = np.zeros((A.shape[1], len(frames)))
+        # The timesteps' frames within the used pixels' box, widened by the filters' reach (so that the filtered
+        # values there are those of the whole frame), a chunk at a time (a frame at a time recomputed the time
+        # filter's 32 raw frames for each: 38 s a view at 1024^2).
+        reach = len(PREFILTER) // 2 + (int(np.ceil(4 * s.blur_px)) if s.blur_px > 0 else 0) + 1
+        r0, c0 = max(int(vv.min()) - reach, 0), max(int(uu.min()) - reach, 0)
+        box = (slice(r0, min(int(vv.max()) + reach + 1, h)), slice(c0, min(int(uu.max()) + reach + 1, w)))
+        rest_box, vb, ub = rest[box], vv - r0, uu - c0
         for a0 in range(0, len(frames), s.chunk_frames):
             idx = frames[a0:a0 + s.chunk_frames]
-            d = np.stack([smooth(read(int(k), int(k) + 1)[0] - rest)[vv, uu] for k in idx], axis=1)
+            d = np.stack([smooth(f - rest_box)[vb, ub] for f in _frames_at(read, idx, box)], axis=1)
             rhs[:, a0:a0 + len(idx)] += A.T @ (d / noise)
     return A, ViewRows(name, int(len(vv)), noise), rhs
+
+
+def _frames_at(read, idx: np.ndarray, box) -> np.ndarray:
+    """Grid frames idx (ascending) through read(a, b, box): as one span where they lie close (the usual step of 1),
+    else one at a time."""
+    a, b = int(idx[0]), int(idx[-1]) + 1
+    if b - a <= 4 * len(idx):
+        return read(a, b, box)[idx - a]
+    return np.concatenate([read(int(k), int(k) + 1, box) for k in idx])
 
 
 def _other_surface_energy(z: np.ndarray, covered: np.ndarray, energy: np.ndarray, step_m: float) -> np.ndarray:

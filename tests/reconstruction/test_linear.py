@@ -2,13 +2,14 @@
 known scene moving by a known sub-pixel motion (real aligned-take files on disk, noise added)."""
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
 from odsplat.reconstruction.dynamic import render
 from odsplat.reconstruction.gaussians import Gaussians
-from odsplat.reconstruction.linear import LinearSettings, NodeGraph, fit_linear
+from odsplat.reconstruction.linear import PREFILTER, LinearSettings, NodeGraph, _filter, _frames_at, fit_linear
 from odsplat.reconstruction.model import ReconstructSettings
 from odsplat.reconstruction.pose_result import PoseResult, ViewPose
 from odsplat.reconstruction.views import Camera, load_views
@@ -16,7 +17,7 @@ from odsplat.spine.errors import InputError
 from odsplat.spine.geometry import look_at
 from odsplat.spine.manifest import Manifest
 from odsplat.spine.store import Capture
-from odsplat.sync import SyncResult
+from odsplat.sync import AlignedTake, SyncResult
 from odsplat.sync.aligned import write_aligned
 
 
@@ -186,3 +187,24 @@ def test_edge_pixels_are_kept_where_the_other_side_is_plain():
     # An uncovered neighbour (no Gaussian there) counts as another surface too.
     open_ = _other_surface_energy(z, z < 2, member + 4.0 * (member == 0), step_m=0.5)
     assert np.array_equal(open_[:, 10:20] > 0, textured[:, 10:20] > 0)
+
+
+@pytest.mark.parametrize("blur_px", [0.0, 1.5])
+def test_the_used_pixels_box_filters_as_the_whole_frame(moving_beam, blur_px):
+    """The right-hand side reads each timestep within the used pixels' box widened by the filters' reach: there
+    the prefiltered (and blurred) change is the whole frame's, to rounding; chosen frames read as a span."""
+    cap = moving_beam[0]
+    sm = lambda im: cv2.GaussianBlur(im, (0, 0), blur_px) if blur_px else im  # noqa: E731
+    smooth = lambda im: sm(_filter(im, PREFILTER, PREFILTER))  # noqa: E731
+    vv, uu = np.mgrid[40:70, 60:100].reshape(2, -1)
+    reach = len(PREFILTER) // 2 + (int(np.ceil(4 * blur_px)) if blur_px else 0) + 1
+    box = (slice(40 - reach, 70 + reach), slice(60 - reach, 100 + reach))
+    with AlignedTake(cap, cap.paths.aligned("v00_000")) as ff:
+        def read(a, b, box=(slice(None), slice(None))):
+            return ff.read_frames(a, b, spatial=lambda f: f[box]).astype(np.float64)
+        idx = np.array([3, 5, 7, 9, 20])
+        whole = np.stack([smooth(f)[vv, uu] for f in read(0, ff.n_frames)[idx]])
+        boxed = np.stack([smooth(f)[vv - 40 + reach, uu - 60 + reach] for f in _frames_at(read, idx, box)])
+        assert np.abs(whole - boxed).max() < 1e-9 * np.abs(whole).max()
+        far = np.array([0, 40])                  # too far apart for a span: one frame at a time, the same frames
+        np.testing.assert_array_equal(_frames_at(read, far, box), read(0, ff.n_frames, box)[far])
