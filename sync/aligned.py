@@ -25,9 +25,9 @@ from typing import Any
 import h5py
 import numpy as np
 
-from odsplat.spine.contract import CAPTURE_KEY, check_capture
+from odsplat.spine.contract import CAPTURE_KEY
 from odsplat.spine.errors import InputError, SchemaError
-from odsplat.spine.framefile import ALIGNED_KIND, H5_ERRORS, atomic_h5
+from odsplat.spine.framefile import ALIGNED_KIND, H5_ERRORS, atomic_h5, check_header
 from odsplat.spine.store import Capture
 
 KIND = ALIGNED_KIND
@@ -122,15 +122,8 @@ class AlignedTake:
 
     def _read_recipe(self, f: h5py.File, generation: str | None, capture_id: str) -> None:
         attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
-        if attrs.get("kind") != KIND:
-            raise SchemaError(self.path, f"not an {self.WHAT} (kind {KIND!r} expected)")
-        if attrs.get("schema_version") != SCHEMA:
-            raise SchemaError(self.path, f"{self.WHAT} of schema {attrs.get('schema_version')}; this odsplat reads "
-                                         f"{SCHEMA} (run `odsplat sync` again)")
-        check_capture(attrs.get(CAPTURE_KEY), self.path, capture_id)
-        if generation is not None and attrs.get("generation") != generation:
-            raise InputError(self.path, "written by another run of its stage than its index lists (a run was "
-                                        "interrupted): run `odsplat sync` again")
+        check_header(attrs, self.path, kinds=(KIND,), schema=SCHEMA, what=self.WHAT, generation=generation,
+                     capture_id=capture_id, again="run `odsplat sync` again")
         for key in ("times_s", "source_frame"):
             if not isinstance(f.get(key), h5py.Dataset) or f[key].ndim != 1:
                 raise InputError(self.path, f"no {key} (one value per frame); run `odsplat sync` again")

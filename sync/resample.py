@@ -1,4 +1,6 @@
-"""Band-limited fractional delay: a frequency-domain phase shift along time, applied to frames in row bands.
+"""Band-limited fractional delay of short records (the DAQ's impulse fit): a frequency-domain phase shift along
+time; and the regular counter run that dropped frames leave gaps in. The frames' own delay and gap filling are
+AlignedTake's (aligned.py), computed as they are read.
 
 A record is mirrored before the FFT (x, then x reversed), so its two ends meet without a jump and the
 shift does not ring where the record starts at rest and stops mid-vibration.
@@ -33,18 +35,4 @@ def fill_dropped(counters: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return full, c - c.min()
 
 
-def interpolate_gaps(band: np.ndarray, present: np.ndarray) -> np.ndarray:
-    """Fill the missing frames (rows of `band` where `present` is False) linearly from their neighbours in time."""
-    if present.all():
-        return band
-    idx = np.flatnonzero(present)
-    out = band.copy()
-    for j in np.flatnonzero(~present):
-        r = np.searchsorted(idx, j)
-        lo, hi = idx[max(r - 1, 0)], idx[min(r, len(idx) - 1)]
-        w = 0.0 if hi == lo else (j - lo) / (hi - lo)
-        out[j] = (1 - w) * band[lo] + w * band[hi]
-    return out
-
-
-__all__ = ["fill_dropped", "fractional_shift", "interpolate_gaps"]
+__all__ = ["fill_dropped", "fractional_shift"]

@@ -183,18 +183,8 @@ class FrameFile:
 
     def _check(self, generation: str | None, capture_id: str | None) -> None:
         attrs = self._file.attrs
-        kinds = self.KINDS or (self.KIND,)
-        if _text(attrs.get("kind")) not in kinds:
-            raise SchemaError(self.path, f"not a {self.WHAT} (kind {' or '.join(map(repr, kinds))} expected)")
-        version = attrs.get("schema_version")
-        if version != SCHEMA:
-            raise SchemaError(self.path, f"{self.WHAT} of schema {version}; this odsplat reads {SCHEMA}"
-                              + (" (update odsplat)" if isinstance(version, (int, np.integer)) and version > SCHEMA
-                                 else " (run its stage again)"))
-        check_capture(attrs.get(CAPTURE_KEY), self.path, capture_id)
-        if generation is not None and _text(attrs.get("generation")) != generation:
-            raise InputError(self.path, "written by another run of its stage than its index lists (a run was "
-                                        "interrupted): run the stage again")
+        check_header(attrs, self.path, kinds=self.KINDS or (self.KIND,), schema=SCHEMA, what=self.WHAT,
+                     generation=generation, capture_id=capture_id)
         scale = attrs.get("value_scale")
         if not isinstance(scale, (int, float, np.integer, np.floating)) or not 0 < float(scale) < np.inf:
             raise InputError(self.path, f"value_scale: expected a positive number, got {scale!r}; run its stage "
@@ -256,6 +246,25 @@ class FrameFile:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def check_header(attrs: Mapping[str, Any], path: Path, *, kinds: Iterable[str], schema: int, what: str,
+                 generation: str | None, capture_id: str | None, again: str = "run its stage again") -> None:
+    """A derived HDF5 file's header as its reader expects it: its kind, its schema, its capture's id and (when
+    given) the generation its stage's index lists; otherwise one line naming the file, and `again` what to do."""
+    kinds = tuple(kinds)
+    if _text(attrs.get("kind")) not in kinds:
+        article = "an" if what[:1] in "aeiou" else "a"
+        raise SchemaError(path, f"not {article} {what} (kind {' or '.join(map(repr, kinds))} expected)")
+    version = attrs.get("schema_version")
+    if version != schema:
+        newer = isinstance(version, (int, np.integer)) and version > schema
+        raise SchemaError(path, f"{what} of schema {version}; this odsplat reads {schema} "
+                                f"({'update odsplat' if newer else again})")
+    check_capture(attrs.get(CAPTURE_KEY), path, capture_id)
+    if generation is not None and _text(attrs.get("generation")) != generation:
+        raise InputError(path, f"written by another run of its stage than its index lists (a run was interrupted): "
+                               f"{again}")
 
 
 def _text(value: Any) -> Any:

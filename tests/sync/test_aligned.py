@@ -4,7 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from odsplat.sync.aligned import delay_taps, mirror
+from odsplat.spine.manifest import Manifest
+from odsplat.spine.store import Capture
+from odsplat.sync import AlignedTake
+from odsplat.sync.aligned import delay_taps, mirror, write_aligned
 
 
 def _delay(x: np.ndarray, frac: float) -> np.ndarray:
@@ -36,3 +39,25 @@ def test_no_delay_is_the_identity_and_the_weights_sum_to_one():
 
 def test_the_ends_are_mirrored_with_the_end_sample_repeated():
     assert list(mirror(np.arange(-3, 8), 5)) == [2, 1, 0, 0, 1, 2, 3, 4, 4, 3, 2]
+
+
+def test_dropped_frames_are_filled_linearly_from_their_neighbours_in_time(tmp_path):
+    """A take that lost frames 3-4 and 7 (the camera's counter skipped them): the aligned take fills each from the
+    stored frames either side of it, weighted by its distance in time; a stored frame is itself."""
+    cap = Capture.create(tmp_path / "cap", Manifest(name="drops"))
+    source = np.array([0, 1, 2, -1, -1, 3, 4, -1, 5, 6])
+    values = np.array([10.0, 20.0, 40.0, 70.0, 100.0, 130.0, 160.0])      # stored frames 0..6, one grey level each
+    stored = np.broadcast_to(values[:, None, None], (7, 4, 5)).astype(np.uint16)
+    with cap.new_take("v00_000", view=0, frame_shape=(4, 5), bit_depth=12, fps=1000.0, channels=()) as take:
+        take.append_frames(stored, times_s=np.arange(7) / 1000.0)
+        take.finalize()
+    times = (np.arange(len(source)) - 2) / 1000.0
+    write_aligned(cap.derived_dir / "sync" / "v00_000.h5", take="v00_000", times_s=times, source_frame=source,
+                  grid_shift_frames=0.0, bit_depth=12, rest_dn=None, attrs={}, capture_id=cap.id)
+    with AlignedTake(cap, cap.paths.aligned("v00_000")) as at:
+        got = at.read_frames()
+        np.testing.assert_allclose(at.times_s, times)
+    expected = [10, 20, 40, 40 + 30 / 3, 40 + 60 / 3, 70, 100, 115, 130, 160]
+    assert got.shape == (10, 4, 5)
+    np.testing.assert_allclose(got[:, 2, 3], expected, atol=1e-4)
+    np.testing.assert_allclose(got, np.broadcast_to(got[:, :1, :1], got.shape))
