@@ -20,6 +20,7 @@ from .model import (
     reconstruct,
     render_sequence,
     train,
+    working_width,
 )
 from .pose_result import PoseResult, PoseSettings
 from .poses import estimate_poses, run_poses
@@ -34,4 +35,5 @@ __all__ = ["Camera", "DynamicScene", "FitSettings", "Gaussians", "LinearSettings
            "Trajectory", "TrainView", "ViewSet", "camera_path", "check_camera_spec", "default_source", "estimate_poses",
            "fit_dynamic",
            "fit_static", "gsplat_available", "load_ply", "load_views", "parse_times", "rasterize", "rasterize_image",
-           "rasterize_reference", "reconstruct", "render_sequence", "run", "run_poses", "save_ply", "train"]
+           "rasterize_reference", "reconstruct", "render_sequence", "run", "run_poses", "save_ply", "train",
+           "working_width"]

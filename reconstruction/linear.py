@@ -208,9 +208,11 @@ class ViewRows:
     noise: float             # rms of the prefiltered, blurred frame noise, in full-scale units
 
 
-def _node_spacing(points_m: np.ndarray, cameras: list[Camera], scene: SceneFrame, s: LinearSettings) -> float:
+def node_spacing(points_m: np.ndarray, cameras: list[Camera], scene: SceneFrame, s: LinearSettings,
+                 widen: bool = True) -> float:
     """The node spacing: as set, else NODE_PX of the views' median pixel footprint on the Gaussians (so that every
-    node has pixels enough to pin it) and at least the scene radius / 100, widened until at most max_nodes nodes."""
+    node has pixels enough to pin it) and at least the scene radius / 100, widened (unless told not to) until at
+    most max_nodes nodes."""
     if s.node_spacing_m is not None:
         return s.node_spacing_m
     footprints = []
@@ -218,7 +220,7 @@ def _node_spacing(points_m: np.ndarray, cameras: list[Camera], scene: SceneFrame
         z = points_m @ np.asarray(cam.R, float)[2] + float(np.asarray(cam.t, float)[2])
         footprints.append(np.median(z[z > 0]) / float(cam.K[0, 0]) if np.any(z > 0) else np.nan)
     spacing = max(scene.radius / 100, NODE_PX * float(np.nanmedian(footprints)) if np.isfinite(footprints).any() else 0)
-    while len(np.unique(np.floor(points_m / spacing).astype(np.int64), axis=0)) > s.max_nodes:
+    while widen and len(np.unique(np.floor(points_m / spacing).astype(np.int64), axis=0)) > s.max_nodes:
         spacing *= 1.25
     return spacing
 
@@ -249,7 +251,7 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
         raise InputError("linear motion", f"only {opaque.sum()} Gaussians at least {s.min_opacity} opaque to place "
                                           "nodes on; the rest fit failed")
     cameras = [pose_camera(poses, v.name) for v in vs.views]          # full resolution, world frame
-    spacing = _node_spacing(means_m[opaque], cameras, scene, s)
+    spacing = node_spacing(means_m[opaque], cameras, scene, s)
     graph = NodeGraph.over(means_m[opaque], spacing, s.k_interp)
     log.info("linear motion: %d nodes %.1f mm apart over %d opaque Gaussians", graph.n_nodes, spacing * 1e3,
              opaque.sum())

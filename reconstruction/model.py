@@ -42,7 +42,7 @@ from odsplat.spine.store import Capture
 
 from .dynamic import FitSettings, Trajectory, fit_dynamic, fit_static, render
 from .gaussians import Gaussians, save_ply
-from .linear import LinearSettings, NodeMotion, fit_linear
+from .linear import LinearSettings, NodeMotion, fit_linear, node_spacing
 from .modal import ModalMotion, ModalSettings, fit_modal
 from .pose_result import PoseResult
 from .quaternion import quat_conjugate, quat_from_rotvec, quat_multiply, quat_normalize, quat_to_rotvec
@@ -59,6 +59,7 @@ MOTIONS = ("modal", "timestep", "linear")
 # at training width stay within memory; a per-timestep fit costs seconds per timestep.
 RECORD_TIMESTEPS = 512
 TIMESTEP_DEFAULT = 32
+MIN_WORKING_PX = 128   # the rest fit's narrowest working width (the default until 2026-11-28)
 
 
 def default_source(motion: str) -> str:
@@ -71,7 +72,8 @@ def default_source(motion: str) -> str:
 class ReconstructSettings:
     source: str | None = None            # "sync" (unmagnified, on the common grid) or "magnified/METHOD";
     #                                      None: default_source(motion)
-    width_px: int = 128                  # training image width (height by aspect)
+    width_px: int | None = None          # the rest fit's image width (height by aspect); None: from the views'
+    #                                      footprint (working_width)
     n_timesteps: int | None = None       # None: the record (every timestep from start to the grid's end, at most
     #                                      RECORD_TIMESTEPS) for the linear and modal models, which fit every
     #                                      timestep at once; TIMESTEP_DEFAULT for the per-timestep fits (their cost)
@@ -99,7 +101,7 @@ class ReconstructSettings:
     def __post_init__(self) -> None:
         check_choice("ReconstructSettings.motion", self.motion, MOTIONS)
         # n_timesteps: a second at 100k frames/s; every model holds all of them in memory at once.
-        check_fields(self, {"width_px": WIDTH_PX,
+        check_fields(self, {"width_px": maybe(WIDTH_PX),
                             "n_timesteps": maybe(Range(at_least=1, at_most=100_000, integer=True)),
                             "step": Range(at_least=1, at_most=MAX_FRAMES, integer=True), "start": maybe(FRAME_INDEX),
                             "init_opacity": Range(above=0, below=1), "threads": maybe(WORKERS)})
@@ -145,6 +147,51 @@ def look_at_point(Rs, ts) -> np.ndarray:
         A += P
         b += P @ c
     return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+@dataclass(frozen=True)
+class WorkingWidth:
+    """The rest fit's image width and why: as set, or from the views' footprint."""
+
+    width_px: int
+    why: str
+
+
+def working_width(poses, s: ReconstructSettings) -> WorkingWidth:
+    """The rest fit's image width. As set; else, for the linear motion model, wide enough that a working pixel is
+    at most half the motion's node spacing (the spacing `node_spacing` gives at full resolution: NODE_PX of the
+    views' footprint, at least the scene radius / 100), so the rest geometry resolves every node; at least
+    MIN_WORKING_PX, at most the views' width, a multiple of 16. The motion itself is read at full resolution.
+    The other models fit at MIN_WORKING_PX (their per-timestep cost)."""
+    if s.width_px is not None:
+        return WorkingWidth(s.width_px, "as set (reconstruct.width_px)")
+    if s.motion != "linear":
+        return WorkingWidth(MIN_WORKING_PX, f"the {s.motion} model's default")
+    views = [v for v in poses.views if v.kind == "take" and v.name not in s.holdout]
+    if not views:
+        return WorkingWidth(MIN_WORKING_PX, "no posed takes")
+    cams = [Camera(np.asarray(v.K, float), np.asarray(v.R, float), np.asarray(v.t, float), v.width_px,
+                   v.height_px, v.name) for v in views]
+    pts = np.asarray(getattr(poses, "points_m", np.zeros((0, 3))), float).reshape(-1, 3)
+    if len(pts) < 16:          # tag-only poses: what the views look at stands for the structure
+        pts = look_at_point([c.R for c in cams], [c.t for c in cams])[None]
+    scene = SceneFrame.fit(np.array([c.center for c in cams]))
+    # Not widened for max_nodes: the pose stage's points (the floor, outliers) fill more cells than the rest
+    # fit's opaque Gaussians do; where the fit widens it, the width errs on the fine side.
+    spacing = node_spacing(pts, cams, scene, s.linear, widen=False)
+    footprint = []
+    for c in cams:
+        z = pts @ c.R[2] + float(c.t[2])
+        if np.any(z > 0):
+            footprint.append(float(np.median(z[z > 0])) / float(c.K[0, 0]))
+    native = int(np.median([c.width_px for c in cams]))
+    if not footprint:
+        return WorkingWidth(MIN_WORKING_PX, "no structure point in front of the views")
+    spacing_px = spacing / float(np.median(footprint))          # in the views' own pixels
+    need = 16 * int(np.ceil(2 * native / spacing_px / 16))
+    width = int(min(max(need, MIN_WORKING_PX), max(native, MIN_WORKING_PX)))
+    return WorkingWidth(width, f"node spacing {spacing * 1e3:.1f} mm = {spacing_px:.1f} px of the {native} px views; "
+                               f"2 working px a node needs {need} px (at least {MIN_WORKING_PX}, at most the views')")
 
 
 @dataclass
@@ -342,13 +389,16 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
     """Train the dynamic Gaussians on the capture's posed views; writes derived/reconstruction/."""
     s = settings or ReconstructSettings()
     poses = _poses(capture)
-    vs = load_views(capture, poses, source=s.source, width_px=s.width_px, n_timesteps=s.timesteps, step=s.step,
-                    start=s.start, max_timesteps=RECORD_TIMESTEPS, holdout=s.holdout, use_static=s.use_static)
+    width = working_width(poses, s)
+    log.info("rest fit at %d px wide: %s", width.width_px, width.why)
+    vs = load_views(capture, poses, source=s.source, width_px=width.width_px, n_timesteps=s.timesteps, step=s.step,
+                    start=s.start, max_timesteps=RECORD_TIMESTEPS, holdout=s.holdout, use_static=s.use_static,
+                    ends_only=s.motion == "linear")
     m = train(vs, poses, s, capture)
     last = vs.n_timesteps - 1
     bg = m.background
     psnr0 = _psnr(m.g0, vs.views, 0, background=bg)
-    psnr_last = _psnr(m.g0, vs.views, last, m.trajectory.means[last], m.trajectory.quats[last], bg)
+    psnr_last = _psnr(m.g0, vs.views, -1, m.trajectory.means[last], m.trajectory.quats[last], bg)  # -1: the last
     m.scene().save(capture.paths, capture.id)
     save_measured(capture.paths, vs.times_s, m.measured, capture.id)
     result = ReconstructResult(capture.paths.reconstruction_dir, len(m.g0), len(vs.views), len(vs.static),
@@ -356,7 +406,8 @@ def reconstruct(capture: Capture, settings: ReconstructSettings | None = None) -
                                vs.notes + [f"initialised from {m.init} points"])
     report = dict(**describe(capture.id, KIND, SCHEMA, s).header(), created_utc=utc_now(), settings=plain(s),
                   views=[v.name for v in vs.views], static=[v.name for v in vs.static], holdout=list(s.holdout),
-                  frame_index=vs.frame_index.tolist(), times_s=vs.times_s.tolist(), source_alpha=vs.source_alpha,
+                  working_width=asdict(width), frame_index=vs.frame_index.tolist(), times_s=vs.times_s.tolist(),
+                  source_alpha=vs.source_alpha,
                   t0=m.stats_t0, motion=s.motion, dynamic=m.trajectory.losses, result=asdict(result))
     if m.modal is not None:
         report["modal"] = dict(motion_scale_m=m.modal.scale * vs.scene.radius,

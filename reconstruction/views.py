@@ -114,7 +114,8 @@ class Camera:
 
 @dataclass
 class TrainView:
-    """One posed view and its images (T, H, W, C) in [0, 1]; a static photo has T = 1 and is at rest."""
+    """One posed view and its images (T, H, W, C) in [0, 1]; a static photo has T = 1 and is at rest. Loaded with
+    `ends_only`, a take's images are its first and last timesteps' (images[0] and images[-1] are those either way)."""
 
     camera: Camera
     images: torch.Tensor
@@ -195,8 +196,10 @@ def _resize(image: np.ndarray, width_px: int, height_px: int) -> np.ndarray:
 
 def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timesteps: int | None, step: int = 1,
                start: int | None = None, max_timesteps: int | None = None, holdout: tuple[str, ...] = (),
-               use_static: bool = True, dtype: torch.dtype = torch.float32) -> ViewSet:
-    """The posed takes' frames (and static photos) at the selected grid frames, resampled to width_px.
+               use_static: bool = True, dtype: torch.dtype = torch.float32, ends_only: bool = False) -> ViewSet:
+    """The posed takes' frames (and static photos) at the selected grid frames, resampled to width_px; with
+    `ends_only`, each view's images are the first and last selected frames only (the linear model reads its
+    frames itself, at full resolution: a seed-size record of them at the working width is 0.9-2 GB).
 
     `poses` is the pose stage's result (views with name, kind, K, R, t, width_px, height_px); n_timesteps None:
     the record (`select_frames`).
@@ -235,7 +238,7 @@ def load_views(capture: Capture, poses, *, source: str, width_px: int, n_timeste
             def shrink(frame: np.ndarray, small=small) -> np.ndarray:   # linear: it commutes with sync's filter
                 return _resize(frame, small.width_px, small.height_px)
 
-            data = _read_selected(ff, frames, shrink)
+            data = _read_selected(ff, np.unique(frames[[0, -1]]) if ends_only else frames, shrink)
             before = np.flatnonzero(times < 0)
             rest = ff.read_frames(int(before[0]), int(before[-1]) + 1, shrink).astype(np.float64).mean(axis=0) \
                 if len(before) else None

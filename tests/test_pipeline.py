@@ -303,3 +303,19 @@ def test_notebook_use_writes_nothing_into_the_capture(piped, tmp_path):
 def test_python_dash_m_odsplat():
     r = subprocess.run([sys.executable, "-m", "odsplat", "run", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "--from" in r.stdout and "--force" in r.stdout
+
+
+def test_config_status_says_which_stages_are_current_and_the_working_width(piped, tmp_path):
+    cap = _copy(piped, tmp_path)
+    text = _cli(["config", cap.root, "--status"])
+    assert "[reconstruct]" in text
+    for stage in STAGES:
+        assert f"# {stage:<12} current:" in text or f"# {stage:<12} n/a:" in text, stage
+    assert text.strip().splitlines()[-1] == "# reconstruct.width_px = 64: as set (reconstruct.width_px)"   # CONFIG's
+    # With the defaults, the width follows the views: the node spacing is 5 px of these 400 px views, and two working
+    # pixels a node need 160 px.
+    (tmp_path / "defaults.toml").write_text("")
+    text = _cli(["config", cap.root, "--status", "--config", tmp_path / "defaults.toml"])
+    width = text.strip().splitlines()[-1]
+    assert width.startswith("# reconstruct.width_px = 160: node spacing ") and "5.0 px of the 400 px" in width, width
+    assert "# reconstruct  stale: settings changed (" in text

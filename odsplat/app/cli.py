@@ -292,6 +292,10 @@ def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], 
         for name, current, why in stage_status(cap, config):
             state = "n/a" if why.startswith("does not apply") else "current" if current else "stale"
             click.echo(f"# {name:<12} {state}: {why}")
+        if cap.paths.poses_json.is_file():      # the defaults that follow the data, where the data are there
+            poses = resolve("odsplat.reconstruction:PoseResult").read(cap)    # lazily: it loads torch (stages.py)
+            width = resolve("odsplat.reconstruction:working_width")(poses, config.reconstruct)
+            click.echo(f"# reconstruct.width_px = {width.width_px}: {width.why}")
 
 
 @main.command()
