@@ -16,6 +16,7 @@ from typing import Any
 
 import click
 
+from odsplat.app.budget import Budget, within_budget
 from odsplat.app.config import STAGES, load_config, settings_type
 from odsplat.app.options import (
     RENDER_FLAGS,
@@ -29,7 +30,7 @@ from odsplat.app.options import (
     lay_over,
     settings_from,
 )
-from odsplat.app.pipeline import run, run_stage
+from odsplat.app.pipeline import frames_and_views, run, run_stage
 from odsplat.app.pipeline import status as stage_status
 from odsplat.app.stages import TABLE, Stage, resolve
 from odsplat.spine.checks import PLAYBACK_FPS, WORKERS, check_number, maybe
@@ -296,6 +297,11 @@ def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], 
             poses = resolve("odsplat.reconstruction:PoseResult").read(cap)    # lazily: it loads torch (stages.py)
             width = resolve("odsplat.reconstruction:working_width")(poses, config.reconstruct)
             click.echo(f"# reconstruct.width_px = {width.width_px}: {width.why}")
+        budget = Budget.of(config.run)
+        click.echo(f"# run.memory_gb = {budget.bytes / 1e9:.1f}: {budget.why}")
+        for name in ("sync", "magnify"):
+            _, line = within_budget(name, config.settings(name), budget, *frames_and_views(cap))
+            click.echo(f"#   {line}")
 
 
 @main.command()

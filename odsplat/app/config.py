@@ -11,6 +11,7 @@ from typing import Any
 
 import tomli_w
 
+from odsplat.app.budget import RunSettings
 from odsplat.app.stages import STAGES
 from odsplat.app.stages import stage as stage_record
 from odsplat.spine.checks import shown
@@ -21,6 +22,7 @@ from odsplat.spine.manifest import MAX_TOML_DEPTH, from_plain, load_toml, parse_
 CONFIG_NAME = "odsplat.toml"
 _WITH_SETTINGS = tuple(name for name in STAGES if stage_record(name).settings_path is not None)  # the report has none
 MAX_SET_CHARS = 10_000          # one --set: a list of a thousand frequencies fits
+RUN = "run"                     # the section of the run's own settings (budget.py), beside the stages'
 
 
 def settings_types() -> dict[str, type]:
@@ -53,6 +55,8 @@ class Config:
     def settings(self, stage: str) -> Any:
         if stage == "report":
             return None
+        if stage == RUN:
+            return from_plain(RunSettings, self.table.get(RUN, {}), f"{', '.join(self.sources)}: {RUN}")
         if stage not in _WITH_SETTINGS:
             raise InputError("stage", f"expected one of {', '.join(STAGES)}; got {stage!r}")
         if stage in self.given:
@@ -70,6 +74,7 @@ class Config:
     poses = property(lambda self: self.settings("poses"))
     reconstruct = property(lambda self: self.settings("reconstruct"))
     analyze = property(lambda self: self.settings("analyze"))
+    run = property(lambda self: self.settings(RUN))
 
     def replace(self, stage: str, settings: Any) -> Config:
         """These settings, with one stage's replaced by a settings object."""
@@ -81,20 +86,21 @@ class Config:
         touches is built at once, so a bad value is named with the layer that brought it."""
         if not isinstance(table, dict):
             raise InputError(source, "expected a table of stages")
-        unknown = sorted(set(table) - set(_WITH_SETTINGS))
+        unknown = sorted(set(table) - set(_WITH_SETTINGS) - {RUN})
         if unknown:
-            raise InputError(source, f"unknown stage(s) {shown(unknown)}; expected some of {list(_WITH_SETTINGS)}")
+            raise InputError(source, f"unknown stage(s) {shown(unknown)}; expected some of "
+                                     f"{[*_WITH_SETTINGS, RUN]}")
         for stage, over in table.items():
             if not isinstance(over, dict):
                 raise InputError(f"{source}: [{stage}]", "expected a table of settings")
         merged = _merge(self.table, table)
         for stage in table:
-            from_plain(settings_type(stage), merged[stage], f"{source}: {stage}")
+            from_plain(RunSettings if stage == RUN else settings_type(stage), merged[stage], f"{source}: {stage}")
         given = {k: v for k, v in self.given.items() if k not in table}
         return Config(merged, (*self.sources, source), given)
 
     def to_dict(self) -> dict[str, Any]:
-        return {stage: plain(self.settings(stage)) for stage in _WITH_SETTINGS}
+        return {stage: plain(self.settings(stage)) for stage in (*_WITH_SETTINGS, RUN)}
 
     def to_toml(self) -> str:
         """The effective configuration as an `odsplat.toml` (settings left automatic, None, as comments)."""

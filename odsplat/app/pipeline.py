@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from odsplat.app.budget import Budget, within_budget
 from odsplat.app.config import Config, load_config
 from odsplat.app.stages import BY_NAME, STAGES, TABLE, Stage, stage
 from odsplat.app.stages import walk as _walk
@@ -279,6 +280,10 @@ def _run_stage(capture: Capture, name: str, config: Config | None, settings: Any
     remove_stale_temporaries(capture.paths.root)     # what killed runs left half-written
     started = time.perf_counter()
     s = config.settings(name)
+    if executor is None and st.per_view:          # its own pool: no wider than the memory budget holds
+        s, line = within_budget(name, s, Budget.of(config.run), *frames_and_views(capture))
+        if line:
+            log.info("%s", line)
     result = st.entry(capture, s, executor=executor) if executor is not None and st.per_view else st.entry(capture, s)
     seconds = time.perf_counter() - started
     summary = st.summary(result)
@@ -286,6 +291,13 @@ def _run_stage(capture: Capture, name: str, config: Config | None, settings: Any
     Stamp(prov, outputs, seconds, summary).write(capture, name)
     log.info("%s: ran in %.1f s", name, seconds)
     return StageRun(name, "ran", seconds, summary, result=result)
+
+
+def frames_and_views(capture: Capture) -> tuple[int, int]:
+    """The pixels of one frame of the capture's camera, and its number of takes (the per-view stages' tasks)."""
+    cam = capture.manifest.camera
+    takes = capture.manifest.takes
+    return (cam.width_px or 0) * (cam.height_px or 0), len(takes)
 
 
 @dataclass
