@@ -66,6 +66,7 @@ from .filters import KINDS, check_band, make_filter
 from .learned.magnifier import LearnedMagnifier
 from .limits import check_limit, motion_px, sample_indices
 from .phase import PhaseMagnifier
+from .roi import motion_box
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +74,7 @@ METHODS = ("phase", "linear", "learned")
 MODES = ("static", "dynamic")             # the learned method's without a band (learned.MODES): against the
 #                                           first frame, or the one before
 SOURCES = ("auto", "aligned", "raw")
+ROIS = ("auto", "none")                   # where magnify works: the box of what moves, or the whole frame
 MAX_VIEW = 9999                           # a viewpoint's number
 KIND = "odsplat.magnify"
 SCHEMA = 3   # 2: generation, the run id its magnified files carry; 3: each take's video and motion limit
@@ -99,6 +101,9 @@ class MagnifySettings:
     video: bool = True                           # an 8-bit mp4 to watch beside each magnified take
     video_fps: float = 30.0                      # its playback rate (slow motion; the recorded rate is in its comment)
     side_by_side: bool = False                   # the video shows the input (left) beside the magnified (right)
+    roi: str = "auto"                            # "auto": magnify only the box where the take moves above its
+    #                                              noise, plus a margin (roi.py), the input frames elsewhere;
+    #                                              "none": the whole frame
 
     def __post_init__(self) -> None:
         check_choice("MagnifySettings.method", self.method, METHODS)
@@ -108,6 +113,7 @@ class MagnifySettings:
             raise InputError("--band", f"the {self.filter} filter needs a band LOW HIGH in Hz")
         check_choice("MagnifySettings.mode", self.mode, MODES)
         check_choice("MagnifySettings.source", self.source, SOURCES)
+        check_choice("MagnifySettings.roi", self.roi, ROIS)
         check_fields(self, {"alpha": MAGNIFICATION, "band_hz": maybe(VIDEO_FREQUENCY_HZ), "chunk_frames": CHUNK_FRAMES,
                             "workers": maybe(WORKERS), "video_fps": PLAYBACK_FPS,
                             "views": Range(at_least=0, at_most=MAX_VIEW, integer=True)})
@@ -217,6 +223,7 @@ class MagnifiedTake:
     video: dict[str, Any] | None = None    # the mp4: file, fps (playback), recorded_fps, dn_range, codec, bytes, ...
     limit: dict[str, Any] | None = None    # the motion against the method's bound (limits.MotionLimit)
     warning: str | None = None             # the limit's line, when alpha x motion passes it
+    roi_px: list[int] | None = None        # the box magnified, [y0, y1, x0, x1] (None: the whole frame)
 
 
 @dataclass
@@ -254,7 +261,10 @@ class MagnifyResult:
         lines = [f"{len(self.takes)} view(s) magnified by {self.alpha:g} with {self.method}{band}"]
         for t in self.takes:
             video = f" and {Path(t.video['file']).name}" if t.video else ""
-            lines.append(f"  {t.name:<10} {t.n_frames} frames from {t.source} in {t.seconds:.1f} s -> {t.file}{video}")
+            box = f" (magnified in the box of what moves, rows {t.roi_px[0]}-{t.roi_px[1] - 1}, columns " \
+                  f"{t.roi_px[2]}-{t.roi_px[3] - 1})" if t.roi_px else ""
+            lines.append(f"  {t.name:<10} {t.n_frames} frames from {t.source} in {t.seconds:.1f} s -> {t.file}{video}"
+                         f"{box}")
         if self.takes and self.takes[0].video:
             v = self.takes[0].video
             lines.append(f"  videos play at {v['fps']:g} frames/s (recorded at {v['recorded_fps']:g}: "
@@ -341,6 +351,9 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
         reference, sampled, read = None, [], 0
         held: deque[np.ndarray] = deque()   # side by side: input frames waiting for their magnified frames
         writer = Mp4Writer(video_path, settings.video_fps) if video_path else None
+        box = motion_box(src.chunks(settings.chunk_frames), src.times_s, src.frame_shape) \
+            if settings.roi == "auto" else None
+        inputs: deque[np.ndarray] = deque()   # with a box: the input frames the magnified box goes into
         with atomic_h5(out) as f:
             attrs = dict(take=name, source=src.kind, method=settings.method, alpha=settings.alpha,
                          filter=settings.filter_kind, mode=settings.mode,
@@ -354,6 +367,10 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
                 if y.shape[0] == 0:
                     return
                 dn = _from_tensor(y, full, rgb)
+                if box is not None:
+                    frames = np.stack([inputs.popleft() for _ in range(len(dn))])
+                    frames[(slice(None), *box.slices)] = dn
+                    dn = frames
                 ds.resize(written + len(y), axis=0)
                 ds[written:written + len(y)] = to_stored(dn, scale)
                 written += len(y)
@@ -372,6 +389,9 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
                     reference = y8[0] if reference is None else reference
                     sampled += [y8[i - read] for i in range(read, read + len(block)) if i in samples]
                     read += len(block)
+                    if box is not None:
+                        inputs.extend(block)
+                        block = np.ascontiguousarray(block[(slice(None), *box.slices)])
                     emit(mag.push(_to_tensor(block, full)))
                 emit(mag.flush())
                 if written != src.n_frames:
@@ -397,7 +417,7 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
                         list(settings.band_hz) if settings.band_hz else None)
     return MagnifiedTake(name, None if src.view is None else int(src.view), src.kind, written,
                          os.path.relpath(out, capture.paths.root), time.perf_counter() - t0, video, asdict(limit),
-                         limit.line(name) if limit.passes else None)
+                         limit.line(name) if limit.passes else None, None if box is None else box.as_list())
 
 
 # ---------------------------------------------------------------------------------------------- a capture
