@@ -1,4 +1,5 @@
 """`python -m odsplat`: the command line."""
 from odsplat.app.cli import main
 
-main(prog_name="odsplat")
+if __name__ == "__main__":     # not when a spawned pool process imports this module again
+    main(prog_name="odsplat")

@@ -32,7 +32,10 @@ not from this; a fit with known poles (the analysis) recovers it there, since th
 from __future__ import annotations
 
 import logging
+import multiprocessing
+import os
 import time
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass
 
 import cv2
@@ -51,11 +54,13 @@ from odsplat.spine.checks import (
     LENGTH_M,
     NEIGHBOURS,
     WEIGHT,
+    WORKERS,
     Range,
     check_fields,
     maybe,
 )
 from odsplat.spine.errors import InputError
+from odsplat.spine.pool import process_pool
 from odsplat.spine.store import Capture
 
 from .dynamic import render
@@ -89,6 +94,8 @@ class LinearSettings:
     rank_factor: float = 4.0              # keep temporal components this far above the noise floor (energy)
     max_components: int = 24
     chunk_frames: int = 64                # frames read at a time
+    workers: int | None = None            # processes reading the views' frames at once; None: one per core (at
+    #                                       most what `[run] memory_gb` holds); the same result whatever the count
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -99,7 +106,7 @@ class LinearSettings:
                             "gradient_quantile": Range(at_least=0, below=1), "k_interp": NEIGHBOURS,
                             "k_graph": NEIGHBOURS, "rank_factor": Range(above=0, at_most=1e6),
                             "max_components": Range(at_least=1, at_most=1024, integer=True),
-                            "chunk_frames": CHUNK_FRAMES})
+                            "chunk_frames": CHUNK_FRAMES, "workers": maybe(WORKERS)})
 
 
 def _filter(image: np.ndarray, kx: np.ndarray, ky: np.ndarray) -> np.ndarray:
@@ -259,19 +266,23 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
     n_unknown = 6 * graph.n_nodes
     ata = sp.csr_matrix((n_unknown, n_unknown))
     rhs = np.zeros((n_unknown, len(frames)))
-    blur = (lambda im: cv2.GaussianBlur(im, (0, 0), s.blur_px)) if s.blur_px > 0 else (lambda im: im)
-    smooth = lambda im: blur(_filter(im, PREFILTER, PREFILTER))  # noqa: E731
     bg = background.to(g0.means.dtype)
     views: list[ViewRows] = []
-    generation = source_generation(capture, "sync")
-    for v, cam in tqdm(list(zip(vs.views, cameras)), desc="linear motion", unit="view", disable=not s.progress):
-        rows = _view_rows(capture, generation, v.name, cam, vs, g0, bg, graph, spacing, s, blur, smooth)
-        if rows is None:
-            continue
-        A, row, d_rhs = rows
-        ata = ata + (A.T @ A).tocsr()
-        rhs += d_rhs
-        views.append(row)
+    grid = Grid(frames, np.asarray(vs.times_s, float), scene)
+    tasks = [(str(capture.root), str(capture.paths.root), source_generation(capture, "sync"), v.name, cam, grid, g0,
+              bg, graph, spacing, s) for v, cam in zip(vs.views, cameras)]
+    # Each view's rows in a process of its own (pool.map keeps the views' order: the sums, and so the result, are
+    # those of one process).
+    workers = max(1, min(s.workers or os.cpu_count() or 1, len(tasks)))
+    with process_pool(workers, fresh=True) if workers > 1 else nullcontext(None) as pool:   # torch has run here
+        done = pool.map(_view_rows_task, *zip(*tasks)) if pool is not None else (_view_rows_task(*t) for t in tasks)
+        for rows in tqdm(done, total=len(tasks), desc="linear motion", unit="view", disable=not s.progress):
+            if rows is None:
+                continue
+            A, row, d_rhs = rows
+            ata = ata + (A.T @ A).tocsr()
+            rhs += d_rhs
+            views.append(row)
     if not views:
         raise InputError(capture.paths.aligned_dir, "no view has pixels the rest Gaussians cover with texture")
     prior = graph.prior(s.k_graph)
@@ -298,7 +309,27 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
     return modal, stats, measured
 
 
-def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: ViewSet, g0: Gaussians,
+@dataclass(frozen=True)
+class Grid:
+    """What a view's rows need of the training views: the grid frames, their times and the scene frame."""
+
+    frame_index: np.ndarray
+    times_s: np.ndarray
+    scene: SceneFrame
+
+
+def _view_rows_task(capture_root: str, derived_root: str, generation: str | None, name: str, cam, grid: Grid,
+                    g0: Gaussians, bg: torch.Tensor, graph: NodeGraph, spacing: float, s: LinearSettings):
+    """`_view_rows` in a pool's process (or this one): the capture opened again, the filters made here."""
+    capture = Capture.open(capture_root, derived=derived_root)
+    if multiprocessing.parent_process() is not None:     # a pool's process: its share of the cores
+        torch.set_num_threads(1)
+    blur = (lambda im: cv2.GaussianBlur(im, (0, 0), s.blur_px)) if s.blur_px > 0 else (lambda im: im)
+    smooth = lambda im: blur(_filter(im, PREFILTER, PREFILTER))  # noqa: E731
+    return _view_rows(capture, generation, name, cam, grid, g0, bg, graph, spacing, s, blur, smooth)
+
+
+def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: Grid, g0: Gaussians,
                bg: torch.Tensor, graph: NodeGraph, spacing: float, s: LinearSettings, blur, smooth):
     """One view's rows of the normal equations: its usable pixels' brightness-constancy rows `A` (noise-weighted),
     the view's figures, and its share of the right-hand side, A^T d / noise at every timestep; None when too few
@@ -369,7 +400,7 @@ def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: Vie
         rhs = np.zeros((A.shape[1], len(frames)))
         # The timesteps' frames within the used pixels' box, widened by the filters' reach (so that the filtered
         # values there are those of the whole frame), a chunk at a time (a frame at a time recomputed the time
-        # filter's 32 raw frames for each: 38 s a view at 1024^2).
+        # filter's 32 raw frames for each, and copied them).
         reach = len(PREFILTER) // 2 + (int(np.ceil(4 * s.blur_px)) if s.blur_px > 0 else 0) + 1
         r0, c0 = max(int(vv.min()) - reach, 0), max(int(uu.min()) - reach, 0)
         box = (slice(r0, min(int(vv.max()) + reach + 1, h)), slice(c0, min(int(uu.max()) + reach + 1, w)))

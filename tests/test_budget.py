@@ -39,9 +39,16 @@ def test_the_budget_narrows_a_pool_left_unset_and_warns_of_one_set_wider():
     sync = load_config(sets=("sync.max_memory_mb=1000",)).sync
     s, line = within_budget("sync", sync, Budget(2.5e9, "as set"), PX_1024, 27)
     assert s.workers == 1, line
-    # the stages that stream in fixed chunks are left as they are
+    # the linear motion's readers: a chunk of 64 frames at 1024^2 is about 2.4 GB a process
     rec = load_config().reconstruct
-    assert within_budget("reconstruct", rec, tight, PX_1024, 27) == (rec, None)
+    s, line = within_budget("reconstruct", rec, tight, PX_1024, 27)
+    assert s.linear.workers == 1 and line.startswith("reconstruct: 1 process of about 2.")
+    assert within_budget("reconstruct", rec, roomy, PX_1024, 27)[0].linear.workers >= 1
+    # the other motion models, and the stages that stream in fixed chunks, are left as they are
+    timestep = load_config(sets=("reconstruct.motion='timestep'",)).reconstruct
+    assert within_budget("reconstruct", timestep, tight, PX_1024, 27) == (timestep, None)
+    analyze = load_config().analyze
+    assert within_budget("analyze", analyze, tight, PX_1024, 27) == (analyze, None)
 
 
 def test_the_budget_is_a_setting_of_the_run_with_a_default_from_the_machine(tmp_path):
@@ -63,6 +70,7 @@ def test_a_run_under_a_small_budget_runs_one_process_and_stays_current(piped_ori
     defaults.write_text("")
     small = load_config(cap, path=defaults, sets=("run.memory_gb=0.5", "magnify.every_view=true"))
     assert is_current(cap, "sync", load_config(cap, sets=("run.memory_gb=0.5",)))[0]   # no setting of a result
+    assert is_current(cap, "reconstruct", load_config(cap, sets=("reconstruct.linear.workers=3",)))[0]
     with caplog.at_level(logging.INFO, logger="odsplat.app.pipeline"):
         run_stage(cap, "magnify", small)
     assert any("magnify: 1 process of about" in r.getMessage() and "not " in r.getMessage() for r in caplog.records)

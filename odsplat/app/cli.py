@@ -299,9 +299,10 @@ def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], 
             click.echo(f"# reconstruct.width_px = {width.width_px}: {width.why}")
         budget = Budget.of(config.run)
         click.echo(f"# run.memory_gb = {budget.bytes / 1e9:.1f}: {budget.why}")
-        for name in ("sync", "magnify"):
+        for name in ("sync", "magnify", "reconstruct"):
             _, line = within_budget(name, config.settings(name), budget, *frames_and_views(cap))
-            click.echo(f"#   {line}")
+            if line:
+                click.echo(f"#   {line}")
 
 
 @main.command()

@@ -113,10 +113,15 @@ def takes_identity(capture: Capture) -> str:
 
 
 def stage_settings(name: str, settings: Any) -> dict[str, Any]:
-    """A stage's settings as recorded and hashed: its volatile ones left out."""
+    """A stage's settings as recorded and hashed: its volatile ones left out (a dotted name: a nested one)."""
     d = plain(settings) if settings is not None else {}
     for key in stage(name).volatile:
-        d.pop(key, None)
+        *outer, last = key.split(".")
+        inner = d
+        for part in outer:
+            inner = inner.get(part) if isinstance(inner, dict) else None
+        if isinstance(inner, dict):
+            inner.pop(last, None)
     return d
 
 
@@ -280,7 +285,7 @@ def _run_stage(capture: Capture, name: str, config: Config | None, settings: Any
     remove_stale_temporaries(capture.paths.root)     # what killed runs left half-written
     started = time.perf_counter()
     s = config.settings(name)
-    if executor is None and st.per_view:          # its own pool: no wider than the memory budget holds
+    if executor is None:          # its own pools: no wider than the memory budget holds
         s, line = within_budget(name, s, Budget.of(config.run), *frames_and_views(capture))
         if line:
             log.info("%s", line)

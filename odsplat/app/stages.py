@@ -109,7 +109,7 @@ TABLE: tuple[Stage, ...] = (
           upstream=_reconstruct_upstream,
           outputs=lambda cap, s: [cap.paths.reconstruction_json, cap.paths.gaussians_ply, cap.paths.trajectories_npz,
                                   cap.paths.measured_motion_npz],
-          summary=lambda r: r.summary(), volatile=("threads",), needs_views=2,
+          summary=lambda r: r.summary(), volatile=("threads", "linear.workers", "linear.progress"), needs_views=2,
           doc="Train dynamic 3D Gaussians on CAPTURE_DIR's posed views into derived/reconstruction/ "
               "(docs/reconstruction.md)."),
     Stage("analyze", "odsplat.analysis:AnalyzeSettings", "odsplat.analysis:run", upstream=_analyze_upstream,

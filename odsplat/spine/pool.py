@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import multiprocessing
 import os
 import signal
 from concurrent.futures import ProcessPoolExecutor
@@ -16,10 +17,13 @@ from concurrent.futures import ProcessPoolExecutor
 _PR_SET_PDEATHSIG = 1
 
 
-def process_pool(workers: int) -> ProcessPoolExecutor:
+def process_pool(workers: int, fresh: bool = False) -> ProcessPoolExecutor:
     """A pool of `workers` processes that end with this one. Create and use it in one thread: the kernel ties the
-    workers' lives to the thread that starts them (submit starts them)."""
-    return ProcessPoolExecutor(workers, initializer=_die_with, initargs=(os.getpid(),))
+    workers' lives to the thread that starts them (submit starts them). `fresh`: processes started anew (spawn)
+    rather than forked, for a caller whose threads (torch's OpenMP pool, once it has run) a fork would copy
+    half-held: a forked worker then waits on them forever."""
+    context = multiprocessing.get_context("spawn") if fresh else None
+    return ProcessPoolExecutor(workers, mp_context=context, initializer=_die_with, initargs=(os.getpid(),))
 
 
 def _die_with(parent_pid: int) -> None:

@@ -159,6 +159,15 @@ def test_linear_motion_recovers_a_known_sub_pixel_motion(moving_beam):
     assert err_loose > 1.5 * err, (err_loose, err)
 
 
+def test_the_views_read_in_a_pool_give_the_same_model_to_the_bit(moving_beam):
+    """Each view's rows in a process of its own, summed in the views' order: the same result as one process."""
+    one = _fit(moving_beam, workers=1)
+    pooled = _fit(moving_beam, workers=2)
+    np.testing.assert_array_equal(one[0], pooled[0])
+    np.testing.assert_array_equal(one[3].displacement_m, pooled[3].displacement_m)
+    assert one[2]["views"] == pooled[2]["views"] and one[2]["n_pixels"] == pooled[2]["n_pixels"]
+
+
 def test_linear_motion_needs_raw_frames():
     with pytest.raises(InputError, match="sync"):
         ReconstructSettings(source="magnified/phase", motion="linear")
