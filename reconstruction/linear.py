@@ -274,6 +274,8 @@ def fit_linear(capture: Capture, poses, vs: ViewSet, g0: Gaussians, background: 
     # Each view's rows in a process of its own (pool.map keeps the views' order: the sums, and so the result, are
     # those of one process).
     workers = max(1, min(s.workers or os.cpu_count() or 1, len(tasks)))
+    if multiprocessing.current_process().daemon:   # a batch's Dask worker: it may start no processes
+        workers = 1
     with process_pool(workers, fresh=True) if workers > 1 else nullcontext(None) as pool:   # torch has run here
         done = pool.map(_view_rows_task, *zip(*tasks)) if pool is not None else (_view_rows_task(*t) for t in tasks)
         for rows in tqdm(done, total=len(tasks), desc="linear motion", unit="view", disable=not s.progress):

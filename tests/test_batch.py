@@ -41,7 +41,9 @@ plots = false
 """
 # Above the 2000 fps camera's Nyquist: every view's magnifier refuses it, inside magnify's per-view tasks.
 BROKEN = CONFIG.replace("[magnify]\n", "[magnify]\nband_hz = [20, 1500]\n")
-VOLATILE = {"created_utc", "generation", "run_id", "fingerprint", "seconds"}   # a run's ids and times
+# a run's ids and times, and its pools' widths (a run on its own cores fits them to the memory budget; a batch
+# hands the per-view work to its cluster)
+VOLATILE = {"created_utc", "generation", "run_id", "fingerprint", "seconds", "workers"}
 
 
 def _odsplat(*args, code: int = 0) -> tuple[str, float]:
