@@ -9,14 +9,21 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 
+import numpy as np
 import torch
 
 from odsplat.spine.checks import MAGNIFICATION, check_number
 from odsplat.spine.errors import InputError
 
 # NTSC YIQ: luminance first. Phase and linear methods magnify Y and carry I, Q along.
-_RGB2YIQ = torch.tensor([[0.299, 0.587, 0.114], [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]])
+LUMA = np.array([0.299, 0.587, 0.114], np.float32)   # Y of YIQ, what the methods magnify
+_RGB2YIQ = torch.tensor([LUMA.tolist(), [0.596, -0.274, -0.322], [0.211, -0.523, 0.312]])
 _YIQ2RGB = torch.linalg.inv(_RGB2YIQ)
+
+
+def luma(frames: np.ndarray) -> np.ndarray:
+    """Frames (T, H, W) as they are, or (T, H, W, 3) as their Y."""
+    return frames if frames.ndim == 3 else frames @ LUMA
 
 
 def rgb_to_yiq(x: torch.Tensor) -> torch.Tensor:

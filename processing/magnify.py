@@ -60,7 +60,7 @@ from odsplat.spine.pool import process_pool
 from odsplat.spine.store import Capture
 from odsplat.sync import AlignedTake, load_sync
 
-from .base import Magnifier
+from .base import Magnifier, luma
 from .eulerian import LinearMagnifier
 from .filters import KINDS, check_band, make_filter
 from .learned.magnifier import LearnedMagnifier
@@ -78,7 +78,6 @@ ROIS = ("auto", "none")                   # where magnify works: the box of what
 MAX_VIEW = 9999                           # a viewpoint's number
 KIND = "odsplat.magnify"
 SCHEMA = 3   # 2: generation, the run id its magnified files carry; 3: each take's video and motion limit
-LUMA = np.array([0.299, 0.587, 0.114], np.float32)   # Y of YIQ, what the methods magnify
 
 
 @dataclass(frozen=True)
@@ -323,10 +322,6 @@ def video_comment(take: str, what: str, recorded_fps: float, fps: float, dn_rang
             f"({recorded_fps / fps:.4g}x slower); 8-bit from {dn_range[0]:g} to {dn_range[1]:g} DN")
 
 
-def _luma(block: np.ndarray) -> np.ndarray:
-    return block if block.ndim == 3 else block @ LUMA
-
-
 def magnify_take(capture_root: str, name: str, aligned_file: str | None, settings: MagnifySettings,
                  out_path: str, threads: int = 1, derived_root: str | None = None, generation: str = "",
                  sync_generation: str | None = None, video_path: str | None = None) -> MagnifiedTake:
@@ -385,7 +380,7 @@ def magnify_take(capture_root: str, name: str, aligned_file: str | None, setting
                         dn_range = display_range(block)
                     if settings.side_by_side and writer is not None:
                         held.extend(to_8bit(block, dn_range))
-                    y8 = to_8bit(_luma(block), dn_range)
+                    y8 = to_8bit(luma(block), dn_range)
                     reference = y8[0] if reference is None else reference
                     sampled += [y8[i - read] for i in range(read, read + len(block)) if i in samples]
                     read += len(block)

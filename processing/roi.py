@@ -14,11 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .base import luma
+
 BIN_PX = 8           # the detection's pixel: 8 x 8 frame pixels
 MIN_RATIO = 1.5      # a binned pixel's rms change after the impact over its noise (noise alone: 1 +- 1/sqrt(2T))
 MARGIN_SHARE = 1 / 16  # the margin: this share of the frame's larger side, at least MIN_MARGIN_PX
 MIN_MARGIN_PX = 32
-LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 
 
 @dataclass(frozen=True)
@@ -41,10 +42,6 @@ class Box:
         return [self.y0, self.y1, self.x0, self.x1]
 
 
-def _grey(block: np.ndarray) -> np.ndarray:
-    return np.asarray(block if block.ndim == 3 else block @ LUMA, np.float64)
-
-
 def _block_sum(image: np.ndarray, h: int, w: int) -> np.ndarray:
     """Sums over BIN_PX x BIN_PX blocks (the last partial ones dropped)."""
     return image[:h * BIN_PX, :w * BIN_PX].reshape(h, BIN_PX, w, BIN_PX).sum(axis=(1, 3))
@@ -61,7 +58,7 @@ def motion_box(chunks: Iterable[np.ndarray], times_s: np.ndarray, frame_shape: t
         return None
     total, diff2, change2, prev, rest, k = np.zeros((h, w)), np.zeros((h, w)), np.zeros((h, w)), None, None, 0
     for block in chunks:
-        for frame in _grey(block):
+        for frame in np.asarray(luma(block), np.float64):
             if k < n_before:
                 total += frame
                 if prev is not None:
