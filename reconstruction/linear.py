@@ -215,6 +215,16 @@ class ViewRows:
     noise: float             # rms of the prefiltered, blurred frame noise, in full-scale units
 
 
+def median_footprint_m(points_m: np.ndarray, cameras: list[Camera]) -> float:
+    """The views' median pixel footprint on the points (each view's median depth over its focal length, in metres
+    per pixel at full resolution); NaN when no point is in front of any view."""
+    footprints = []
+    for cam in cameras:
+        z = points_m @ np.asarray(cam.R, float)[2] + float(np.asarray(cam.t, float)[2])
+        footprints.append(np.median(z[z > 0]) / float(cam.K[0, 0]) if np.any(z > 0) else np.nan)
+    return float(np.nanmedian(footprints)) if np.isfinite(footprints).any() else float("nan")
+
+
 def node_spacing(points_m: np.ndarray, cameras: list[Camera], scene: SceneFrame, s: LinearSettings,
                  widen: bool = True) -> float:
     """The node spacing: as set, else NODE_PX of the views' median pixel footprint on the Gaussians (so that every
@@ -222,11 +232,8 @@ def node_spacing(points_m: np.ndarray, cameras: list[Camera], scene: SceneFrame,
     most max_nodes nodes."""
     if s.node_spacing_m is not None:
         return s.node_spacing_m
-    footprints = []
-    for cam in cameras:
-        z = points_m @ np.asarray(cam.R, float)[2] + float(np.asarray(cam.t, float)[2])
-        footprints.append(np.median(z[z > 0]) / float(cam.K[0, 0]) if np.any(z > 0) else np.nan)
-    spacing = max(scene.radius / 100, NODE_PX * float(np.nanmedian(footprints)) if np.isfinite(footprints).any() else 0)
+    footprint = median_footprint_m(points_m, cameras)
+    spacing = max(scene.radius / 100, NODE_PX * footprint if np.isfinite(footprint) else 0)
     while widen and len(np.unique(np.floor(points_m / spacing).astype(np.int64), axis=0)) > s.max_nodes:
         spacing *= 1.25
     return spacing
@@ -322,25 +329,25 @@ class Grid:
 
 def _view_rows_task(capture_root: str, derived_root: str, generation: str | None, name: str, cam, grid: Grid,
                     g0: Gaussians, bg: torch.Tensor, graph: NodeGraph, spacing: float, s: LinearSettings):
-    """`_view_rows` in a pool's process (or this one): the capture opened again, the filters made here."""
-    capture = Capture.open(capture_root, derived=derived_root)
+    """`_view_rows` in a pool's process (or this one), the capture opened again."""
     if multiprocessing.parent_process() is not None:     # a pool's process: its share of the cores
         torch.set_num_threads(1)
-    blur = (lambda im: cv2.GaussianBlur(im, (0, 0), s.blur_px)) if s.blur_px > 0 else (lambda im: im)
-    smooth = lambda im: blur(_filter(im, PREFILTER, PREFILTER))  # noqa: E731
-    return _view_rows(capture, generation, name, cam, grid, g0, bg, graph, spacing, s, blur, smooth)
+    return _view_rows(Capture.open(capture_root, derived=derived_root), generation, name, cam, grid, g0, bg, graph,
+                      spacing, s)
 
 
-def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: Grid, g0: Gaussians,
-               bg: torch.Tensor, graph: NodeGraph, spacing: float, s: LinearSettings, blur, smooth):
+def _view_rows(capture: Capture, generation: str | None, name: str, cam, grid: Grid, g0: Gaussians,
+               bg: torch.Tensor, graph: NodeGraph, spacing: float, s: LinearSettings):
     """One view's rows of the normal equations: its usable pixels' brightness-constancy rows `A` (noise-weighted),
     the view's figures, and its share of the right-hand side, A^T d / noise at every timestep; None when too few
     pixels are usable."""
-    frames = np.asarray(vs.frame_index)
+    blur = (lambda im: cv2.GaussianBlur(im, (0, 0), s.blur_px)) if s.blur_px > 0 else (lambda im: im)
+    smooth = lambda im: blur(_filter(im, PREFILTER, PREFILTER))  # noqa: E731
+    frames = np.asarray(grid.frame_index)
     path = source_path(capture, "sync", name)
     with open_frames(capture, "sync", name, generation) as ff:
         times = ff.times_s
-        if frames.max() >= len(times) or not np.allclose(times[frames], vs.times_s, atol=1e-9):
+        if frames.max() >= len(times) or not np.allclose(times[frames], grid.times_s, atol=1e-9):
             raise InputError(path, "times_s differ from the training grid's")
         full = 2.0 ** int(ff.attrs["bit_depth"]) - 1
 
@@ -373,9 +380,9 @@ def _view_rows(capture: Capture, generation: str | None, name: str, cam, vs: Gri
         gx = blur(_filter(mean_img, DERIVATIVE, PREFILTER))
         gy = blur(_filter(mean_img, PREFILTER, DERIVATIVE))
         with torch.no_grad():
-            out = render(g0, cam.in_scene(vs.scene), background=bg)
+            out = render(g0, cam.in_scene(grid.scene), background=bg)
         alpha = out.alpha.double().numpy()
-        z = out.depth.double().numpy() / np.maximum(alpha, 1e-9) * vs.scene.radius
+        z = out.depth.double().numpy() / np.maximum(alpha, 1e-9) * grid.scene.radius
         use = alpha >= s.min_alpha
         # Away from depth edges (a step of more than 1.5 node spacings between neighbouring pixels, or the
         # uncovered background) by the filters' reach: there the image moves with one side only.

@@ -42,7 +42,7 @@ from odsplat.spine.store import Capture
 
 from .dynamic import FitSettings, Trajectory, fit_dynamic, fit_static, render
 from .gaussians import Gaussians, save_ply
-from .linear import LinearSettings, NodeMotion, fit_linear, node_spacing
+from .linear import LinearSettings, NodeMotion, fit_linear, median_footprint_m, node_spacing
 from .modal import ModalMotion, ModalSettings, fit_modal
 from .pose_result import PoseResult
 from .quaternion import quat_conjugate, quat_from_rotvec, quat_multiply, quat_normalize, quat_to_rotvec
@@ -179,15 +179,11 @@ def working_width(poses, s: ReconstructSettings) -> WorkingWidth:
     # Not widened for max_nodes: the pose stage's points (the floor, outliers) fill more cells than the rest
     # fit's opaque Gaussians do; where the fit widens it, the width errs on the fine side.
     spacing = node_spacing(pts, cams, scene, s.linear, widen=False)
-    footprint = []
-    for c in cams:
-        z = pts @ c.R[2] + float(c.t[2])
-        if np.any(z > 0):
-            footprint.append(float(np.median(z[z > 0])) / float(c.K[0, 0]))
+    footprint = median_footprint_m(pts, cams)
     native = int(np.median([c.width_px for c in cams]))
-    if not footprint:
+    if not np.isfinite(footprint):
         return WorkingWidth(MIN_WORKING_PX, "no structure point in front of the views")
-    spacing_px = spacing / float(np.median(footprint))          # in the views' own pixels
+    spacing_px = spacing / footprint          # in the views' own pixels
     need = 16 * int(np.ceil(2 * native / spacing_px / 16))
     width = int(min(max(need, MIN_WORKING_PX), max(native, MIN_WORKING_PX)))
     return WorkingWidth(width, f"node spacing {spacing * 1e3:.1f} mm = {spacing_px:.1f} px of the {native} px views; "

@@ -52,13 +52,6 @@ def machine_memory_bytes() -> float:
     return total
 
 
-def cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:          # not on Linux
-        return os.cpu_count() or 1
-
-
 @dataclass(frozen=True)
 class Budget:
     bytes: float
@@ -98,7 +91,7 @@ def within_budget(stage: str, settings: Any, budget: Budget, frame_px: int, n_vi
     if stage == "magnify" and not settings.every_view:     # the views to watch: the first, or those named
         n_views = min(n_views, len(settings.takes or settings.views) or 1)
     pool = _pool(stage, settings)
-    wanted = pool.workers or min(cores(), max(n_views, 1))
+    wanted = pool.workers or min(os.cpu_count() or 1, max(n_views, 1))   # the stages' own default
     if pool.workers is not None:
         if pool.workers > fits:
             return settings, (f"{stage}: {pool.workers} processes of about {each / 1e9:.2f} GB each pass the "
