@@ -33,6 +33,7 @@ REASONS = {
     "force_high": "the peak force is above the planned band",
     "tags_not_visible": "too few AprilTags are visible",
     "camera_timeout": "the camera never delivered its recording (set by the session)",
+    "empty": "the take holds neither frames nor samples",
 }
 
 
@@ -181,6 +182,46 @@ class QCReport:
         return cls(doc.takes, from_plain(QCSettings, dict(doc.settings), f"{path}: settings"))
 
 
+def take_content(reader: TakeReader) -> str:
+    """What a take holds: "frames", "response" (DAQ or CAN channels other than force) and "force", joined by "+"
+    in that order ("frames", "frames+response", "frames+force+response", "force+response", ...)."""
+    parts = []
+    if reader.has_frames and reader.n_frames:
+        parts.append("frames")
+    force = bool(reader.n_samples) and bool(reader.channels_of_kind("force"))
+    if force:
+        parts.append("force")
+    names = reader.channel_names if reader.n_samples else []
+    others = [c for c in names if c not in reader.channels_of_kind("force")]
+    if others or reader.can_channel_names:
+        parts.append("response")
+    return "+".join(parts) or "empty"
+
+
+def _dropped_frames(reader: TakeReader) -> tuple[int, ...]:
+    if not (reader.has_frames and reader.n_frames > 1):
+        return ()
+    counter = np.asarray(reader.frame_counter, np.int64)
+    return tuple(int(c) for c in np.setdiff1d(np.arange(counter[0], counter[-1] + 1), counter))
+
+
+def check_unforced(reader: TakeReader) -> HitQC:
+    """The checks for a take without a force channel (a video on its own, or video and response channels, from an
+    operating machine nobody hits): lost samples in its channels and dropped frames. There is no hit to judge."""
+    reasons, details = [], []
+    lost = 0
+    if reader.n_samples:
+        lost = sum(int(np.count_nonzero(~np.isfinite(reader.channel(c)))) for c in reader.channel_names)
+    if lost:
+        reasons.append("dropped_samples")
+        details.append(f"{lost} DAQ samples lost")
+    dropped = _dropped_frames(reader)
+    if dropped:
+        reasons.append("dropped_frames")
+        details.append(f"{len(dropped)} camera frame(s) lost (counters {list(dropped)[:8]})")
+    return HitQC(tuple(reasons), tuple(details), 0.0, (), {}, lost, dropped)
+
+
 def check_take(reader: TakeReader, limits: QCLimits) -> HitQC:
     """The checks a take's file allows afterwards: impacts, force band, lost samples (NaN) and dropped frames
     (gaps in the camera's counter). Overloads need the DAQ's range, which only the live session knows."""
@@ -211,14 +252,10 @@ def check_take(reader: TakeReader, limits: QCLimits) -> HitQC:
     if lost:
         reasons.append("dropped_samples")
         details.append(f"{lost} DAQ samples lost")
-    dropped: tuple[int, ...] = ()
-    if reader.has_frames and reader.n_frames > 1:
-        counter = np.asarray(reader.frame_counter, np.int64)
-        full = np.arange(counter[0], counter[-1] + 1)
-        dropped = tuple(int(c) for c in np.setdiff1d(full, counter))
-        if dropped:
-            reasons.append("dropped_frames")
-            details.append(f"{len(dropped)} camera frame(s) lost (counters {list(dropped)[:8]})")
+    dropped = _dropped_frames(reader)
+    if dropped:
+        reasons.append("dropped_frames")
+        details.append(f"{len(dropped)} camera frame(s) lost (counters {list(dropped)[:8]})")
     return HitQC(tuple(reasons), tuple(details), peak, times, {}, lost, dropped)
 
 
@@ -232,12 +269,17 @@ def run_qc(capture: Capture, settings: QCSettings | None = None) -> QCReport:
         if rec.status not in ("complete", "recovered"):
             continue
         with capture.open_take(rec.name) as reader:
-            if not reader.n_samples:
-                out.append(TakeQC(rec.name, rec.qc, "rejected", ("no_daq",), ("no DAQ samples",), None, 0))
+            content = take_content(reader)
+            if "force" in content:
+                hit = check_take(reader, limits)
+            elif "frames" in content or "response" in content:
+                hit = check_unforced(reader)
+            else:
+                out.append(TakeQC(rec.name, rec.qc, "rejected", ("empty",), ("neither frames nor samples",), None, 0,
+                                  content))
                 continue
-            hit = check_take(reader, limits)
         out.append(TakeQC(rec.name, rec.qc, "accepted" if hit.accepted else "rejected", hit.reasons, hit.details,
-                          hit.peak_force_n, len(hit.impact_times_s)))
+                          hit.peak_force_n if "force" in content else None, len(hit.impact_times_s), content))
     if not out:
         raise InputError(capture.root / "capture.json", "no complete take to check")
     report = QCReport(tuple(out), s)

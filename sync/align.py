@@ -167,11 +167,17 @@ class SyncResult:
 
     def summary(self) -> str:
         head = f"{len(self.ok)}/{len(self.takes)} takes synced"
+        own = self.ok and all(t.method == "frames" for t in self.ok)
         if self.ok:
-            head += f"; grid {self.n_frames} frames at {self.fps:g} fps from {1e3 * self.t0_s:+.3f} ms after the impact"
+            head += (f"; grid {self.n_frames} frames at {self.fps:g} fps from {1e3 * self.t0_s:+.3f} ms "
+                     + ("after counter 0's exposure start (no force: the takes keep their own frame times)" if own
+                        else "after the impact"))
         lines = [head]
         for t in self.takes:
-            if t.status == "ok":
+            if t.status == "ok" and t.method == "frames":
+                lines.append(f"  {t.name:<10} on its own frame times (no force channel)"
+                             f"{'  [' + ', '.join(t.flags) + ']' if t.flags else ''}")
+            elif t.status == "ok":
                 extra = f"  image check {t.image_check_frames:+.3f} fr" if t.image_check_frames is not None else ""
                 lines.append(f"  {t.name:<10} {t.method:<5} offset {1e3 * t.offset_s:+.4f} ms "
                              f"({t.offset_s * self.fps:+.3f} fr), residual {t.residual_frames:.3f} fr{extra}"
@@ -221,6 +227,9 @@ class _TakeAnalysis:
             raise InputError(r.path, "the take has no frame rate (fps attribute)")
         if self.fps is not None and abs(r.fps - self.fps) > 1e-6 * self.fps:
             raise InputError(r.path, f"filmed at {r.fps:g} fps; the capture's camera runs at {self.fps:g} fps")
+        if not (r.n_samples and r.channels_of_kind("force")):
+            self._own_time()
+            return
         fs = r.sample_rate_hz
         force_name = force_channel(r)
         force = r.channel(force_name).astype(float)
@@ -301,6 +310,24 @@ class _TakeAnalysis:
                 out.flags += [f for f in timing.flags if f not in out.flags]
                 out.notes += list(timing.notes)
         out.offset_s = out.frame0_daq_time_s + 0.5 * out.exposure_s - out.hit_daq_time_s
+
+    def _own_time(self) -> None:
+        """A take without a force channel (a video on its own, an operating machine nobody hits): there is no impact to
+        lock it to, so it keeps its own frame times, counter 0's exposure starting at time 0."""
+        r, out = self.r, self.out
+        counters = r.frame_counter.astype(int)
+        out.counters = counters.tolist()
+        full, _ = fill_dropped(counters)
+        out.dropped_counters = sorted(set(full.tolist()) - set(out.counters))
+        if out.dropped_counters:
+            out.flags.append("dropped_frames_filled")
+        out.method, out.period_s, out.frame0_daq_time_s = "frames", 1.0 / r.fps, 0.0
+        out.exposure_s = self._exposure(out.period_s)
+        out.offset_s = 0.5 * out.exposure_s
+        out.flags.append("no_force")
+        out.notes.append("no force channel: the take keeps its own frame times (time 0 is counter 0's exposure "
+                         "start), not an impact's")
+        self._check_tags(np.mean([r.frames[i].astype(np.float64) for i in range(min(8, r.n_frames))], axis=0))
 
     def _exposure(self, period: float) -> float:
         if self.cam_exposure_s:
@@ -456,8 +483,11 @@ def align_take(capture_root: str, derived_root: str, t: TakeSync, t0: float, fps
     with capture.open_take(t.name) as r:
         if list(r.frame_shape) != shape:
             return t.exclude(f"frame shape {list(r.frame_shape)} differs from the capture's {shape}")
-        hit_counter = (t.hit_daq_time_s - t.frame0_daq_time_s) / t.period_s
-        rest = np.asarray(t.counters)[np.asarray(t.counters) + 1 < hit_counter]
+        if t.hit_daq_time_s is None:  # on its own frame times: no rest before a hit
+            rest = np.empty(0, int)
+        else:
+            hit_counter = (t.hit_daq_time_s - t.frame0_daq_time_s) / t.period_s
+            rest = np.asarray(t.counters)[np.asarray(t.counters) + 1 < hit_counter]
         _write_aligned(capture, t, r, rest, t0, fps, n_grid, settings, Path(out_dir), generation)
     return t
 
@@ -494,6 +524,7 @@ def _sync(capture: Capture, s: SyncSettings, records, generation: str, out_dir: 
             results.append(a.run())
             if a.response is not None:
                 responses[rec.name] = a.response
+    _one_timeline(results)
     ok = [t for t in results if t.status == "ok"]
     fps = m.camera.fps
     if ok and fps is None:
@@ -501,10 +532,11 @@ def _sync(capture: Capture, s: SyncSettings, records, generation: str, out_dir: 
         if len(nominal) > 1:
             raise OdsplatError(f"{capture.root}: the takes were filmed at different frame rates {sorted(nominal)} fps")
         fps = 1.0 / float(np.median([t.period_s for t in ok]))
-    ref_impulse = float(np.median([t.impulse_n_s for t in ok])) if ok else None
+    impulses = [t.impulse_n_s for t in ok if t.impulse_n_s is not None]
+    ref_impulse = float(np.median(impulses)) if impulses else None
     _cross_check(ok, responses)
     for t in ok:
-        t.impulse_scale = ref_impulse / t.impulse_n_s if s.normalize_impulse else 1.0
+        t.impulse_scale = ref_impulse / t.impulse_n_s if s.normalize_impulse and t.impulse_n_s else 1.0
     t0, n_grid, shape = None, 0, []
     if ok:
         t0, n_grid = _grid(ok, fps)
@@ -535,6 +567,17 @@ def _sync(capture: Capture, s: SyncSettings, records, generation: str, out_dir: 
 
         plot_sync(capture, result)
     return result
+
+
+def _one_timeline(takes: list[TakeSync]) -> None:
+    """Takes locked to an impact and takes on their own frame times do not share a timeline: where both are
+    synced, those without force are excluded, saying why."""
+    ok = [t for t in takes if t.status == "ok"]
+    if any(t.method == "frames" for t in ok) and any(t.method != "frames" for t in ok):
+        for t in ok:
+            if t.method == "frames":
+                t.exclude("no force channel, beside takes locked to their impact: it has no place on their timeline")
+                log.warning("take %s excluded from sync: %s", t.name, t.error)
 
 
 def _cross_check(ok: list[TakeSync], responses: dict[str, tuple[np.ndarray, float]]) -> None:

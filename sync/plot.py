@@ -23,13 +23,16 @@ def plot_sync(capture: Capture, result: SyncResult, path: Path | None = None) ->
     fps = result.fps or 1.0
     ok = result.ok
     for t in ok:
+        if t.hit_daq_time_s is None:  # on its own frame times: no pulse to show
+            continue
         with capture.open_take(t.name) as r:
             f = r.channel(force_channel(r))
             tt = r.daq_t0_s + np.arange(len(f)) / r.sample_rate_hz - t.hit_daq_time_s
         near = (tt > -1e-3) & (tt < 4e-3)
         ax_f.plot(1e3 * tt[near], f[near], ".", ms=2)
-    if ok:
-        t = ok[0]
+    hits = [t for t in ok if t.hit_daq_time_s is not None]
+    if hits:
+        t = hits[0]
         s = np.linspace(-1e-3, 4e-3, 500)
         ax_f.plot(1e3 * s, half_sine(s, 0.0, t.peak_force_n, t.pulse_duration_s), "k-", lw=0.8,
                   label=f"half sine fitted to {t.name}")
@@ -44,12 +47,14 @@ def plot_sync(capture: Capture, result: SyncResult, path: Path | None = None) ->
         if t.status != "ok":
             ax_o.plot(i, 0, "rx")
             continue
-        if t.method == "ttl":  # a line through many edges: far finer than one edge's residual
+        if t.method == "frames":  # on its own frame times
+            ax_o.plot(i, t.offset_s * fps, "^", color="C2")
+        elif t.method == "ttl":  # a line through many edges: far finer than one edge's residual
             ax_o.plot(i, t.offset_s * fps, "o", color="C0")
         else:
             ax_o.errorbar(i, t.offset_s * fps, yerr=t.residual_frames, fmt="s", color="C1")
     ax_o.set(ylabel="offset [frames]", title="middle of the trigger frame's exposure after the impact "
-             "(o strobe, s images, x excluded)")
+             "(o strobe, s images, ^ own frame times: no force, x excluded)")
     ax_o.set_xticks(x, names, rotation=90, fontsize=7)
 
     fs = capture.manifest.daq_sample_rate_hz or 1.0

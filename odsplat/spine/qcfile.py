@@ -32,6 +32,7 @@ class TakeQC:
     details: tuple[str, ...]
     peak_force_n: float | None
     n_impacts: int
+    content: str = ""              # what the take holds: frames, force, response, joined by "+" ("" in older files)
 
     @property
     def status(self) -> str:
