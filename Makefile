@@ -15,6 +15,9 @@ $(BIN)/python:
 # Reinstall when the dependency list or the pins change.
 $(STAMP): pyproject.toml constraints.txt | $(BIN)/python
 	$(BIN)/python -m pip install -q -c constraints.txt -e '.[dev]'
+	# pyidi, the tests' and bench's reference tracker, without its dependencies: they would put OpenCV's GUI build
+	# beside our headless one (both own cv2); what its Lucas-Kanade method needs is installed above.
+	$(BIN)/python -m pip install -q --no-deps pyidi==1.4.0
 	touch $@
 
 install: $(STAMP)
