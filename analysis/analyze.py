@@ -74,8 +74,19 @@ from .ods import (
     stable_poles,
 )
 from .outputs import write_outputs
+from .plots2d import write_clips, write_figures
 from .result import AnalysisResult, Sensor, VideoModes
 from .verdict import DISCRIMINATION, NOT_DISCRIMINATED, Verdict, crosscheck_verdict, mac_verdict
+from .video2d import (
+    Video2DResult,
+    Video2DSettings,
+    analyze_video,
+    discard_video2d,
+    first_frame,
+    frames,
+    has_force,
+    write_video2d,
+)
 
 log = logging.getLogger(__name__)
 
@@ -131,6 +142,7 @@ class AnalyzeSettings:
     plots: bool = True                               # the figures and animations (plots/); the report inlines them
     image_ranks: tuple[int, ...] | None = None       # None: as video_ranks, from the frames after the impact
     image_pixel_fraction: float = 0.05               # the most textured pixels of each view
+    video2d: Video2DSettings = field(default_factory=Video2DSettings)  # a capture without force: the 2D path
 
     def __post_init__(self) -> None:
         check_choice("AnalyzeSettings.takes", self.takes, ("accepted", "all"))
@@ -570,10 +582,15 @@ def _image(capture: Capture, s: AnalyzeSettings) -> ImagePoles | None:
     return image_poles(capture, fmax_hz=VIDEO_BAND * fps, ranks=s.image_ranks, pixel_fraction=s.image_pixel_fraction)
 
 
-def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | None = None) -> AnalysisResult:
-    """The whole analysis, written to derived/analysis/ (results.h5, analysis.uff, analysis.json, plots)."""
+def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | None = None
+                    ) -> AnalysisResult | Video2DResult:
+    """The whole analysis, written to derived/analysis/ (results.h5, analysis.uff, analysis.json, plots); a capture
+    without a force channel gets the 2D output-only path instead (`video_only`)."""
     capture = capture if isinstance(capture, Capture) else Capture.open(capture)
     s = settings or AnalyzeSettings()
+    if s.force_channel is None and not has_force(capture):
+        return video_only(capture, s)
+    discard_video2d(capture)
     inputs = _read_inputs(capture, s)
     frf, modes, findings = _accelerometers(inputs, s)
     unplaced = tuple(sn.name for sn in inputs.sensors if not sn.placed)
@@ -591,6 +608,24 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
                             reference=inputs.reference, reference_automac=cmp.reference_automac,
                             video_cross_mac=cmp.video_cross_mac)
     return _write(capture, result, s)
+
+
+def video_only(capture: Capture, s: AnalyzeSettings) -> Video2DResult:
+    """A capture without force: the 2D output-only path on its first view (video2d.py), its figures and clips."""
+    result = analyze_video(capture, s.video2d, takes=s.takes)
+    dest = capture.paths.ensure(capture.paths.analysis_dir)
+    files: dict[str, str] = {}
+    if s.plots:
+        frame = first_frame(capture, result.take)
+        files = write_figures(dest, result, frame)
+        if s.video2d.clips:
+            clips = write_clips(dest, result, lambda: frames(capture, result.take), frame.shape,
+                                s.video2d.clip_frames)
+            result = dataclasses.replace(result, modes=tuple(
+                dataclasses.replace(m, clip=clips[k][0], clip_alpha=clips[k][1]) if k in clips else m
+                for k, m in enumerate(result.modes)))
+            files.update({f"clip_{k + 1:02d}": v[0] for k, v in clips.items()})
+    return write_video2d(capture, result, s, files)
 
 
 # ---------------------------------------------------------------------------------------------- the notes

@@ -37,7 +37,9 @@ from .document import (
     VideoSection,
     read_analysis,
 )
+from .report2d import render_video2d_report
 from .verdict import DISCRIMINATION, FULL_FIELD_DISTINCT, NOT_DISCRIMINATED, ModeStatus, Verdict
+from .video2d import has_force, has_video2d
 
 log = logging.getLogger(__name__)
 
@@ -476,8 +478,7 @@ def _render(folder: Path) -> dict | None:
 
 def render_video(folder: Path) -> str:
     """The reconstruction's magnified novel-view render (`odsplat render`'s frames in `folder`) as the report's
-    section, inline as an animated WebP: browsers play it in the page, where they cannot play the mp4 this OpenCV
-    build writes (MPEG-4 Part 2). Empty where there are no frames."""
+    section, inline as an animated WebP (a few frames, small enough to inline). Empty where there are no frames."""
     render = _render(folder)
     if render is None:
         return ""
@@ -528,9 +529,14 @@ def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict |
 
 
 def write_report(capture: Capture) -> Path:
-    """derived/analysis/report.html from derived/analysis/analysis.json and the plots it lists; returns its path."""
-    doc = read_analysis(capture)
+    """derived/analysis/report.html from derived/analysis/analysis.json and the plots it lists (a capture without
+    force: from video2d.json, report2d.py); returns its path."""
     path = capture.paths.report_html
+    if not has_force(capture) and has_video2d(capture):   # the 2D path's result (video only)
+        atomic_write_text(path, render_video2d_report(capture))
+        log.info("report written to %s", path)
+        return path
+    doc = read_analysis(capture)
     atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name, capture_setup(capture),
                                           _render(capture.paths.render_dir)))
     log.info("report written to %s", path)

@@ -14,6 +14,7 @@ _EXPORTS = {
     "RigConfig": "rig", "SimRig": "rig", "make_rig": "rig", "rig_config": "rig",
     "SceneSettings": "scene", "SimCameraConfig": "camera",
     "STRUCTURES": "structure", "make_structure": "structure",   # the rigs by name: arm, plate, frame, mast
+    "VideoSimSettings": "video", "VideoTruth": "video", "simulate_video": "video",  # one camera, no DAQ
 }
 __all__ = sorted(_EXPORTS)
 

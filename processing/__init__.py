@@ -13,6 +13,7 @@ from .magnify import (
     MagnifyResult,
     MagnifySettings,
     magnify_capture,
+    make_magnifier,
     parse_options,
 )
 from .video import SOURCES as VIDEO_SOURCES
@@ -22,4 +23,4 @@ run = magnify_capture  # the stage's entry
 
 __all__ = ["METHODS", "VIDEO_SOURCES", "ExportedVideo", "MagnifiedTake", "MagnifiedVideo", "MagnifyResult",
            "MagnifySettings", "MotionLimit", "check_export", "check_limit", "export_video", "magnify_capture",
-           "parse_options", "run", "source_takes", "TrainConfig", "train"]
+           "make_magnifier", "parse_options", "run", "source_takes", "TrainConfig", "train"]

@@ -209,7 +209,8 @@ def _currency(capture: Capture, name: str, config: Config) -> tuple[bool, str, S
 def applies(capture: Capture, name: str, config: Config) -> str | None:
     """None when stage `name` has something to work on; else why not, in a phrase. The video stages need takes
     with frames among those sync selects (after qc's verdicts): a recording with accelerometers only goes
-    from qc straight to the analysis, and 3D needs at least two views."""
+    from qc straight to the analysis, and 3D needs at least two views. Without force, the run's magnify is left
+    out: the analysis's 2D path writes a clip of each mode's band."""
     need = stage(name).needs_views
     if not need:
         return None
@@ -220,6 +221,9 @@ def applies(capture: Capture, name: str, config: Config) -> str | None:
         return f"no {config.sync.takes} take has video frames" + (" (qc has not run)" if unchecked else "")
     if len(views) < need:
         return f"3D needs takes from {need} views or more; the {config.sync.takes} takes with frames have {len(views)}"
+    if name == "magnify" and not any(c.kind == "force" for c in capture.manifest.channels):
+        return ("no force: the analysis's 2D path magnifies each mode's band itself (derived/analysis/clips/); "
+                "`odsplat magnify` magnifies a band you choose")
     return None
 
 

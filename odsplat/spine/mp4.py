@@ -1,32 +1,42 @@
 """Playable mp4 files from frames, one writer for every stage that makes videos to watch (magnified takes,
-`odsplat export-video`, the reconstruction's render): 8-bit frames through OpenCV, a comment in the file's
-metadata, written whole or not at all.
+`odsplat export-video`, the reconstruction's render): 8-bit frames encoded H.264 (libx264, yuv420p, BT.709
+limited range) through PyAV, a comment in the file's metadata, written whole or not at all.
 
-OpenCV's pip builds carry FFmpeg without an H.264 encoder (libx264) on most machines; the writer tries H.264
-('avc1') first and falls back to MPEG-4 Part 2 ('mp4v'), which this build writes and reads back, and which
-desktop players (VLC, mpv, QuickTime, Windows' player) play. Web browsers play only H.264 in mp4.
+H.264 in yuv420p is what every web browser plays in an mp4 (Chromium refuses MPEG-4 Part 2, 'mp4v', which the
+writer made through OpenCV before), and what desktop players (VLC, mpv, QuickTime, Windows' player) play too.
+PyAV's wheels carry FFmpeg with libx264. yuv420p halves the colour planes, so a frame of odd width or height is
+padded by one copy of its last column or row; `Mp4Info` reports the size written. The comment is put in the moov
+box after the muxer's trailer (`add_comment`; callers may set `Mp4Writer.comment` until `close()`), so moov stays
+the file's last box (no `+faststart`): browsers read it by range requests or from the whole local file.
 """
 from __future__ import annotations
 
 import contextlib
 import functools
 import logging
-import os
 import struct
-import tempfile
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 
-import cv2
+import av
 import numpy as np
+from av.video.reformatter import VideoReformatter
 
 from odsplat.spine.atomic import atomic_path
 from odsplat.spine.errors import InputError, OdsplatError
 
 log = logging.getLogger(__name__)
 
-CODECS = ("avc1", "mp4v")   # preferred first
+CODECS = ("libx264",)   # the H.264 encoders the writer uses, preferred first (CRF and presets are x264's)
 DISPLAY_PERCENTILES = (0.5, 99.5)
+CRF = 18                # x264's constant rate factor: 18 is close to visually lossless, 23 its default
+PRESET = "medium"       # x264's speed/size trade-off (its default)
+PIX_FMT = "yuv420p"     # the one pixel format every browser's H.264 decoder takes
+_BT709 = 1              # AVCOL_PRI/TRC/SPC_BT709: the colour tags written, and the matrix the frames are converted by
+_LIMITED = 1            # AVCOL_RANGE_MPEG: 16-235 luma, what players expect of H.264
+FPS_RANGE = (1e-3, 1e6)  # playback rates the writer takes, both ends tried (FFmpeg's mp4 muxer refuses 1e-5);
+#                          the CLI's and settings' bounds (checks.PLAYBACK_FPS) are narrower
 
 
 # ------------------------------------------------------------------------------------------ 8-bit for viewing
@@ -48,57 +58,66 @@ def to_8bit(frames: np.ndarray, dn_range: tuple[float, float]) -> np.ndarray:
 
 # ------------------------------------------------------------------------------------------ the writer
 
-@contextlib.contextmanager
-def _quiet_stderr():
-    """FFmpeg reports a missing encoder on the process's stderr (fd 2), past Python: silenced while probing."""
-    try:
-        saved = os.dup(2)
-    except OSError:
-        yield
-        return
-    try:
-        with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
-            yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
 @functools.cache
+def _encoder() -> str:
+    """The first of CODECS this PyAV can encode with (looked up once per process)."""
+    for name in CODECS:
+        try:
+            av.codec.Codec(name, "w")
+        except ValueError:   # av.codec.codec.UnknownCodecError
+            continue
+        log.debug("mp4 encoder: %s (PyAV %s)", name, av.__version__)
+        return name
+    raise OdsplatError(f"this PyAV ({av.__version__}) has no H.264 encoder ({', '.join(CODECS)}): install the "
+                       f"'av' wheel from PyPI, which carries libx264")
+
+
 def codec() -> str:
-    """The first of CODECS that this OpenCV writes to mp4 and reads back (probed once per process)."""
-    with tempfile.TemporaryDirectory() as tmp:
-        for fourcc in CODECS:
-            path = os.path.join(tmp, f"probe_{fourcc}.mp4")
-            with _quiet_stderr():
-                writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*fourcc), 30.0, (32, 32))
-                opened = writer.isOpened()
-                if opened:
-                    for _ in range(2):
-                        writer.write(np.zeros((32, 32, 3), np.uint8))
-                writer.release()
-            if opened and count_frames(path) == 2:
-                log.debug("mp4 codec: %s", fourcc)
-                return fourcc
-    raise OdsplatError(f"this OpenCV ({cv2.__version__}) writes no mp4 codec of {CODECS}")
+    """The codec every mp4 is written in: "h264" (through `_encoder()`; an OdsplatError where PyAV has none)."""
+    _encoder()
+    return "h264"
+
+
+def _rate(fps: float) -> Fraction:
+    """The playback rate as a fraction (29.97 -> 2997/100, 30000/1001 stays 30000/1001, 2000/64 -> 125/4): the
+    stream's frame rate, and its inverse the time base, so that the player's rate is the one asked for."""
+    # a denominator of at most 10000, and at most 2^30 / fps: the numerator (the time base's denominator, and the
+    # timescale's factor) stays well inside FFmpeg's 32-bit rationals at FPS_RANGE's top
+    return Fraction(fps).limit_denominator(max(1, min(10_000, int(2**30 / fps))))
+
+
+def _mp4_options(rate: Fraction) -> dict[str, str]:
+    """The muxer's options: one timescale for the track and the movie, a multiple of the rate's numerator (so
+    every frame lasts a whole number of ticks) of at least 10000. The movie's default, 1000 ticks/s,
+    rounds the edit list that hides x264's B-frame delay, and at hundreds of frames/s and more it cut the last
+    frames (2000 frames/s: 3 written, 2 decoded back; 10000: none)."""
+    timescale = rate.numerator
+    while timescale < 10_000:
+        timescale *= 2
+    return {"movie_timescale": str(timescale), "video_track_timescale": str(timescale)}
 
 
 def count_frames(path: str | Path) -> int:
-    """Frames in a video, counted by decoding them (the container's count can be an estimate)."""
-    cap = cv2.VideoCapture(str(path))
+    """Frames in a video, counted by decoding them (the container's count can be an estimate). 0 where the file
+    holds no video stream or cannot be opened; a decoding error ends the count there (logged)."""
+    n = 0
     try:
-        n = 0
-        while cap.isOpened() and cap.grab():
-            n += 1
-        return n
-    finally:
-        cap.release()
+        with av.open(str(path)) as container:
+            if not container.streams.video:
+                return 0
+            stream = container.streams.video[0]
+            stream.thread_type = "AUTO"
+            for _ in container.decode(stream):
+                n += 1
+    except (av.FFmpegError, OSError) as exc:
+        log.warning("%s: decoding stopped after %d frames: %s", path, n, exc)
+    return n
 
 
 @dataclass(frozen=True)
 class Mp4Info:
-    """A written video: where, how many frames of what size, at what playback rate, with which codec."""
+    """A written video: where, how many frames of what size (as written: even), at what playback rate, with
+    which codec."""
 
     path: Path
     n_frames: int
@@ -110,64 +129,105 @@ class Mp4Info:
     comment: str
 
 
+def _even(frame: np.ndarray) -> np.ndarray:
+    """The frame padded to an even width and height (yuv420p's chroma is half size) by one copy of its last
+    column and/or row."""
+    pad_h, pad_w = frame.shape[0] % 2, frame.shape[1] % 2
+    if not (pad_h or pad_w):
+        return np.ascontiguousarray(frame)
+    return np.pad(frame, ((0, pad_h), (0, pad_w)) + ((0, 0),) * (frame.ndim - 2), mode="edge")
+
+
 class Mp4Writer:
-    """Writes 8-bit frames (H, W) grey or (H, W, 3) RGB to `path` at `fps` (the playback rate), with `comment`
-    in the file's metadata (udta/meta/ilst '©cmt', which ffprobe, VLC and exiftool show). The file appears at
-    `path` on `close()` only, after its frames were counted back by decoding; an exception inside `with` leaves no
-    file. The first frame fixes the size."""
+    """Writes 8-bit frames (H, W) grey or (H, W, 3) RGB to `path` at `fps` (the playback rate, any float: kept
+    as a fraction), H.264 yuv420p (libx264, CRF 18, BT.709), with `comment` in the file's metadata
+    (udta/meta/ilst '©cmt', which ffprobe, VLC and exiftool show). The first frame fixes the size; a frame of odd
+    width or height is padded by one copy of its last column or row, and `Mp4Info` reports the padded size. The
+    file appears at `path` on `close()` only, after its frames were counted back by decoding; an exception
+    inside `with` leaves no file. `comment` may be set until `close()` (magnify knows its mapping late)."""
 
     def __init__(self, path: str | Path, fps: float, comment: str = ""):
         if not (isinstance(fps, (int, float)) and 0 < fps < float("inf")):
             raise InputError("fps", f"expected a playback rate > 0 frames/s, got {fps}")
+        if not FPS_RANGE[0] <= fps <= FPS_RANGE[1]:
+            raise InputError("fps", f"a playback rate of {fps:g} frames/s is outside what the mp4 writer takes "
+                                    f"({FPS_RANGE[0]:g} to {FPS_RANGE[1]:g})")
         self.path, self.fps, self.comment = Path(path), float(fps), comment
         self.codec = codec()
         self._atomic = atomic_path(self.path, suffix=".mp4")
         self._tmp: Path | None = None
-        self._writer: cv2.VideoWriter | None = None
-        self._size: tuple[int, int] | None = None
+        self._container: av.container.OutputContainer | None = None
+        self._stream: av.video.stream.VideoStream | None = None
+        self._time_base = Fraction(1)
+        self._reformatter = VideoReformatter()   # one scaler for every frame (PyAV 18's frame.reformat makes
+        #                                          one a frame: 2x the writing time)
+        self._shape: tuple[int, int] | None = None    # the frames' (height, width) as given
+        self._size: tuple[int, int] | None = None     # (width, height) as written
         self.n_frames = 0
+
+    def _open(self, frame: np.ndarray) -> None:
+        """The temporary file and its H.264 stream, sized by the first (even) frame."""
+        self._tmp = self._atomic.__enter__()
+        try:
+            rate = _rate(self.fps)
+            self._container = av.open(str(self._tmp), mode="w", format="mp4", options=_mp4_options(rate))
+            stream = self._container.add_stream(_encoder(), rate=rate)
+            stream.width, stream.height = frame.shape[1], frame.shape[0]
+            stream.pix_fmt = PIX_FMT
+            stream.time_base = self._time_base = 1 / rate
+            cc = stream.codec_context
+            cc.options = {"crf": str(CRF), "preset": PRESET}
+            cc.color_primaries = cc.color_trc = cc.colorspace = _BT709
+            cc.color_range = _LIMITED
+            self._stream = stream
+        except BaseException:
+            self.abort()
+            raise
+        self._size = (frame.shape[1], frame.shape[0])
 
     def write(self, frame: np.ndarray) -> None:
         if frame.dtype != np.uint8 or frame.ndim not in (2, 3) or (frame.ndim == 3 and frame.shape[2] != 3):
             raise InputError(self.path, f"expected uint8 frames (H, W) or (H, W, 3), got {frame.dtype} {frame.shape}")
-        size = (frame.shape[1], frame.shape[0])
-        if self._writer is None:
-            self._tmp = self._atomic.__enter__()
-            self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*self.codec), self.fps, size)
-            if not self._writer.isOpened():
-                self.abort()
-                raise OdsplatError(f"{self.path}: OpenCV cannot open an mp4 ({self.codec}) here")
-            self._size = size
-        elif size != self._size:
-            raise InputError(self.path, f"a frame of {size[0]}x{size[1]} px in a video of {self._size[0]}x"
-                                        f"{self._size[1]} px")
-        self._writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR if frame.ndim == 2 else cv2.COLOR_RGB2BGR))
+        if self._shape is None:
+            self._open(_even(frame))
+            self._shape = frame.shape[:2]
+        elif frame.shape[:2] != self._shape:
+            raise InputError(self.path, f"a frame of {frame.shape[1]}x{frame.shape[0]} px in a video of "
+                                        f"{self._shape[1]}x{self._shape[0]} px")
+        image = av.VideoFrame.from_ndarray(_even(frame), format="gray" if frame.ndim == 2 else "rgb24")
+        image = self._reformatter.reformat(image, format=PIX_FMT, dst_colorspace="ITU709")
+        image.pts = self.n_frames
+        image.time_base = self._time_base
+        self._container.mux(self._stream.encode(image))
         self.n_frames += 1
 
     def close(self) -> Mp4Info:
-        """Finish the file: count its frames back, add the comment, move it into place."""
-        if self._writer is None:
+        """Finish the file: flush the encoder, count its frames back, add the comment, move it into place."""
+        if self._container is None:
             raise InputError(self.path, "no frames to write")
-        self._writer.release()
-        self._writer = None
         try:
+            self._container.mux(self._stream.encode(None))
+            self._container.close()
+            self._container = None
             decoded = count_frames(self._tmp)
             if decoded != self.n_frames:
                 raise OdsplatError(f"{self.path}: wrote {self.n_frames} frames, {decoded} decode back ({self.codec})")
             if self.comment:
                 add_comment(self._tmp, self.comment)
-        except BaseException as exc:
-            self._atomic.__exit__(type(exc), exc, exc.__traceback__)
+        except BaseException:
+            self.abort()
             raise
         self._atomic.__exit__(None, None, None)
+        self._tmp = None
         w, h = self._size
         return Mp4Info(self.path, self.n_frames, w, h, self.fps, self.codec, self.path.stat().st_size, self.comment)
 
     def abort(self) -> None:
         """Drop what was written (the temporary file); `path` is left as it was."""
-        if self._writer is not None:
-            self._writer.release()
-            self._writer = None
+        if self._container is not None:
+            with contextlib.suppress(Exception):
+                self._container.close()
+            self._container = None
         if self._tmp is not None:
             with contextlib.suppress(OdsplatError):
                 self._atomic.__exit__(OdsplatError, OdsplatError("aborted"), None)
@@ -249,8 +309,9 @@ def _new(path: list[bytes], child: bytes) -> bytes:
 
 
 def add_comment(path: str | Path, text: str) -> None:
-    """Put `text` in the mp4's moov/udta/meta/ilst '©cmt'. Only where moov is the file's last box (as OpenCV's
-    FFmpeg writes it), so growing it moves no sample offset; otherwise logged and left out."""
+    """Put `text` in the mp4's moov/udta/meta/ilst '©cmt' (beside the '©too' FFmpeg's muxer writes there). Only
+    where moov is the file's last box (as FFmpeg's mp4 muxer writes it without +faststart), so growing it moves no
+    sample offset; otherwise logged and left out."""
     path = Path(path)
     data = path.read_bytes()
     boxes = list(_boxes(data, 0, len(data)))

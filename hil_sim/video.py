@@ -1,0 +1,173 @@
+"""One camera, one view, no DAQ: a video of a structure in operation, as a phone or a lone high-speed camera films it,
+written as files `odsplat import` reads (a `.npy` of frames and a rig file), with its ground truth beside them.
+
+The structure is excited either by a train of random hammer pulses at the rig's hammer point (`excitation =
+"ambient"`: unmeasured, broadband, what an operating machine gets) or by one hit (`"hit"`) that nobody records. The
+truth holds the camera, the rest depth of every pixel and the modal coordinates at every frame, so the image
+motion of each mode at any pixel is known exactly to first order (`VideoTruth.image_shapes`)."""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from odsplat.analysis import project_displacement
+from odsplat.spine.atomic import atomic_open, atomic_write_text
+from odsplat.spine.errors import InputError
+
+from .camera import SimCameraConfig
+from .render import PinholeCamera
+from .rig import HAMMER, make_rig
+from .scene import STRUCTURE, STRUCTURE_TAG
+from .structure import STRUCTURES, Impact, make_structure
+
+log = logging.getLogger(__name__)
+
+EXCITATIONS = ("ambient", "hit")
+# A view of each rig from the side and a little above, so that every mode moves across the image somewhere.
+VIEWS = {"arm": ((1.25, 0.95, 0.95), (0.2, 0.0, 0.45)),
+         "plate": ((0.9, 0.75, 0.75), (0.0, 0.0, 0.1)),
+         "frame": ((1.1, 1.0, 0.8), (0.2, 0.0, 0.35)),
+         "mast": ((1.0, 0.85, 0.55), (0.2, 0.0, 0.35))}
+
+
+@dataclass(frozen=True)
+class VideoSimSettings:
+    structure: str = "arm"
+    width_px: int = 256
+    height_px: int = 192
+    fov_deg: float = 28.0
+    fps: float = 2000.0
+    n_frames: int = 1024
+    excitation: str = "ambient"
+    pulses_per_s: float = 400.0   # ambient: mean rate of the random pulses
+    peak_n: float = 60.0          # ambient: rms peak of a pulse; hit: the hit's peak
+    supersample: int = 3          # the renderer's samples per pixel side (anti-aliasing)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.structure not in STRUCTURES:
+            raise InputError("VideoSimSettings.structure", f"expected one of {', '.join(STRUCTURES)}; "
+                                                            f"got {self.structure!r}")
+        if self.excitation not in EXCITATIONS:
+            raise InputError("VideoSimSettings.excitation", f"expected one of {', '.join(EXCITATIONS)}; "
+                                                             f"got {self.excitation!r}")
+        if not (16 <= self.width_px <= 4096 and 16 <= self.height_px <= 4096):
+            raise InputError("VideoSimSettings.width_px", f"expected 16 to 4096 px; got {self.width_px}x"
+                                                           f"{self.height_px}")
+        if not (self.n_frames >= 16 and self.fps > 0 and self.pulses_per_s > 0 and self.peak_n > 0):
+            raise InputError("VideoSimSettings", "expected n_frames >= 16 and fps, pulses_per_s, peak_n > 0")
+
+
+@dataclass(frozen=True)
+class VideoTruth:
+    """What the video really shows: the camera, each pixel's rest depth, the structure's modes and the modal
+    coordinates at the middle of every frame's exposure."""
+
+    structure: str
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    depth_m: np.ndarray          # (H, W) rest depth (camera z) at pixel centres, inf off the structure's scene
+    on_structure: np.ndarray     # (H, W) bool: the pixel sees a moving part of the structure
+    fps: float
+    freqs_hz: np.ndarray
+    dampings: np.ndarray
+    mode_names: np.ndarray
+    modal_q: np.ndarray          # (n_modes, T)
+
+    def rest_points_m(self, points_px: np.ndarray) -> np.ndarray:
+        """The world points (P, 3) that pixels (P, 2) (x, y) see at rest (nearest pixel's depth)."""
+        p = np.asarray(points_px, float)
+        ix = np.clip(np.rint(p[:, 0]).astype(int), 0, self.depth_m.shape[1] - 1)
+        iy = np.clip(np.rint(p[:, 1]).astype(int), 0, self.depth_m.shape[0] - 1)
+        z = self.depth_m[iy, ix]
+        ray = np.linalg.solve(self.K, np.stack([p[:, 0], p[:, 1], np.ones(len(p))]))  # (3, P)
+        cam = ray * z
+        return (self.R.T @ (cam - self.t[:, None])).T
+
+    def image_shapes(self, points_px: np.ndarray) -> np.ndarray:
+        """Each mode's first-order image motion (n_modes, P, 2) (x, y) in px per unit modal coordinate at pixels
+        (P, 2); zero where the pixel does not see the structure."""
+        p = np.asarray(points_px, float)
+        X = self.rest_points_m(p)
+        ok = np.isfinite(X).all(axis=1)
+        phi = np.zeros((len(p), len(self.freqs_hz), 3))
+        phi[ok] = make_structure(self.structure).mode_shapes(X[ok])
+        out = np.zeros((len(self.freqs_hz), len(p), 2))
+        if ok.any():
+            out[:, ok] = project_displacement(np.moveaxis(phi[ok], 1, 0), X[ok], self.K, self.R, self.t)
+        return out
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        with atomic_open(path, "wb") as f:
+            np.savez_compressed(f, **{k: np.asarray(getattr(self, k)) for k in self.__dataclass_fields__})
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> VideoTruth:
+        with np.load(path) as z:
+            kw = {k: z[k] for k in cls.__dataclass_fields__}
+        kw["structure"], kw["fps"] = str(kw["structure"]), float(kw["fps"])
+        return cls(**kw)
+
+
+def _pulses(s: VideoSimSettings, t0_s: float, t1_s: float) -> list[Impact]:
+    point, d = HAMMER[s.structure]
+    direction = tuple(float(v) for v in np.asarray(d, float) / np.linalg.norm(d))
+    if s.excitation == "hit":
+        return [Impact(t0_s + 0.1 * (t1_s - t0_s), point, direction, peak_n=s.peak_n)]
+    rng = np.random.default_rng(s.seed)
+    n = rng.poisson(s.pulses_per_s * (t1_s - t0_s))
+    times = np.sort(rng.uniform(t0_s, t1_s, n))
+    peaks = rng.normal(0.0, s.peak_n, n)
+    return [Impact(float(t), point, direction, peak_n=float(f)) for t, f in zip(times, peaks)]
+
+
+def simulate_video(out: str | Path, settings: VideoSimSettings | None = None, *, progress: bool = False) -> Path:
+    """Film the structure with one camera into the folder `out` (created): `video.npy` (T, H, W) uint16 12-bit
+    frames, `rig.toml` (for `odsplat import rig.toml -o CAPTURE`) and `truth.npz` (`VideoTruth`). Returns the rig
+    file's path. Ambient excitation starts 1 s before the first frame, so the record is stationary."""
+    s = settings or VideoSimSettings()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rig = make_rig(s.structure, seed=s.seed)
+    eye, target = VIEWS[s.structure]
+    pin = PinholeCamera.look_at(eye, target, fov_deg=s.fov_deg, width_px=s.width_px, height_px=s.height_px)
+    cam = rig.mount_camera(pin, SimCameraConfig(fps=s.fps, supersample=s.supersample), seed=s.seed)
+    lead_s = 1.0 if s.excitation == "ambient" else 0.0
+    t_start_s = 0.01 + lead_s
+    duration_s = s.n_frames / s.fps
+    rig.add_impacts(_pulses(s, 0.0 if lead_s else t_start_s, t_start_s + duration_s))
+    cam.arm(n_frames=s.n_frames, pretrigger=0, trigger="internal", at_s=t_start_s)
+    frames = np.empty((s.n_frames, s.height_px, s.width_px), np.uint16)
+    for i, frame in enumerate(tqdm(cam.frames(), total=s.n_frames, desc="sim video", disable=not progress)):
+        frames[i] = frame.image
+    rec = cam.recording
+    mid = rec.exposure_start_s + 0.5 * cam.config.exposure
+    rest = cam.truth(t_start_s, alpha=0.0)
+    moving = np.isin(rest.object_id, (STRUCTURE, STRUCTURE_TAG))
+    st = rig.structure
+    truth = VideoTruth(s.structure, pin.K, pin.R, pin.t, rest.depth_m, moving, s.fps, st.freqs_hz, st.dampings,
+                       np.array([m.name for m in st.modes]), st.modal_response(rig.impacts, mid).q)
+    truth.save(out / "truth.npz")
+    with atomic_open(out / "video.npy", "wb") as f:
+        np.save(f, frames)
+    atomic_write_text(out / "rig.toml", _rig_toml(s))
+    log.info("simulated %d frames of the %s at %g fps (%s) into %s", s.n_frames, s.structure, s.fps, s.excitation,
+             out)
+    return out / "rig.toml"
+
+
+def _rig_toml(s: VideoSimSettings) -> str:
+    return (f'name = "video-{s.structure}"\n'
+            f'notes = "hil_sim: one camera, {s.excitation} excitation, no DAQ"\n\n'
+            f'[camera]\nmodel = "simulated"\nbit_depth = 12\n\n'
+            f'[[takes]]\nname = "video"\nview = 0\nvideo = "video.npy"\nfps = {s.fps!r}\n')
+
+
+__all__ = ["EXCITATIONS", "VIEWS", "VideoSimSettings", "VideoTruth", "simulate_video"]
