@@ -76,6 +76,7 @@ from .ods import (
 from .outputs import write_outputs
 from .plots2d import write_clips, write_figures
 from .result import AnalysisResult, Sensor, VideoModes
+from .triangulate import MIN_VIEWS, triangulation_check
 from .verdict import DISCRIMINATION, NOT_DISCRIMINATED, Verdict, crosscheck_verdict, mac_verdict
 from .video2d import (
     Video2DResult,
@@ -138,6 +139,10 @@ class AnalyzeSettings:
     #                                                  16/20/24, lowered where the timesteps cannot hold them)
     crosscheck_views: int = 6                        # takes whose 2D tracks check the 3D motion (0: none)
     crosscheck_points: int = 30
+    triangulate_views: int = 8                       # posed, synced takes whose 2D tracks are triangulated to 3D
+    #                                                  as a check of the Gaussians' shapes (triangulate.py; under
+    #                                                  3: none)
+    triangulate_points: int = 24
     image_poles: bool = True                         # poles from the synced takes' raw frames (imagepoles.py)
     plots: bool = True                               # the figures and animations (plots/); the report inlines them
     image_ranks: tuple[int, ...] | None = None       # None: as video_ranks, from the frames after the impact
@@ -156,6 +161,8 @@ class AnalyzeSettings:
             "ods_freq_hz": maybe(FREQUENCY_HZ), "min_opacity": FRACTION, "k_neighbours": NEIGHBOURS,
             "video_ranks": maybe(RANK), "crosscheck_views": Range(at_least=0, at_most=1000, integer=True),
             "crosscheck_points": Range(at_least=1, at_most=10_000, integer=True), "image_ranks": maybe(RANK),
+            "triangulate_views": Range(at_least=0, at_most=1000, integer=True),
+            "triangulate_points": Range(at_least=3, at_most=10_000, integer=True),
             "image_pixel_fraction": Range(above=0, at_most=1),
             "floor_margin_m": maybe(Range(at_least=0, at_most=MAX_LENGTH_M)),
             "outlier_factor": maybe(Range(at_least=1, at_most=1e6))})
@@ -338,6 +345,10 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     checks = crosscheck_views(capture, model, max_views=s.crosscheck_views, n_points=s.crosscheck_points,
                               k=s.k_neighbours, outlier_factor=s.outlier_factor) \
         if s.crosscheck_views > 0 else []
+    triangulation = triangulation_check(capture, motion, poles, max_views=s.triangulate_views,
+                                        n_points=s.triangulate_points, k=s.k_neighbours,
+                                        outlier_factor=s.outlier_factor, t_min_s=t_min) \
+        if s.triangulate_views >= MIN_VIEWS else None
     # Real (normal) modes where the structure's shapes are real within the noise: half the noise power goes
     shapes = None
     if s.real_modes and noise is not None:
@@ -375,7 +386,7 @@ def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: Analy
     return VideoModes(poles, np.flatnonzero(use), residues[:, :n_s], motion.points_m[keep],
                       residues[:, n_s:].reshape(len(poles), -1, 3)[:, keep], fit.r2[:n_s], fit.condition, f_hz,
                       zeta, t, at_sensors, tuple(checks), shapes_from, noise, int((~keep).sum()), background, rule,
-                      *ratio, real_modes=shapes, bound=bound, direction=direction)
+                      *ratio, real_modes=shapes, bound=bound, direction=direction, triangulation=triangulation)
 
 
 def _full_field_floor(noise: NoiseFloor, fit: DecayFit, amplitudes: np.ndarray, keep: np.ndarray, n_s: int,

@@ -127,6 +127,8 @@ class VideoSection:
     # the camera's Cramér-Rao bound against the measured floor, per point and mode, and each mode's motion below
     # the floor per direction (analysis/crlb.py `physical_limit`; micrometres)
     physical_limit: dict[str, Any] | None = _omitted()
+    # several views' 2D tracks triangulated to 3D against the Gaussians' motion and shapes (triangulate.py)
+    triangulation: dict[str, Any] | None = _omitted()
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -165,7 +165,7 @@ def _video(doc: AnalysisDocument) -> dict | None:
            "window": [_num(v.window_s[0], ".1f", 1e3), _num(v.window_s[1], ".1f", 1e3)],
            "condition": _num(v.condition, ".3g"), "real": None, "r2": _sensor_rows(doc.sensors, v.sensor_r2),
            "poles": _poles(modes, v.freq_hz, v.damping, pairs), "image_poles": None, "noise": _noise(v.noise_floor),
-           "crosscheck": [], "limit": _limit(modes, v.physical_limit)}
+           "crosscheck": [], "limit": _limit(modes, v.physical_limit), "triangulation": None}
     if v.real_modes:
         ratios = [r for r in (_finite(m.quadrature_over_noise) for m in v.real_modes if m.real) if r is not None]
         out["real"] = {"n_real": sum(m.real for m in v.real_modes), "n": len(v.real_modes),
@@ -175,6 +175,14 @@ def _video(doc: AnalysisDocument) -> dict | None:
         out["image_poles"] = {"n_views": str(im.n_views), "n_pixels": str(im.n_pixels),
                               "window": [_num(im.window_s[0], ".1f", 1e3), _num(im.window_s[1], ".1f", 1e3)],
                               **_poles(modes, im.freq_hz, im.damping, pairs)}
+    tri = getattr(v, "triangulation", None)
+    if tri:
+        out["triangulation"] = {
+            "n_points": str(tri["n_points"]), "n_views": str(tri["n_views"]),
+            "views": _num(tri["views_per_point"], ".0f"), "gain": _num(tri["gain"], ".2f"),
+            "correlation": _num(tri["correlation"], ".2f"), "motion": _num(tri["motion_rms_um"], ".3g"),
+            "modes": [[_num(m["freq_hz"], ".1f"), _num(m["mac"], ".3f"), _num(m["scale"], ".2f")]
+                      for m in tri["modes"]]}
     if v.crosscheck:
         out["crosscheck_verdict"] = _verdict(v.crosscheck_verdict)
         out["crosscheck"] = [[c.take, str(c.n_points), _num(c.gain, ".2f"), _num(c.correlation, ".2f"),

@@ -56,7 +56,11 @@ def render_video2d_report(capture: Capture) -> str:
              ("points", f"{doc['n_moving']} of {doc['n_points']} tracked move above their noise ({doc['tracker']} "
                         f"tracker, {doc['window_px']} px window)"),
              ("band", "-" if not doc.get("band_hz") else f"{doc['band_hz'][0]:.4g}-{doc['band_hz'][1]:.4g} Hz"),
-             ("scale", f"{1e3 * scale:.4g} mm/px" if scale else "none given: motion in pixels")]
+             ("scale", f"{1e3 * scale:.4g} mm/px" if scale else "none given: motion in pixels"),
+             ("noise floor", "-" if doc.get("noise_px_median") is None else
+              f"{doc['noise_px_median']:.3g} px rms per moving point over the band (median), "
+              f"{doc['noise_over_crlb_median']:.2g}x its Cramér-Rao bound of {doc['crlb_px_median']:.3g} px "
+              f"(one frame; camera noise: {doc.get('camera_noise', '?')})")]
     return _TEMPLATES.get_template("video2d.html").render(
         title=doc["capture"], created=doc.get("created_utc", ""), setup=setup, modes=_rows(doc, folder),
         floor_mac=doc["floor_mac"], notes=doc.get("notes", []), spectrum=_uri(folder, files.get("spectrum")),

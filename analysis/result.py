@@ -29,6 +29,7 @@ from .frf import FRFResult
 from .imagepoles import ImagePoles
 from .noise import FLOOR_MAC, FLOOR_SIGMAS, NoiseFloor, RealModes
 from .notes import Note
+from .triangulate import Triangulation
 from .verdict import Verdict
 
 
@@ -80,6 +81,7 @@ class VideoModes:
     real_modes: RealModes | None = None      # the shapes as real modes where the noise allows (noise.real_modes)
     bound: DisplacementBound | None = None   # the camera's Cramér-Rao bound against the floor (crlb.py)
     direction: DirectionFloor | None = None  # each mode's motion against a floor per point and direction
+    triangulation: Triangulation | None = None  # several views' 2D tracks triangulated against the 3D motion
 
 
 def _finite(x: float) -> float | None:
@@ -93,6 +95,18 @@ def _floats(x) -> tuple[float, ...]:
 def _matrix(m: np.ndarray | None) -> tuple[tuple[float, ...], ...] | None:
     """A square matrix as rows of floats (JSON), None where there is none."""
     return None if m is None else tuple(_floats(row) for row in np.asarray(m, float))
+
+
+def _triangulation(tri: Triangulation | None, freq_hz: np.ndarray) -> dict | None:
+    """The triangulation check as plain data (metres as micrometres), each mode's MAC and scale by frequency."""
+    if tri is None:
+        return None
+    return {"n_points": tri.n_points, "n_views": tri.n_views, "views_per_point": tri.views_per_point,
+            "gain": _finite(tri.gain), "correlation": _finite(tri.correlation),
+            "motion_rms_um": _finite(1e6 * tri.motion_rms_m), "residual_rms_um": _finite(1e6 * tri.residual_rms_m),
+            "condition_median": _finite(tri.condition_median),
+            "modes": [{"freq_hz": float(f), "mac": _finite(m), "scale": _finite(sc)}
+                      for f, m, sc in zip(freq_hz, tri.mode_mac, tri.mode_scale)]}
 
 
 def _noise_section(nf: NoiseFloor, freq_hz: np.ndarray) -> NoiseFloorSection:
@@ -141,7 +155,8 @@ def _video_section(result: AnalysisResult) -> VideoSection:
         crosscheck_gain_median=float(np.median(gains)) if gains else None,
         crosscheck_correlation_median=float(np.median(corrs)) if corrs else None,
         physical_limit=physical_limit(v.bound, v.direction, freq, v.noise.below) if v.bound is not None and
-        v.noise is not None else None)
+        v.noise is not None else None,
+        triangulation=_triangulation(v.triangulation, freq))
 
 
 def _image_section(im: ImagePoles) -> ImagePolesSection:

@@ -36,6 +36,7 @@ FLOOR_MAC = 0.95          # a shape the noise allows less than this MAC to is be
 MOVING_SNR = 10.0         # a point moves when its motion's variance in the band is this many times its noise's
 VIDEO_BAND = 0.45         # modes are sought below this fraction of the frame rate
 MAX_PEAKS = 3             # FDD peaks that no mode explains, reported as ODS lines
+NOISE_FRAMES = 32         # the camera's noise is fitted on the take's first frames
 LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 
 
@@ -52,16 +53,17 @@ class Video2DSettings:
     fmax_hz: float | None = None              # None: 0.45 x the frame rate
     n_modes: int | None = None                # keep the strongest this many
     approx_freq_hz: tuple[float, ...] | None = None  # pick these modes instead of automatic selection
-    scale_m_per_px: float | None = None       # the image scale at the structure, where known (metres per pixel)
+    scale_m_per_px: float | None = None       # the image scale at the structure (metres per pixel); None: from the
+    #                                           capture's tags seen in the first frame (tag_scale), where there are
     clips: bool = True                        # an amplified clip of each mode above the floor (clips.py)
     clip_frames: int = 600                    # at most this many frames per clip
 
     def __post_init__(self) -> None:
         if self.tracker not in METHODS:
             raise InputError("analyze.video2d.tracker", f"expected one of {', '.join(METHODS)}; got {self.tracker!r}")
-        if int(self.window_px) != self.window_px or self.window_px < 5 or self.window_px % 2 == 0:
-            raise InputError("analyze.video2d.window_px", f"expected an odd whole number >= 5; got {self.window_px}")
-        check_fields(self, {"max_points": Range(at_least=1, at_most=5000, integer=True),
+        check_fields(self, {"window_px": Range(at_least=5, at_most=255, integer=True),
+                            "points_px": maybe(Range(at_least=-1e5, at_most=1e5)),
+                            "max_points": Range(at_least=1, at_most=5000, integer=True),
                             "min_distance_px": maybe(Range(above=0, at_most=1e4)),
                             "fmin_hz": maybe(Range(at_least=0, at_most=1e7)),
                             "fmax_hz": maybe(Range(above=0, at_most=1e7)),
@@ -69,6 +71,8 @@ class Video2DSettings:
                             "approx_freq_hz": maybe(Range(above=0, at_most=1e7)),
                             "scale_m_per_px": maybe(Range(above=0, at_most=10)),
                             "clip_frames": Range(at_least=16, at_most=100_000, integer=True)})
+        if self.window_px % 2 == 0:
+            raise InputError("analyze.video2d.window_px", f"expected an odd number of pixels; got {self.window_px}")
 
 
 @dataclass(frozen=True)
@@ -103,6 +107,8 @@ class Video2DResult:
     points_px: np.ndarray      # (P, 2) every point tracked
     moving: np.ndarray         # (P,) bool: those that move above their noise (the shapes' points)
     noise_px: np.ndarray       # (P, 2) each point's rms noise, x and y, over the band
+    crlb_px: np.ndarray        # (P, 2) each point's Cramér-Rao bound, x and y (one frame against the first)
+    camera_noise: str          # the camera's noise model the bound rests on
     displacement_px: np.ndarray  # (T, P, 2) float32, against frame 0
     modes: tuple[Mode2D, ...]
     oma: OMAResult | None
@@ -198,6 +204,46 @@ def moving_points(d: np.ndarray, fps: float, band_hz: tuple[float, float]) -> tu
 
 # ------------------------------------------------------------------------------------------------ the analysis
 
+def tag_scale(capture: Capture, frame: np.ndarray) -> tuple[float | None, str]:
+    """Metres per pixel from the capture's AprilTags seen in the frame: each tag's side (its layout's size_m) over
+    its mean side in pixels; the tags on the structure where any is seen, else every tag of known size; the median
+    over them. A scale at the tags' depth: points nearer or further see the same motion larger or smaller."""
+    layout = capture.manifest.tags
+    if layout is None:
+        return None, "no tag layout in the capture: motion in pixels (give analyze.video2d.scale_m_per_px)"
+    from odsplat.spine.tags import detect_tags
+
+    known = {t.id: t for t in layout.tags}
+    found = []
+    for d in detect_tags(frame, family=layout.family):
+        place = known.get(d.id)
+        size = (place.size_m if place is not None and place.size_m else None) or layout.size_m
+        if size:
+            side = float(np.mean(np.linalg.norm(d.corners_px - np.roll(d.corners_px, 1, axis=0), axis=1)))
+            found.append((place is not None and place.on_structure, d.id, size / side))
+    if not found:
+        return None, "no tag of known size seen in the first frame: motion in pixels"
+    on = [f for f in found if f[0]] or found
+    scale = float(np.median([f[2] for f in on]))
+    where = "on the structure" if on[0][0] else "in the view"
+    return scale, (f"scale {1e3 * scale:.4g} mm/px from tag(s) {sorted(f[1] for f in on)} {where}: true at their "
+                   "depth, not at every point")
+
+
+def point_bounds(capture: Capture, take: str, first: np.ndarray, points: np.ndarray, window_px: int
+                 ) -> tuple[np.ndarray, str]:
+    """Each point's Cramér-Rao bound (P, 2) (x, y) in px: the Fisher information of its window in the first frame
+    (`crlb.fisher_2d`) under the camera's noise fitted on the first NOISE_FRAMES frames (`crlb.fit_noise_model`:
+    pixels that move are left out of that fit, so a take need not start at rest); and the noise model in words."""
+    from .crlb import fisher_2d, fit_noise_model, sigma_2d_px
+
+    with capture.open_take(take) as r:
+        raw = r.read_frames(0, min(NOISE_FRAMES, r.n_frames))
+        bit_depth = r.bit_depth
+    model = fit_noise_model(raw, bit_depth)
+    return sigma_2d_px(fisher_2d(first, model, points, window_px)), model.describe()
+
+
 def _band(s: Video2DSettings, fps: float) -> tuple[float | None, float]:
     hi = min(s.fmax_hz or VIDEO_BAND * fps, 0.5 * fps)
     if s.fmin_hz is not None and s.fmin_hz >= hi:
@@ -250,13 +296,18 @@ def analyze_video(capture: Capture, s: Video2DSettings, *, takes: str = "accepte
     if not fps:
         raise InputError(take, "the take has no frame rate: frequencies cannot be measured")
     first = first_frame(capture, take)
+    notes: list[str] = []
+    scale = s.scale_m_per_px
+    if scale is None:
+        scale, why = tag_scale(capture, first)
+        notes.append(why)
     points = pick_points(first, s)
     if not len(points):
         raise OdsplatError(f"{take}: no textured point to track in the first frame")
     tracks = track_points(frames(capture, take), points, method=s.tracker, window_px=s.window_px, progress=True)
+    crlb, camera = point_bounds(capture, take, first, points, s.window_px)
     d = tracks.displacement_px
     tracked = np.isfinite(d).all(axis=(0, 2))
-    notes: list[str] = []
     if not tracked.all():
         notes.append(f"{int((~tracked).sum())} of {len(tracked)} points were lost and are left out")
     lo, hi = _band(s, fps)
@@ -266,8 +317,8 @@ def analyze_video(capture: Capture, s: Video2DSettings, *, takes: str = "accepte
         moving[tracked], noise[tracked] = moving_points(d[:, tracked], fps, (lo or 0.0, hi))
     if moving.sum() < 2:
         notes.append(f"{int(moving.sum())} point(s) move above their noise: the video shows no motion to analyse")
-        return Video2DResult(take, view, fps, n_frames, s.tracker, s.window_px, points, moving, noise,
-                             d.astype(np.float32), (), None, s.scale_m_per_px, tuple(notes))
+        return Video2DResult(take, view, fps, n_frames, s.tracker, s.window_px, points, moving, noise, crlb, camera,
+                             d.astype(np.float32), (), None, scale, tuple(notes))
     x = (d[:, moving] - d[:, moving].mean(axis=0)).reshape(len(d), -1).astype(np.float64)
     oma = identify(x, fps, fmin_hz=lo, fmax_hz=hi, n_modes=s.n_modes, approx_freq_hz=s.approx_freq_hz)
     modes = []
@@ -284,8 +335,8 @@ def analyze_video(capture: Capture, s: Video2DSettings, *, takes: str = "accepte
     if oma.harmonics:
         notes.append("steady sines at " + ", ".join(f"{h.freq_hz:.2f}" for h in oma.harmonics)
                      + " Hz look like forced harmonics, not modes (kurtosis of their coordinate): left out")
-    return Video2DResult(take, view, fps, n_frames, s.tracker, s.window_px, points, moving, noise,
-                         d.astype(np.float32), tuple(modes), oma, s.scale_m_per_px, tuple(notes))
+    return Video2DResult(take, view, fps, n_frames, s.tracker, s.window_px, points, moving, noise, crlb, camera,
+                         d.astype(np.float32), tuple(modes), oma, scale, tuple(notes))
 
 
 # ------------------------------------------------------------------------------------------------ the files
@@ -301,14 +352,25 @@ def _doc(result: Video2DResult, capture: Capture, s: Any) -> dict:
             "view": result.view, "fps": result.fps, "n_frames": result.n_frames, "tracker": result.tracker,
             "window_px": result.window_px, "n_points": int(len(result.moving)), "n_moving": int(result.moving.sum()),
             "scale_m_per_px": result.scale_m_per_px, "floor_mac": FLOOR_MAC, "modes": modes,
+            "camera_noise": result.camera_noise, **_floors(result),
             "band_hz": None if result.oma is None else list(result.oma.band_hz),
             "notes": list(result.notes), "files": dict(result.files), "settings": plain(s)}
 
 
+def _floors(result: Video2DResult) -> dict:
+    """The moving points' noise floor against their Cramér-Rao bound: medians over the points, px and ratio."""
+    m = result.moving & np.isfinite(result.noise_px).all(axis=1) & np.isfinite(result.crlb_px).all(axis=1)
+    if not m.any():
+        return {"noise_px_median": None, "crlb_px_median": None, "noise_over_crlb_median": None}
+    noise, bound = np.hypot(*result.noise_px[m].T), np.hypot(*result.crlb_px[m].T)
+    return {"noise_px_median": float(np.median(noise)), "crlb_px_median": float(np.median(bound)),
+            "noise_over_crlb_median": float(np.median(noise / np.maximum(bound, 1e-12)))}
+
+
 def write_video2d(capture: Capture, result: Video2DResult, settings: Any, files: dict[str, str]) -> Video2DResult:
     """derived/analysis/video2d.npz (points, tracks, shapes, spectrum) and video2d.json (last: it lists them)."""
-    dest = capture.paths.ensure(capture.paths.analysis_dir)
-    arrays = dict(points_px=result.points_px, moving=result.moving, noise_px=result.noise_px,
+    capture.paths.ensure(capture.paths.analysis_dir)
+    arrays = dict(points_px=result.points_px, moving=result.moving, noise_px=result.noise_px, crlb_px=result.crlb_px,
                   displacement_px=result.displacement_px,
                   freq_hz=np.array([m.freq_hz for m in result.modes], float),
                   shapes=np.array([m.shape for m in result.modes], complex).reshape(
@@ -316,10 +378,10 @@ def write_video2d(capture: Capture, result: Video2DResult, settings: Any, files:
     if result.oma is not None:
         arrays.update(fdd_freq_hz=result.oma.fdd.freqs_hz, fdd_singular_values=result.oma.fdd.singular_values,
                       noise_psd=result.oma.noise_psd)
-    with atomic_open(dest / "video2d.npz", "wb") as f:
+    with atomic_open(capture.paths.video2d_npz, "wb") as f:
         np.savez_compressed(f, **arrays)
     result = Video2DResult(**{**result.__dict__, "files": {**files, "data": "video2d.npz"}})
-    atomic_write_text(dest / "video2d.json", json.dumps(_doc(result, capture, settings), indent=1, allow_nan=False,
+    atomic_write_text(capture.paths.video2d_json, json.dumps(_doc(result, capture, settings), indent=1, allow_nan=False,
                                                         default=_json_default) + "\n")
     return result
 
@@ -332,23 +394,21 @@ def _json_default(v):
 
 def read_video2d(capture: Capture) -> tuple[dict, dict[str, np.ndarray]]:
     """video2d.json and the arrays of video2d.npz, checked (kind, schema, capture)."""
-    folder = capture.paths.analysis_dir
-    path = folder / "video2d.json"
+    path = capture.paths.video2d_json
     doc = load_json(path, missing="no 2D analysis (run `odsplat analyze` first)")
     check(doc, path, kind=KIND, schema_version=SCHEMA, capture_id=capture.id)
-    with np.load(folder / "video2d.npz") as z:
+    with np.load(capture.paths.video2d_npz) as z:
         arrays = {k: z[k] for k in z.files}
     return doc, arrays
 
 
 def has_video2d(capture: Capture) -> bool:
-    return (capture.paths.analysis_dir / "video2d.json").is_file()
+    return capture.paths.video2d_json.is_file()
 
 
 def discard_video2d(capture: Capture) -> None:
     """Remove an earlier 2D result (the input-output path ran instead)."""
-    for name in ("video2d.json", "video2d.npz"):
-        p = capture.paths.analysis_dir / name
+    for p in (capture.paths.video2d_json, capture.paths.video2d_npz):
         if p.is_file() and not p.is_symlink():
             p.unlink()
 

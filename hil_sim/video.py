@@ -157,7 +157,7 @@ def simulate_video(out: str | Path, settings: VideoSimSettings | None = None, *,
     truth.save(out / "truth.npz")
     with atomic_open(out / "video.npy", "wb") as f:
         np.save(f, frames)
-    atomic_write_text(out / "rig.toml", _rig_toml(s))
+    atomic_write_text(out / "rig.toml", _rig_toml(s) + _tags_toml(rig.scene.tags))
     log.info("simulated %d frames of the %s at %g fps (%s) into %s", s.n_frames, s.structure, s.fps, s.excitation,
              out)
     return out / "rig.toml"
@@ -168,6 +168,18 @@ def _rig_toml(s: VideoSimSettings) -> str:
             f'notes = "hil_sim: one camera, {s.excitation} excitation, no DAQ"\n\n'
             f'[camera]\nmodel = "simulated"\nbit_depth = 12\n\n'
             f'[[takes]]\nname = "video"\nview = 0\nvideo = "video.npy"\nfps = {s.fps!r}\n')
+
+
+def _tags_toml(layout) -> str:
+    """The scene's tags as the rig file's [tags] table: the scale can come from one on the structure."""
+    out = f'\n[tags]\nfamily = "{layout.family}"\nsize_m = {layout.size_m!r}\n'
+    for t in layout.tags:
+        corners = ", ".join("[" + ", ".join(repr(float(v)) for v in c) + "]" for c in t.corners_m)
+        out += (f"\n[[tags.tags]]\nid = {t.id}\ncorners_m = [{corners}]\n"
+                f"on_structure = {'true' if t.on_structure else 'false'}\n")
+        if t.size_m:
+            out += f"size_m = {t.size_m!r}\n"
+    return out
 
 
 __all__ = ["EXCITATIONS", "VIEWS", "VideoSimSettings", "VideoTruth", "simulate_video"]

@@ -32,6 +32,8 @@ OWNERS = {
     "measured_motion_npz": "reconstruction/model.py",
     "gaussians_ply": "reconstruction/gaussians.py",
     "analysis_json": "analysis/document.py",
+    "video2d_json": "analysis/video2d.py",
+    "video2d_npz": "analysis/video2d.py",
     "stamp": "odsplat/app/pipeline.py",
     "lock": "odsplat/spine/lock.py",
 }
@@ -60,6 +62,9 @@ READERS = {
     "bench/store.py": "its baseline: the same frames as one .npy, read whole",
     "bench/sensitivity.py": "derived/poses.json, to move every camera by a rounding error before a rerun",
     "hil_sim/rig.py": "the simulated rig's ground truth (.npz), written beside the capture by hil_sim",
+    "hil_sim/video.py": "a simulated single-view video's ground truth (truth.npz), written beside it by hil_sim",
+    "analysis/video2d.py": "derived/analysis/video2d.json and video2d.npz (the 2D path's results)",
+    "bench/oma.py": "LADISK's video displacements (../shared/data, .npy), the bench's real input",
 }
 
 

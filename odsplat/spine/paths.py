@@ -146,6 +146,14 @@ class DerivedPaths:
         return self._at("analysis", "analysis.json")
 
     @property
+    def video2d_json(self) -> Path:
+        return self._at("analysis", "video2d.json")
+
+    @property
+    def video2d_npz(self) -> Path:
+        return self._at("analysis", "video2d.npz")
+
+    @property
     def report_html(self) -> Path:
         return self._at("analysis", "report.html")
 
