@@ -181,6 +181,8 @@ def _video(doc: AnalysisDocument) -> dict | None:
             "n_points": str(tri["n_points"]), "n_views": str(tri["n_views"]),
             "views": _num(tri["views_per_point"], ".0f"), "gain": _num(tri["gain"], ".2f"),
             "correlation": _num(tri["correlation"], ".2f"), "motion": _num(tri["motion_rms_um"], ".3g"),
+            "motion_px": _num(tri.get("motion_px"), ".3g"), "noise_px": _num(tri.get("noise_px"), ".2g"),
+            "expected": _num(tri.get("expected_correlation"), ".2f"),
             "modes": [[_num(m["freq_hz"], ".1f"), _num(m["mac"], ".3f"), _num(m["scale"], ".2f")]
                       for m in tri["modes"]]}
     if v.crosscheck:

@@ -104,7 +104,8 @@ def _triangulation(tri: Triangulation | None, freq_hz: np.ndarray) -> dict | Non
     return {"n_points": tri.n_points, "n_views": tri.n_views, "views_per_point": tri.views_per_point,
             "gain": _finite(tri.gain), "correlation": _finite(tri.correlation),
             "motion_rms_um": _finite(1e6 * tri.motion_rms_m), "residual_rms_um": _finite(1e6 * tri.residual_rms_m),
-            "condition_median": _finite(tri.condition_median),
+            "condition_median": _finite(tri.condition_median), "motion_px": _finite(tri.motion_px),
+            "noise_px": _finite(tri.noise_px), "expected_correlation": _finite(tri.expected_correlation),
             "modes": [{"freq_hz": float(f), "mac": _finite(m), "scale": _finite(sc)}
                       for f, m, sc in zip(freq_hz, tri.mode_mac, tri.mode_scale)]}
 

@@ -45,6 +45,14 @@ class Triangulation:
     mode_mac: tuple[float, ...]  # per fitted mode: MAC of the triangulated 3D shape against the Gaussians'
     mode_scale: tuple[float, ...]  # and the modal scale factor (triangulated over Gaussians')
     condition_median: float      # of the points' stacked Jacobians
+    motion_px: float = float("nan")  # the Gaussians' motion at the points as the views see it (rms, px)
+    noise_px: float = float("nan")   # the tracks' rms before the impact, where nothing moves (median over views)
+
+    @property
+    def expected_correlation(self) -> float:
+        """The correlation exact 3D motion would reach against tracks this noisy: m / sqrt(m^2 + noise^2)."""
+        m, n = self.motion_px, self.noise_px
+        return float(m / np.hypot(m, n)) if np.isfinite(n) and m > 0 else float("nan")
 
 
 def triangulate(tracks: list[np.ndarray], jacobians: list[np.ndarray], min_views: int = MIN_VIEWS
@@ -83,9 +91,9 @@ def _candidates(motion: SurfaceMotion, n: int, k: int, outlier_factor: float | N
 
 
 def _view_tracks(capture: Capture, sync, tk, pose: dict, motion: SurfaceMotion, points_m: np.ndarray,
-                 window_px: int, method: str) -> tuple[np.ndarray, np.ndarray]:
-    """One view's tracks (T, P, 2) at the motion's timesteps (NaN where the point is not visible or lost) and
-    its Jacobians (P, 2, 3)."""
+                 window_px: int, method: str) -> tuple[np.ndarray, np.ndarray, float]:
+    """One view's tracks (T, P, 2) at the motion's timesteps (NaN where the point is not visible or lost), its
+    Jacobians (P, 2, 3), and its tracks' noise: their rms over the frames before the impact (NaN: under 3)."""
     K, R, t = (np.asarray(pose[key], float) for key in ("K", "R", "t"))
     with AlignedTake(capture, capture.paths.listed(tk.aligned_file), sync.generation) as ff:
         shape = ff.frame_shape[:2]
@@ -105,10 +113,16 @@ def _view_tracks(capture: Capture, sync, tk, pose: dict, motion: SurfaceMotion, 
     ok = vis_all[near] & (uv[:, 0] >= x0 + margin) & (uv[:, 0] < x1 - margin) & (uv[:, 1] >= y0 + margin) \
         & (uv[:, 1] < y1 - margin) & (cam[:, 2] > 0)
     out = np.full((len(pick), len(points_m), 2), np.nan)
+    noise = float("nan")
     if ok.sum():
         tr = track_points(frames[pick], uv[ok] - [x0, y0], method=method, window_px=window_px).displacement_px
         out[:, ok] = tr - tr[:1]
-    return out, projection_jacobian(points_m, K, R, t)
+        pre = np.flatnonzero(np.asarray(times) < 0)
+        if len(pre) >= 3:
+            d = track_points(frames[pre], uv[ok] - [x0, y0], method=method, window_px=window_px).displacement_px[1:]
+            d = d[np.isfinite(d)]
+            noise = float(np.sqrt(np.mean(d ** 2))) if d.size else noise
+    return out, projection_jacobian(points_m, K, R, t), noise
 
 
 def triangulation_check(capture: Capture, motion: SurfaceMotion, poles_rad_s: np.ndarray, *, max_views: int = 8,
@@ -130,12 +144,13 @@ def triangulation_check(capture: Capture, motion: SurfaceMotion, poles_rad_s: np
     chosen = [takes[int(i)] for i in np.unique(np.linspace(0, len(takes) - 1, min(max_views, len(takes))).round())]
     idx = _candidates(motion, 3 * n_points, k, outlier_factor)
     points = motion.points_m[idx]
-    tracks, jacobians = [], []
+    tracks, jacobians, noises = [], [], []
     for tk in chosen:
-        d, J = _view_tracks(capture, sync, tk, poses[tk.name], motion, points, window_px, method)
+        d, J, noise = _view_tracks(capture, sync, tk, poses[tk.name], motion, points, window_px, method)
         ratio = float(np.nan_to_num(impulse[tk.name] / mean_impulse, nan=1.0))
         tracks.append(d / ratio)
         jacobians.append(J)
+        noises.append(noise)
     tri, count, cond = triangulate(tracks, jacobians)
     good = np.isfinite(tri).all(axis=(0, 2)) & (cond <= MAX_CONDITION)
     good &= np.cumsum(good) <= n_points
@@ -152,11 +167,15 @@ def triangulation_check(capture: Capture, motion: SurfaceMotion, poles_rad_s: np
     fit_ref = fit_decay(motion.times_s, ref.reshape(T, -1), poles_rad_s, t_min_s=t_min_s).amplitudes
     macs = tuple(float(mac(fit_tri[r], fit_ref[r])[0, 0]) for r in range(len(poles_rad_s)))
     scales = tuple(float(np.abs(modal_scale_factor(fit_tri[r], fit_ref[r])[0])) for r in range(len(poles_rad_s)))
+    seen = [np.einsum("pij,tpj->tpi", J[good], ref) for J in jacobians]                 # (T, P, 2) per view
+    motion_px = float(np.sqrt(np.mean([np.mean(v ** 2) for v in seen])))
+    noise_px = float(np.nanmedian(noises)) if np.isfinite(noises).any() else float("nan")
     out = Triangulation(int(good.sum()), len(chosen), float(np.median(count[good])), gain, corr,
                         float(np.sqrt(np.mean(b ** 2))), float(np.sqrt(np.mean((a - gain * b) ** 2))), macs, scales,
-                        float(np.median(cond[good])))
-    log.info("triangulation: %d points in %d views: gain %.3f, correlation %.3f, mode MAC %s", out.n_points,
-             out.n_views, gain, corr, [round(m, 3) for m in macs])
+                        float(np.median(cond[good])), motion_px, noise_px)
+    log.info("triangulation: %d points in %d views: gain %.3f, correlation %.3f (%.3f expected from %.4f px of "
+             "motion over %.4f px of track noise), mode MAC %s", out.n_points, out.n_views, gain, corr,
+             out.expected_correlation, motion_px, noise_px, [round(m, 3) for m in macs])
     return out
 
 

@@ -206,7 +206,7 @@ def moving_points(d: np.ndarray, fps: float, band_hz: tuple[float, float]) -> tu
 
 def tag_scale(capture: Capture, frame: np.ndarray) -> tuple[float | None, str]:
     """Metres per pixel from the capture's AprilTags seen in the frame: each tag's side (its layout's size_m) over
-    its mean side in pixels; the tags on the structure where any is seen, else every tag of known size; the median
+    its longest side in pixels; the tags on the structure where any is seen, else every tag of known size; the median
     over them. A scale at the tags' depth: points nearer or further see the same motion larger or smaller."""
     layout = capture.manifest.tags
     if layout is None:
@@ -219,7 +219,8 @@ def tag_scale(capture: Capture, frame: np.ndarray) -> tuple[float | None, str]:
         place = known.get(d.id)
         size = (place.size_m if place is not None and place.size_m else None) or layout.size_m
         if size:
-            side = float(np.mean(np.linalg.norm(d.corners_px - np.roll(d.corners_px, 1, axis=0), axis=1)))
+            # the longest side: a tag seen obliquely is foreshortened across the tilt, not along it
+            side = float(np.max(np.linalg.norm(d.corners_px - np.roll(d.corners_px, 1, axis=0), axis=1)))
             found.append((place is not None and place.on_structure, d.id, size / side))
     if not found:
         return None, "no tag of known size seen in the first frame: motion in pixels"

@@ -1,9 +1,10 @@
 """Our 2D point tracker (analysis/tracking.py) against pyidi's Lucas-Kanade (LADISK) on the same points, with
 bench/track_pyidi.py's helpers: on a simulated video whose motion is known, and on pyidi's own real sample. The two
-must be closer to each other than our noise floor, and both must track the truth. Skipped when pyidi is absent: it
-is not in pyproject's extras, since it requires the GUI build of OpenCV (opencv-contrib-python), which would
-overwrite our headless one's cv2. Install it with `pip install --no-deps 'pyidi>=1.4'`: what its import and its LK
-need (numba, pyMRAW, scipy, matplotlib, psutil, tqdm, rich, imageio) the dev environment has already."""
+must be closer to each other than our noise floor, and both must track the truth. pyidi is not in pyproject's
+extras, since it requires the GUI build of OpenCV (opencv-contrib-python), which would overwrite our headless one's
+cv2: the Makefile installs it with `pip install --no-deps pyidi==1.4.0` (what its import and its LK need, numba,
+pyMRAW, scipy, matplotlib, psutil, tqdm, rich, imageio, the dev environment has already). Skipped where it is
+absent."""
 from __future__ import annotations
 
 import importlib.util

@@ -46,6 +46,22 @@ def test_qc_keeps_the_video_and_sync_keeps_its_frame_times(video_capture):
     assert '"method": "frames"' in sync and "no_force" in sync
 
 
+def test_the_scale_comes_from_the_tags_in_the_view_at_their_depth(video_capture):
+    """At 192x144 px the structure's 6 cm tags are too small to find; floor tags are found, and the scale is theirs
+    (said so: true at their depth)."""
+    capture, truth, _ = video_capture
+    doc, _ = read_video2d(capture)
+    tags = {t.id: t for t in capture.manifest.tags.tags}
+    seen = [n for n in doc["notes"] if n.startswith("scale ")]
+    assert seen and "true at their depth" in seen[0], doc["notes"]
+    ids = [int(i) for i in re.search(r"tag\(s\) \[([0-9, ]+)\]", seen[0]).group(1).split(",")]
+    # the true scale at those tags: their depth over the focal length
+    centres = np.array([np.mean(tags[i].corners_m, axis=0) for i in ids])
+    depth = (centres @ truth.R.T + truth.t)[:, 2]
+    true = depth / truth.K[0, 0]
+    assert true.min() * 0.85 < doc["scale_m_per_px"] < true.max() * 1.15, (doc["scale_m_per_px"], true)
+
+
 def test_frequencies_and_2d_shapes_match_the_projected_truth(video_capture):
     capture, truth, _ = video_capture
     doc, arrays = read_video2d(capture)
@@ -93,7 +109,7 @@ def test_the_tacoma_footage_gives_one_clear_peak_and_its_amplified_clip(shared_d
                                        'video = "tacoma_bridge.mp4"\n')
     cap = tmp_path / "cap"
     _odsplat("import", str(tmp_path / "rig.toml"), "-o", str(cap), "--data", str(shared_data / "pyidi-samples"))
-    (cap / "odsplat.toml").write_text("[analyze.video2d]\nclip_frames = 48\n")
+    (cap / "odsplat.toml").write_text("[analyze.video2d]\nclip_frames = 48\nmax_points = 120\n")
     _odsplat("run", str(cap))
     doc, _ = read_video2d(Capture.open(cap))
     above = [m for m in doc["modes"] if m["above_floor"]]
