@@ -110,9 +110,10 @@ def write_clips(dest: Path, result: Video2DResult, frames, frame_shape: tuple[in
     for k in todo:
         m = result.modes[k]
         alpha = clip_alpha(m.amplitude_px)
-        title = f"mode {k + 1}: {m.freq_hz:.2f} Hz x{alpha:.0f}  left: recorded, right: magnified"
+        what = "mode" if m.kind == "mode" else "FDD peak"
+        title = f"{what} {k + 1}: {m.freq_hz:.2f} Hz x{alpha:.0f}  left: recorded, right: magnified"
         spec = ClipSpec(m.freq_hz, alpha, box, title)
-        comment = (f"odsplat: take {result.take}, mode {k + 1} at {m.freq_hz:.3f} Hz magnified x{alpha:.3g} "
+        comment = (f"odsplat: take {result.take}, {what} {k + 1} at {m.freq_hz:.3f} Hz magnified x{alpha:.3g} "
                    f"(phase, warp, band {m.freq_hz * 0.9:.3g}-{m.freq_hz * 1.1:.3g} Hz); recorded at "
                    f"{result.fps:g} fps, played at 30 fps")
         info = write_clip(clips / f"mode_{k + 1:02d}.mp4", _first(frames(), max_frames), result.fps, spec,

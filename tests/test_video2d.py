@@ -109,7 +109,7 @@ def test_the_tacoma_footage_gives_one_clear_peak_and_its_amplified_clip(shared_d
                                        'video = "tacoma_bridge.mp4"\n')
     cap = tmp_path / "cap"
     _odsplat("import", str(tmp_path / "rig.toml"), "-o", str(cap), "--data", str(shared_data / "pyidi-samples"))
-    (cap / "odsplat.toml").write_text("[analyze.video2d]\nclip_frames = 48\nmax_points = 120\n")
+    (cap / "odsplat.toml").write_text("[analyze.video2d]\nclip_frames = 32\nmax_points = 60\n")
     _odsplat("run", str(cap))
     doc, _ = read_video2d(Capture.open(cap))
     above = [m for m in doc["modes"] if m["above_floor"]]
