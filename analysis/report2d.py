@@ -42,7 +42,10 @@ def _rows(doc: dict, folder: Path) -> list[dict]:
                          shape=_uri(folder, files.get(f"shape_{k:02d}")), clip=_uri(folder, m.get("clip")),
                          band=f"{m['freq_hz'] * (1 - BAND):.4g}-{m['freq_hz'] * (1 + BAND):.4g}",
                          alpha=f"{m['clip_alpha']:.0f}" if m.get("clip_alpha") else "",
-                         slow=f"{doc['fps'] / 30.0:.0f}"))
+                         title="Mode" if m.get("kind", "mode") == "mode" else "FDD peak",
+                         slow=(f"{doc['fps'] / 30.0:.3g}x slower than filmed" if doc["fps"] > 30.5 else
+                               "the speed filmed" if doc["fps"] > 29.5 else
+                               f"{30.0 / doc['fps']:.3g}x faster than filmed")))
     return rows
 
 
@@ -51,7 +54,8 @@ def render_video2d_report(capture: Capture) -> str:
     folder = capture.paths.analysis_dir
     files = doc.get("files", {})
     scale = doc.get("scale_m_per_px")
-    setup = [("capture", doc["capture"]), ("take", f"{doc['take']} (view {doc['view']})"),
+    setup = [("capture", doc["capture"]),
+             ("take", doc["take"] + ("" if doc.get("view") is None else f" (view {doc['view']})")),
              ("frames", f"{doc['n_frames']} at {doc['fps']:g} fps ({doc['n_frames'] / doc['fps']:.3g} s)"),
              ("points", f"{doc['n_moving']} of {doc['n_points']} tracked move above their noise ({doc['tracker']} "
                         f"tracker, {doc['window_px']} px window)"),
