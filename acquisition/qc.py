@@ -198,11 +198,20 @@ def take_content(reader: TakeReader) -> str:
     return "+".join(parts) or "empty"
 
 
-def _dropped_frames(reader: TakeReader) -> tuple[int, ...]:
-    if not (reader.has_frames and reader.n_frames > 1):
-        return ()
-    counter = np.asarray(reader.frame_counter, np.int64)
-    return tuple(int(c) for c in np.setdiff1d(np.arange(counter[0], counter[-1] + 1), counter))
+def _losses(reader: TakeReader, lost_samples: int, reasons: list[str], details: list[str]) -> tuple[int, ...]:
+    """The reasons for lost samples and dropped frames (gaps in the camera's counter), added to `reasons` and
+    `details`; the dropped counters."""
+    if lost_samples:
+        reasons.append("dropped_samples")
+        details.append(f"{lost_samples} DAQ samples lost")
+    dropped: tuple[int, ...] = ()
+    if reader.has_frames and reader.n_frames > 1:
+        counter = np.asarray(reader.frame_counter, np.int64)
+        dropped = tuple(int(c) for c in np.setdiff1d(np.arange(counter[0], counter[-1] + 1), counter))
+    if dropped:
+        reasons.append("dropped_frames")
+        details.append(f"{len(dropped)} camera frame(s) lost (counters {list(dropped)[:8]})")
+    return dropped
 
 
 def check_unforced(reader: TakeReader) -> HitQC:
@@ -212,13 +221,7 @@ def check_unforced(reader: TakeReader) -> HitQC:
     lost = 0
     if reader.n_samples:
         lost = sum(int(np.count_nonzero(~np.isfinite(reader.channel(c)))) for c in reader.channel_names)
-    if lost:
-        reasons.append("dropped_samples")
-        details.append(f"{lost} DAQ samples lost")
-    dropped = _dropped_frames(reader)
-    if dropped:
-        reasons.append("dropped_frames")
-        details.append(f"{len(dropped)} camera frame(s) lost (counters {list(dropped)[:8]})")
+    dropped = _losses(reader, lost, reasons, details)
     return HitQC(tuple(reasons), tuple(details), 0.0, (), {}, lost, dropped)
 
 
@@ -249,13 +252,7 @@ def check_take(reader: TakeReader, limits: QCLimits) -> HitQC:
         reasons.append("force_high")
         details.append(f"peak force {peak:.1f} N above the planned {hi:g} N")
     lost = int(np.count_nonzero(~np.isfinite(force)))
-    if lost:
-        reasons.append("dropped_samples")
-        details.append(f"{lost} DAQ samples lost")
-    dropped = _dropped_frames(reader)
-    if dropped:
-        reasons.append("dropped_frames")
-        details.append(f"{len(dropped)} camera frame(s) lost (counters {list(dropped)[:8]})")
+    dropped = _losses(reader, lost, reasons, details)
     return HitQC(tuple(reasons), tuple(details), peak, times, {}, lost, dropped)
 
 

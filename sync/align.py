@@ -251,12 +251,7 @@ class _TakeAnalysis:
         if pulse.residual > 0.1:
             out.flags.append("pulse_not_half_sine")
 
-        counters = r.frame_counter.astype(int)
-        out.counters = counters.tolist()
-        full, _ = fill_dropped(counters)
-        out.dropped_counters = sorted(set(full.tolist()) - set(out.counters))
-        if out.dropped_counters:
-            out.flags.append("dropped_frames_filled")
+        counters = self._counters()
         period = 1.0 / r.fps
         trigger_time = r.trigger.trigger_time_s
         ttl = r.channels_of_kind("ttl")
@@ -311,16 +306,22 @@ class _TakeAnalysis:
                 out.notes += list(timing.notes)
         out.offset_s = out.frame0_daq_time_s + 0.5 * out.exposure_s - out.hit_daq_time_s
 
-    def _own_time(self) -> None:
-        """A take without a force channel (a video on its own, an operating machine nobody hits): there is no impact to
-        lock it to, so it keeps its own frame times, counter 0's exposure starting at time 0."""
-        r, out = self.r, self.out
-        counters = r.frame_counter.astype(int)
+    def _counters(self) -> np.ndarray:
+        """The stored frames' counters, recorded with the ones dropped (filled on the grid, flagged)."""
+        out = self.out
+        counters = self.r.frame_counter.astype(int)
         out.counters = counters.tolist()
         full, _ = fill_dropped(counters)
         out.dropped_counters = sorted(set(full.tolist()) - set(out.counters))
         if out.dropped_counters:
             out.flags.append("dropped_frames_filled")
+        return counters
+
+    def _own_time(self) -> None:
+        """A take without a force channel (a video on its own, an operating machine nobody hits): there is no impact to
+        lock it to, so it keeps its own frame times, counter 0's exposure starting at time 0."""
+        r, out = self.r, self.out
+        self._counters()
         out.method, out.period_s, out.frame0_daq_time_s = "frames", 1.0 / r.fps, 0.0
         out.exposure_s = self._exposure(out.period_s)
         out.offset_s = 0.5 * out.exposure_s

@@ -116,22 +116,27 @@ def tiny_capture(out: Path) -> Capture:
     return cap
 
 
+def load_bench(name: str):
+    """bench/NAME.py as a module (the bench is scripts, not a package), loaded once per process."""
+    if f"bench_{name}" in sys.modules:
+        return sys.modules[f"bench_{name}"]
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", REPO / "bench" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module          # a dataclass in it looks its module up there
+    spec.loader.exec_module(module)
+    return module
+
+
 @pytest.fixture(scope="session")
 def bench_script():
-    """Load bench/NAME.py as a module (the bench is scripts, not a package): bench_script("analysis")."""
-    def load(name: str):
-        spec = importlib.util.spec_from_file_location(f"bench_{name}", REPO / "bench" / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[spec.name] = module          # a dataclass in it looks its module up there
-        spec.loader.exec_module(module)
-        return module
-    return load
+    """Load bench/NAME.py as a module: bench_script("analysis") (`load_bench`)."""
+    return load_bench
 
 
 # ------------------------------------------------------------------ a small capture through the whole pipeline
 
 # Test-sized settings for `odsplat run`: 64 px Gaussians, few iterations, a low LSCF order for 24-frame (12 ms)
-# takes, no 2D cross-check or figures (tests/analysis covers them).
+# takes, no 2D cross-check, triangulation or figures (tests/analysis covers them).
 SMALL_PIPELINE_CONFIG = """
 [magnify]
 workers = 1
@@ -144,6 +149,7 @@ iters_t0 = 150
 max_order = 30
 image_poles = false
 crosscheck_views = 0
+triangulate_views = 0
 plots = false
 """
 

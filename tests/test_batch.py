@@ -37,6 +37,7 @@ iters_t0 = 150
 max_order = 30
 image_poles = false
 crosscheck_views = 0
+triangulate_views = 0
 plots = false
 """
 # Above the 2000 fps camera's Nyquist: every view's magnifier refuses it, inside magnify's per-view tasks.

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from click.testing import CliRunner
 
+from odsplat.analysis import read_analysis
 from odsplat.app.cli import main
 from odsplat.app.pipeline import run_stage
 from odsplat.hil_sim.structure import make_structure
@@ -88,3 +89,7 @@ def test_a_plate_the_defaults_were_not_tuned_to_reads_its_modes_right_or_does_no
         if m.get("fitted") and not m["below_floor"]:
             assert m["mac_full"] >= fid.MIN_MAC and abs(m["scale"] - 1) <= fid.MAX_SCALE_ERR, m
     assert fid.targets([{"case": case.name, **scores}], None)["below_floor_never_met"]
+    # with the defaults, several views' 2D tracks are triangulated against the Gaussians (analysis/triangulate.py)
+    tri = read_analysis(cap).video.triangulation
+    assert tri is not None and tri["n_points"] >= 3 and tri["n_views"] >= 3, tri
+    assert np.isfinite(tri["expected_correlation"]) and -1 <= tri["correlation"] <= 1, tri

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.signal import cont2discrete, csd, lfilter
+from scipy.signal import csd, lfilter
 
 from odsplat.analysis.correlation import mac
 from odsplat.analysis.ema import StabilisationChart
@@ -14,10 +14,12 @@ from odsplat.analysis.oma import fdd, identify, noise_psd, ods_at, ssi_cov
 from odsplat.analysis.plots import plot_stabilisation
 from odsplat.spine.errors import InputError
 
-FS_HZ = 500.0
-FREQ_HZ = np.array([31.0, 77.0, 140.0])
-DAMPING = np.array([0.01, 0.015, 0.02])
-N_CH = 12
+from .conftest import load_bench
+
+# the 3-mode system of bench/oma.py (12 channels on a pinned beam's first three bending shapes)
+_SYSTEM = load_bench("oma")
+FS_HZ, FREQ_HZ, DAMPING, N_CH = _SYSTEM.FS_HZ, _SYSTEM.FREQ_HZ, _SYSTEM.DAMPING, _SYSTEM.N_CH
+_true_shapes, _modal_response = _SYSTEM.true_shapes, _SYSTEM.modal_response
 BAND = {"fmin_hz": 10.0, "fmax_hz": 200.0}
 
 # ../shared/data/README.md: the accelerometer's modes of the LADISK beam (sdypy-EMA LSCF), and the weak one at
@@ -28,20 +30,6 @@ LADISK_UNSEEN_HZ = 3671.2          # in the accelerometer, not in the camera's s
 LADISK_FPS = 15000.0
 
 
-def _true_shapes() -> np.ndarray:
-    """(3, N_CH): the first three bending shapes of a pinned beam at evenly spaced points."""
-    pos = (np.arange(N_CH) + 0.5) / N_CH
-    return np.stack([np.sin((r + 1) * np.pi * pos) for r in range(3)])
-
-
-def _modal_response(forces: np.ndarray) -> np.ndarray:
-    """Displacements (T, N_CH) of the modes (unit modal mass) under modal forces (T, 3) held over each sample."""
-    q = np.empty_like(forces)
-    for r, (f, z) in enumerate(zip(FREQ_HZ, DAMPING)):
-        w = 2 * np.pi * f
-        b, a, _ = cont2discrete(([1.0], [1.0, 2 * z * w, w * w]), 1 / FS_HZ, method="zoh")
-        q[:, r] = lfilter(np.ravel(b), a, forces[:, r])
-    return q @ _true_shapes()
 
 
 def _noise_sigma(scale: float) -> np.ndarray:
