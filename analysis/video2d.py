@@ -204,9 +204,24 @@ def moving_points(d: np.ndarray, fps: float, band_hz: tuple[float, float]) -> tu
 
 # ------------------------------------------------------------------------------------------------ the analysis
 
+def _tag_m_per_px(corners_px: np.ndarray, size_m: float) -> float:
+    """Metres per pixel at a tag's centre, along the direction its plane is not foreshortened: the tag square's
+    homography onto its corners, its Jacobian at the centre, over the larger singular value (px per metre). A tag
+    seen obliquely is foreshortened across its tilt only; along the tilt's axis it keeps the scale at its depth."""
+    import cv2
+
+    h = 0.5 * size_m
+    square = np.array([[-h, -h], [h, -h], [h, h], [-h, h]], np.float32)
+    H = cv2.getPerspectiveTransform(square, np.asarray(corners_px, np.float32))
+    # d(H x) / dx at x = 0: (H[:2, :2] w - H[:2, 2] H[2, :2]) / w^2, w = H[2, 2]
+    w = H[2, 2]
+    J = (H[:2, :2] * w - np.outer(H[:2, 2], H[2, :2])) / w ** 2
+    return float(1.0 / np.linalg.svd(J, compute_uv=False)[0])
+
+
 def tag_scale(capture: Capture, frame: np.ndarray) -> tuple[float | None, str]:
-    """Metres per pixel from the capture's AprilTags seen in the frame: each tag's side (its layout's size_m) over
-    its longest side in pixels; the tags on the structure where any is seen, else every tag of known size; the median
+    """Metres per pixel from the capture's AprilTags seen in the frame: each tag's (`_tag_m_per_px`, from its
+    layout's size_m); the tags on the structure where any is seen, else every tag of known size; the median
     over them. A scale at the tags' depth: points nearer or further see the same motion larger or smaller."""
     layout = capture.manifest.tags
     if layout is None:
@@ -219,9 +234,7 @@ def tag_scale(capture: Capture, frame: np.ndarray) -> tuple[float | None, str]:
         place = known.get(d.id)
         size = (place.size_m if place is not None and place.size_m else None) or layout.size_m
         if size:
-            # the longest side: a tag seen obliquely is foreshortened across the tilt, not along it
-            side = float(np.max(np.linalg.norm(d.corners_px - np.roll(d.corners_px, 1, axis=0), axis=1)))
-            found.append((place is not None and place.on_structure, d.id, size / side))
+            found.append((place is not None and place.on_structure, d.id, _tag_m_per_px(d.corners_px, size)))
     if not found:
         return None, "no tag of known size seen in the first frame: motion in pixels"
     on = [f for f in found if f[0]] or found

@@ -15,7 +15,7 @@ from odsplat.spine.store import Capture
 
 from .test_mp4_browser import _PAGE, _chromium
 
-SIM = VideoSimSettings(width_px=192, height_px=144, supersample=2, n_frames=1024, fps=1000.0, excitation="hit",
+SIM = VideoSimSettings(width_px=192, height_px=144, supersample=2, n_frames=768, fps=1000.0, excitation="hit",
                        peak_n=1500.0)
 
 
@@ -59,7 +59,8 @@ def test_the_scale_comes_from_the_tags_in_the_view_at_their_depth(video_capture)
     centres = np.array([np.mean(tags[i].corners_m, axis=0) for i in ids])
     depth = (centres @ truth.R.T + truth.t)[:, 2]
     true = depth / truth.K[0, 0]
-    assert true.min() * 0.85 < doc["scale_m_per_px"] < true.max() * 1.15, (doc["scale_m_per_px"], true)
+    # measured 5.25 mm/px against 5.28-5.34 (the tags' homography, scale along their unforeshortened axis)
+    assert true.min() * 0.95 < doc["scale_m_per_px"] < true.max() * 1.05, (doc["scale_m_per_px"], true)
 
 
 def test_frequencies_and_2d_shapes_match_the_projected_truth(video_capture):
