@@ -188,11 +188,11 @@ def take_content(reader: TakeReader) -> str:
     parts = []
     if reader.has_frames and reader.n_frames:
         parts.append("frames")
-    force = bool(reader.n_samples) and bool(reader.channels_of_kind("force"))
+    names = reader.channel_names if reader.n_samples else []
+    force = reader.channels_of_kind("force") if names else []
     if force:
         parts.append("force")
-    names = reader.channel_names if reader.n_samples else []
-    others = [c for c in names if c not in reader.channels_of_kind("force")]
+    others = [c for c in names if c not in force]
     if others or reader.can_channel_names:
         parts.append("response")
     return "+".join(parts) or "empty"

@@ -85,7 +85,6 @@ from .video2d import (
     discard_video2d,
     first_frame,
     frames,
-    has_force,
     write_video2d,
 )
 
@@ -599,7 +598,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     without a force channel gets the 2D output-only path instead (`video_only`)."""
     capture = capture if isinstance(capture, Capture) else Capture.open(capture)
     s = settings or AnalyzeSettings()
-    if s.force_channel is None and not has_force(capture):
+    if s.force_channel is None and not capture.manifest.has_force:
         return video_only(capture, s)
     discard_video2d(capture)
     inputs = _read_inputs(capture, s)

@@ -39,7 +39,7 @@ from .document import (
 )
 from .report2d import render_video2d_report
 from .verdict import DISCRIMINATION, FULL_FIELD_DISTINCT, NOT_DISCRIMINATED, ModeStatus, Verdict
-from .video2d import has_force, has_video2d
+from .video2d import has_video2d
 
 log = logging.getLogger(__name__)
 
@@ -542,7 +542,7 @@ def write_report(capture: Capture) -> Path:
     """derived/analysis/report.html from derived/analysis/analysis.json and the plots it lists (a capture without
     force: from video2d.json, report2d.py); returns its path."""
     path = capture.paths.report_html
-    if not has_force(capture) and has_video2d(capture):   # the 2D path's result (video only)
+    if not capture.manifest.has_force and has_video2d(capture):   # the 2D path's result (video only)
         atomic_write_text(path, render_video2d_report(capture))
         log.info("report written to %s", path)
         return path

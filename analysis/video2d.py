@@ -134,11 +134,6 @@ class Video2DResult:
 
 # ------------------------------------------------------------------------------------------------ frames
 
-def has_force(capture: Capture) -> bool:
-    """Whether the capture records a force channel (the input-output path) or not (the 2D output-only path)."""
-    return any(c.kind == "force" for c in capture.manifest.channels)
-
-
 def _take(capture: Capture, takes: str) -> tuple[str, int | None]:
     """The first view's first selected take with frames."""
     records = [r for r in capture.select_takes(takes) if r.n_frames]
@@ -432,5 +427,5 @@ def plots_dir(capture: Capture) -> Path:
 
 
 __all__ = ["FLOOR_MAC", "KIND", "Mode2D", "Video2DResult", "Video2DSettings", "analyze_video", "discard_video2d",
-           "first_frame", "frames", "has_force", "has_video2d", "mono", "pick_points", "read_video2d",
+           "first_frame", "frames", "has_video2d", "mono", "pick_points", "read_video2d",
            "write_video2d"]

@@ -221,7 +221,7 @@ def applies(capture: Capture, name: str, config: Config) -> str | None:
         return f"no {config.sync.takes} take has video frames" + (" (qc has not run)" if unchecked else "")
     if len(views) < need:
         return f"3D needs takes from {need} views or more; the {config.sync.takes} takes with frames have {len(views)}"
-    if name == "magnify" and not any(c.kind == "force" for c in capture.manifest.channels):
+    if name == "magnify" and not capture.manifest.has_force:
         return ("no force: the analysis's 2D path magnifies each mode's band itself (derived/analysis/clips/); "
                 "`odsplat magnify` magnifies a band you choose")
     return None

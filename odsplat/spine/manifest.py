@@ -274,6 +274,12 @@ class Manifest:
     schema_version: str = SCHEMA_VERSION
     capture_id: str = ""  # set when the capture is created; recorded in every derived file
 
+    @property
+    def has_force(self) -> bool:
+        """Whether the capture records a force channel: the hammer's input-output path; without one, a video is
+        analysed from its motion alone (the analysis's 2D path)."""
+        return any(c.kind == "force" for c in self.channels)
+
     def validate(self, where: str = "capture.json") -> None:
         names = [c.name for c in self.channels]
         for i, ch in enumerate(self.channels):
