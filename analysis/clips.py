@@ -38,6 +38,12 @@ class ClipSpec:
     title: str
 
 
+def band_hz(freq_hz: float, fps: float) -> tuple[float, float]:
+    """A mode's band, f (1 -+ BAND), its top kept under 0.49 x the frame rate (Nyquist, with the filter's margin):
+    what a clip magnifies and what a mode's amplitude is read over."""
+    return freq_hz * (1 - BAND), min(freq_hz * (1 + BAND), 0.49 * fps)
+
+
 def clip_box(points_px: np.ndarray, shape: tuple[int, int], margin_px: int = MARGIN_PX) -> tuple[int, int, int, int]:
     """The box around the points, plus a margin, within the frame; even sides (H.264)."""
     h, w = shape
@@ -96,9 +102,8 @@ def write_clip(path: Path, frames, fps: float, spec: ClipSpec, spectrum: tuple[n
     box at spec.alpha over f (1 -+ BAND), the recorded box on the left, the magnified on the right, the title above
     and the spectrum below, at PLAYBACK_FPS."""
     y0, y1, x0, x1 = spec.box
-    lo, hi = spec.freq_hz * (1 - BAND), min(spec.freq_hz * (1 + BAND), 0.49 * fps)
-    mag = make_magnifier(MagnifySettings(method="phase", alpha=spec.alpha, band_hz=(lo, hi), roi="none",
-                                         video=False, options=(("warp", True),)), fps)
+    mag = make_magnifier(MagnifySettings(method="phase", alpha=spec.alpha, band_hz=band_hz(spec.freq_hz, fps),
+                                         roi="none", video=False, options=(("warp", True),)), fps)
     h = y1 - y0
     scale = max(1, int(np.ceil(MIN_HEIGHT_PX / max(h, 1))))
     strip = None
@@ -139,4 +144,4 @@ def write_clip(path: Path, frames, fps: float, spec: ClipSpec, spectrum: tuple[n
     return writer.close()
 
 
-__all__ = ["BAND", "ClipSpec", "clip_alpha", "clip_box", "spectrum_strip", "write_clip"]
+__all__ = ["BAND", "ClipSpec", "band_hz", "clip_alpha", "clip_box", "spectrum_strip", "write_clip"]

@@ -569,8 +569,14 @@ def _mode(chart: StabilisationChart, pole: complex, spectrum: FDDResult, noise: 
     shape = normalise_shape(phi)
     k = spectrum.line(fn)
     peak = float(np.max(spectrum.singular_values[max(k - 1, 0):k + 2, 0]))
-    w = np.abs(phi) ** 2
-    floor = float(np.sum(w * noise) / np.sum(w))
     kurt = _kurtosis(x, spectrum.fs_hz, fn, shape.real, max(3 * zeta * fn, PEAK_LINES * spectrum.df_hz))
     return OMAMode(freq_hz=fn, damping=zeta, pole_rad_s=complex(pole), shape=shape, mpc=float(mpc(phi)[0]),
-                   peak_psd=peak, snr=peak / floor if floor > 0 else math.inf, n_stable=n_stable, kurtosis=kurt)
+                   peak_psd=peak, snr=shape_snr(peak, phi, noise), n_stable=n_stable, kurtosis=kurt)
+
+
+def shape_snr(peak_psd: float, shape: np.ndarray, noise_psd: np.ndarray) -> float:
+    """A shape's peak over the noise along it: peak_psd / (sum |phi_c|^2 noise_c / sum |phi_c|^2) (OMAMode.snr);
+    inf where there is no noise."""
+    w = np.abs(np.asarray(shape)) ** 2
+    floor = float(np.sum(w * noise_psd) / np.sum(w))
+    return peak_psd / floor if floor > 0 else math.inf

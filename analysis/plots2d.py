@@ -2,6 +2,7 @@
 marked, the stabilisation chart, each mode's shape drawn on the first frame, and each mode's amplified clip."""
 from __future__ import annotations
 
+import itertools
 import logging
 from pathlib import Path
 
@@ -9,7 +10,7 @@ import numpy as np
 
 from odsplat.spine.atomic import atomic_path
 
-from .clips import ClipSpec, clip_alpha, clip_box, write_clip
+from .clips import PLAYBACK_FPS, ClipSpec, band_hz, clip_alpha, clip_box, write_clip
 from .plots import plot_stabilisation
 from .video2d import Video2DResult
 
@@ -68,7 +69,7 @@ def plot_shape(result: Video2DResult, frame: np.ndarray, k: int):
               scale_units="xy", scale=1.0, width=0.004)
     state = "" if m.above_floor else "  BELOW THE FLOOR: shape not judged"
     what = f"damping {100 * m.damping:.2f} %" if m.kind == "mode" else "FDD peak (ODS at its line)"
-    ax.set_title(f"{m.kind} {k + 1}: {m.freq_hz:.2f} Hz, {what}, MPC {m.mpc:.2f}{state}",
+    ax.set_title(f"{m.label} {k + 1}: {m.freq_hz:.2f} Hz, {what}, MPC {m.mpc:.2f}{state}",
                  fontsize=10, color="k" if m.above_floor else "0.4")
     ax.set_axis_off()
     fig.tight_layout()
@@ -110,24 +111,17 @@ def write_clips(dest: Path, result: Video2DResult, frames, frame_shape: tuple[in
     for k in todo:
         m = result.modes[k]
         alpha = clip_alpha(m.amplitude_px)
-        what = "mode" if m.kind == "mode" else "FDD peak"
-        title = f"{what} {k + 1}: {m.freq_hz:.2f} Hz x{alpha:.0f}  left: recorded, right: magnified"
+        title = f"{m.label} {k + 1}: {m.freq_hz:.2f} Hz x{alpha:.0f}  left: recorded, right: magnified"
         spec = ClipSpec(m.freq_hz, alpha, box, title)
-        comment = (f"odsplat: take {result.take}, {what} {k + 1} at {m.freq_hz:.3f} Hz magnified x{alpha:.3g} "
-                   f"(phase, warp, band {m.freq_hz * 0.9:.3g}-{m.freq_hz * 1.1:.3g} Hz); recorded at "
-                   f"{result.fps:g} fps, played at 30 fps")
-        info = write_clip(clips / f"mode_{k + 1:02d}.mp4", _first(frames(), max_frames), result.fps, spec,
+        lo, hi = band_hz(m.freq_hz, result.fps)
+        comment = (f"odsplat: take {result.take}, {m.label} {k + 1} at {m.freq_hz:.3f} Hz magnified x{alpha:.3g} "
+                   f"(phase, warp, band {lo:.3g}-{hi:.3g} Hz); recorded at {result.fps:g} fps, played at "
+                   f"{PLAYBACK_FPS:g} fps")
+        info = write_clip(clips / f"mode_{k + 1:02d}.mp4", itertools.islice(frames(), max_frames), result.fps, spec,
                           spectrum, comment)
         out[k] = (f"clips/{info.path.name}", alpha)
         log.info("clip of mode %d (%.2f Hz, x%.0f): %s", k + 1, m.freq_hz, alpha, info.path)
     return out
-
-
-def _first(it, n: int):
-    for i, x in enumerate(it):
-        if i >= n:
-            return
-        yield x
 
 
 __all__ = ["plot_shape", "plot_spectrum", "write_clips", "write_figures"]

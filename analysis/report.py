@@ -29,6 +29,7 @@ from odsplat.spine.guard import check_inside
 from odsplat.spine.store import Capture
 from odsplat.sync import load_sync
 
+from .clips import band_hz
 from .document import (
     AnalysisDocument,
     ModeEntry,
@@ -37,9 +38,8 @@ from .document import (
     VideoSection,
     read_analysis,
 )
-from .report2d import render_video2d_report
 from .verdict import DISCRIMINATION, FULL_FIELD_DISTINCT, NOT_DISCRIMINATED, ModeStatus, Verdict
-from .video2d import has_video2d
+from .video2d import has_video2d, read_video2d
 
 log = logging.getLogger(__name__)
 
@@ -369,7 +369,7 @@ def _matrices(doc: AnalysisDocument) -> list[dict]:
 
 _ANALYSIS_FOLDER = "derived/analysis"
 _SIGNATURES = {".png": (b"\x89PNG\r\n\x1a\n",), ".gif": (b"GIF87a", b"GIF89a")}
-_MEDIA = {".png": "image/png", ".gif": "image/gif"}
+_MEDIA = {".png": "image/png", ".gif": "image/gif", ".mp4": "video/mp4"}
 
 
 def _own_file(folder: Path, rel, where: str = _ANALYSIS_FOLDER, writer: str = "the analysis") -> Path | str:
@@ -538,9 +538,69 @@ def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict |
         settings=doc.settings_text() if doc.settings else None)
 
 
+# ---------------------------------------------------------------------------------------------- the 2D path's page
+
+def _own_uri(folder: Path, rel: str | None) -> str | None:
+    """A file the 2D path wrote in `folder` as a data: URI (`_own_file`, `_read_own`); None where there is none or it
+    is not one of the folder's own."""
+    path = _own_file(folder, rel) if rel else None
+    return _data_uri(_MEDIA[path.suffix], _read_own(path)) if isinstance(path, Path) else None
+
+
+def _speed(fps: float) -> str:
+    """How a clip played at 30 fps runs against the filming."""
+    if fps > 30.5:
+        return f"{fps / 30.0:.3g}x slower than filmed"
+    return "the speed filmed" if fps > 29.5 else f"{30.0 / fps:.3g}x faster than filmed"
+
+
+def _rows_2d(doc: dict, folder: Path) -> list[dict]:
+    files = doc.get("files", {})
+    rows = []
+    for k, m in enumerate(doc["modes"], 1):
+        amp = f"{m['amplitude_px']:.3g} px"
+        if m.get("amplitude_m") is not None:
+            amp += f" ({1e6 * m['amplitude_m']:.3g} µm)"
+        z = f"{100 * m['damping']:.2f}" if m.get("damping") is not None else "FDD peak, no pole: an ODS"
+        lo, hi = band_hz(m["freq_hz"], doc["fps"])
+        rows.append(dict(k=k, f=f"{m['freq_hz']:.3f}", z=z, mpc=f"{m['mpc']:.2f}", amp=amp,
+                         floor=f"{m['floor_mac']:.3f}", above=m["above_floor"],
+                         state="above the floor" if m["above_floor"] else "below the floor: shape not judged",
+                         shape=_own_uri(folder, files.get(f"shape_{k:02d}")), clip=_own_uri(folder, m.get("clip")),
+                         band=f"{lo:.4g}-{hi:.4g}", alpha=f"{m['clip_alpha']:.0f}" if m.get("clip_alpha") else "",
+                         title="Mode" if m.get("kind", "mode") == "mode" else "FDD peak", slow=_speed(doc["fps"])))
+    return rows
+
+
+def render_video2d_report(capture: Capture) -> str:
+    """The report of a capture without force: its setup, the mode table (modes below the floor in grey, saying so),
+    the spectrum, each mode's shape on the frame and amplified clip, the stabilisation chart; every figure and clip
+    inlined, so the page stands alone (templates/video2d.html)."""
+    doc, _ = read_video2d(capture)
+    folder = capture.paths.analysis_dir
+    files = doc.get("files", {})
+    scale = doc.get("scale_m_per_px")
+    setup = [("capture", doc["capture"]),
+             ("take", doc["take"] + ("" if doc.get("view") is None else f" (view {doc['view']})")),
+             ("frames", f"{doc['n_frames']} at {doc['fps']:g} fps ({doc['n_frames'] / doc['fps']:.3g} s)"),
+             ("points", f"{doc['n_moving']} of {doc['n_points']} tracked move above their noise ({doc['tracker']} "
+                        f"tracker, {doc['window_px']} px window)"),
+             ("band", "-" if not doc.get("band_hz") else f"{doc['band_hz'][0]:.4g}-{doc['band_hz'][1]:.4g} Hz"),
+             ("scale", f"{1e3 * scale:.4g} mm/px" if scale else "none given: motion in pixels"),
+             ("noise floor", "-" if doc.get("noise_px_median") is None else
+              f"{doc['noise_px_median']:.3g} px rms per moving point over the band (median), "
+              f"{doc['noise_over_crlb_median']:.2g}x its Cramér-Rao bound of {doc['crlb_px_median']:.3g} px "
+              f"(one frame; camera noise: {doc.get('camera_noise', '?')})")]
+    return _TEMPLATES.get_template("video2d.html").render(
+        title=doc["capture"], created=doc.get("created_utc", ""), setup=setup, modes=_rows_2d(doc, folder),
+        floor_mac=doc["floor_mac"], notes=doc.get("notes", []), spectrum=_own_uri(folder, files.get("spectrum")),
+        stabilisation=_own_uri(folder, files.get("stabilisation")))
+
+
+
 def write_report(capture: Capture) -> Path:
     """derived/analysis/report.html from derived/analysis/analysis.json and the plots it lists (a capture without
-    force: from video2d.json, report2d.py); returns its path."""
+    force: from video2d.json, `render_video2d_report`); returns its path."""
     path = capture.paths.report_html
     if not capture.manifest.has_force and has_video2d(capture):   # the 2D path's result (video only)
         atomic_write_text(path, render_video2d_report(capture))

@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from odsplat.processing import luma
 from odsplat.spine.atomic import atomic_open, atomic_write_text
 from odsplat.spine.checks import Range, check_fields, maybe
 from odsplat.spine.contract import check, describe, plain
@@ -25,6 +27,7 @@ from odsplat.spine.errors import InputError, OdsplatError
 from odsplat.spine.manifest import load_json, utc_now
 from odsplat.spine.store import Capture
 
+from .clips import band_hz
 from .oma import OMAResult, identify
 from .tracking import METHODS, good_points, track_points
 
@@ -37,7 +40,6 @@ MOVING_SNR = 10.0         # a point moves when its motion's variance in the band
 VIDEO_BAND = 0.45         # modes are sought below this fraction of the frame rate
 MAX_PEAKS = 3             # FDD peaks that no mode explains, reported as ODS lines
 NOISE_FRAMES = 32         # the camera's noise is fitted on the take's first frames
-LUMA = np.array([0.299, 0.587, 0.114], np.float32)
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,11 @@ class Mode2D:
     kind: str = "mode"         # "mode": a pole SSI found stable; "peak": an FDD peak no pole explains (a short or
     #                            steady record's dominant oscillation), its shape the ODS at that line, no damping
 
+    @property
+    def label(self) -> str:
+        """What it is called in figures, clips and the summary."""
+        return "mode" if self.kind == "mode" else "FDD peak"
+
 
 @dataclass(frozen=True)
 class Video2DResult:
@@ -123,8 +130,8 @@ class Video2DResult:
                  f"{len(self.moving)} points move above their noise ({self.tracker} tracker{unit})"]
         for k, m in enumerate(self.modes, 1):
             state = "above the floor" if m.above_floor else "BELOW THE FLOOR (not judged)"
-            damping = f"damping {100 * m.damping:5.2f} %" if m.kind == "mode" else "FDD peak, no pole"
-            lines.append(f"  {m.kind} {k}: {m.freq_hz:8.3f} Hz  {damping}  MPC {m.mpc:.2f}  "
+            damping = f"damping {100 * m.damping:5.2f} %" if m.kind == "mode" else "no pole"
+            lines.append(f"  {m.label} {k}: {m.freq_hz:8.3f} Hz  {damping}  MPC {m.mpc:.2f}  "
                          f"{m.amplitude_px:.3g} px rms  shape known to MAC {m.floor_mac:.3f}: {state}")
         if not self.modes:
             lines.append("  no mode found: " + ("; ".join(self.notes) or "nothing stands above the noise"))
@@ -146,9 +153,8 @@ def _take(capture: Capture, takes: str) -> tuple[str, int | None]:
 
 
 def mono(block: np.ndarray) -> np.ndarray:
-    """Frames (n, H, W) or (n, H, W, 3) as float32 luma (n, H, W)."""
-    b = np.asarray(block, np.float32)
-    return b @ LUMA if b.ndim == 4 else b
+    """Frames (n, H, W) or (n, H, W, 3) as float32 luma (n, H, W) (`processing.luma`, what magnification reads)."""
+    return luma(np.asarray(block, np.float32))
 
 
 def frames(capture: Capture, take: str, stop: int | None = None):
@@ -178,7 +184,7 @@ def pick_points(frame: np.ndarray, s: Video2DSettings) -> np.ndarray:
                        quality_level=0.005)
 
 
-def _band_noise(x: np.ndarray, noise_psd: np.ndarray, band_hz: tuple[float, float]) -> np.ndarray:
+def _band_noise(noise_psd: np.ndarray, band_hz: tuple[float, float]) -> np.ndarray:
     """Each channel's rms noise over the band (white at its PSD)."""
     return np.sqrt(noise_psd * max(band_hz[1] - band_hz[0], 0.0))
 
@@ -191,7 +197,7 @@ def moving_points(d: np.ndarray, fps: float, band_hz: tuple[float, float]) -> tu
     T, P, _ = d.shape
     x = (d - d.mean(axis=0)).reshape(T, 2 * P).astype(np.float64)
     level = noise_psd(x, fps, fmin_hz=band_hz[0], fmax_hz=band_hz[1])
-    noise = _band_noise(x, level, band_hz).reshape(P, 2)
+    noise = _band_noise(level, band_hz).reshape(P, 2)
     var = x.var(axis=0).reshape(P, 2)
     snr = var.sum(axis=1) / np.maximum((noise ** 2).sum(axis=1), 1e-30)
     return snr >= MOVING_SNR, noise
@@ -261,11 +267,11 @@ def _band(s: Video2DSettings, fps: float) -> tuple[float | None, float]:
 
 
 def _amplitude(x: np.ndarray, fps: float, f_hz: float, shape: np.ndarray) -> float:
-    """The mode's rms motion at its largest point: x (T, C) band-passed around f_hz (+-10 %), at the channel
-    pair where the shape is largest."""
+    """The mode's rms motion at its largest point: x (T, C) band-passed over its band (`clips.band_hz`: what its
+    clip magnifies), at the channel pair where the shape is largest."""
     from scipy.signal import butter, sosfiltfilt
 
-    lo, hi = 0.9 * f_hz, min(1.1 * f_hz, 0.49 * fps)
+    lo, hi = band_hz(f_hz, fps)
     if not 0 < lo < hi:
         return float("nan")
     sos = butter(2, [lo, hi], btype="bandpass", fs=fps, output="sos")
@@ -275,11 +281,17 @@ def _amplitude(x: np.ndarray, fps: float, f_hz: float, shape: np.ndarray) -> flo
     return float(np.sqrt((y ** 2).sum(axis=1).mean()))
 
 
+def floor_mac(snr: float) -> float:
+    """The MAC noise allows a shape whose peak stands snr above the noise along it: snr / (1 + snr); 1 without
+    noise."""
+    return 1.0 if math.isinf(snr) else snr / (1.0 + snr)
+
+
 def _peaks(x: np.ndarray, fps: float, oma: OMAResult, modes_hz: list[float]) -> list[Mode2D]:
     """The FDD's peaks that no mode explains (more than 3 lines from every mode's frequency), at most MAX_PEAKS, the
     strongest: each an operational deflection shape at its line (`oma.ods_at`), known as well as its peak stands
     above the noise along it."""
-    from .oma import normalise_shape, ods_at
+    from .oma import mpc, normalise_shape, ods_at, shape_snr
 
     spectrum = oma.fdd
     out = []
@@ -287,12 +299,9 @@ def _peaks(x: np.ndarray, fps: float, oma: OMAResult, modes_hz: list[float]) -> 
         if any(abs(f - g) <= 3 * spectrum.df_hz for g in modes_hz) or f <= 0:
             continue
         shape = normalise_shape(ods_at(x, fps, f, nperseg=spectrum.nperseg))
-        w = np.abs(shape) ** 2
-        peak = float(spectrum.singular_values[spectrum.line(f), 0])
-        snr = peak / max(float((w * oma.noise_psd).sum() / max(w.sum(), 1e-30)), 1e-30)
-        floor = snr / (1.0 + snr)
-        mpc = float(abs((shape ** 2).sum()) ** 2 / max(float((np.abs(shape) ** 2).sum()) ** 2, 1e-30))
-        out.append(Mode2D(float(f), float("nan"), mpc, snr, floor, floor >= FLOOR_MAC,
+        snr = shape_snr(float(spectrum.singular_values[spectrum.line(f), 0]), shape, oma.noise_psd)
+        floor = floor_mac(snr)
+        out.append(Mode2D(float(f), float("nan"), float(mpc(shape)[0]), snr, floor, floor >= FLOOR_MAC,
                           _amplitude(x, fps, float(f), shape), shape.reshape(-1, 2), kind="peak"))
     return sorted(out, key=lambda m: -m.snr)[:MAX_PEAKS]
 
@@ -332,7 +341,7 @@ def analyze_video(capture: Capture, s: Video2DSettings, *, takes: str = "accepte
     oma = identify(x, fps, fmin_hz=lo, fmax_hz=hi, n_modes=s.n_modes, approx_freq_hz=s.approx_freq_hz)
     modes = []
     for m in oma.modes:
-        floor = m.snr / (1.0 + m.snr)
+        floor = floor_mac(m.snr)
         modes.append(Mode2D(m.freq_hz, m.damping, m.mpc, m.snr, floor, floor >= FLOOR_MAC,
                             _amplitude(x, fps, m.freq_hz, m.shape), m.shape.reshape(-1, 2)))
     modes += _peaks(x, fps, oma, [m.freq_hz for m in modes])
