@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -148,14 +149,20 @@ def check_view(frames: np.ndarray, frame_times_s: np.ndarray, motion: SurfaceMot
         return None
     a, b = d_tr[:, good].ravel(), d_pr[:, good].ravel()
     b = b * force_ratio
-    gain = float(a @ b / max(b @ b, 1e-300))
-    corr = float(np.corrcoef(a, b)[0, 1]) if np.std(a) > 0 and np.std(b) > 0 else float("nan")
+    gain, corr = gain_correlation(a, b)
     return ViewCheck(take, int(good.sum()), gain, corr, float(np.sqrt(np.mean(b ** 2))),
                      float(np.sqrt(np.mean((a - gain * b) ** 2))), float(force_ratio),
-                     _track_noise(frames, frame_times_s, uv[idx][sel][good], method, window_px))
+                     track_noise(frames, frame_times_s, uv[idx][sel][good], method, window_px))
 
 
-def _track_noise(frames: np.ndarray, frame_times_s: np.ndarray, uv: np.ndarray, method: str, window_px: int) -> float:
+def gain_correlation(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """The least-squares gain of a on b (a = gain b) and their correlation (NaN where either is constant)."""
+    gain = float(a @ b / max(b @ b, 1e-300))
+    corr = float(np.corrcoef(a, b)[0, 1]) if np.std(a) > 0 and np.std(b) > 0 else float("nan")
+    return gain, corr
+
+
+def track_noise(frames: np.ndarray, frame_times_s: np.ndarray, uv: np.ndarray, method: str, window_px: int) -> float:
     """The tracks' rms displacement over the frames before the impact (t < 0), against the first of them: what
     the trackers read where nothing moves. NaN with fewer than 3 such frames."""
     pre = np.flatnonzero(np.asarray(frame_times_s) < 0)
@@ -166,43 +173,70 @@ def _track_noise(frames: np.ndarray, frame_times_s: np.ndarray, uv: np.ndarray, 
     return float(np.sqrt(np.mean(d ** 2))) if d.size else float("nan")
 
 
+@dataclass(frozen=True)
+class PosedTakes:
+    """Synced takes with aligned frames and a pose, up to a number spread evenly over the capture, and each one's
+    hit against the synced takes' mean (the 3D motion is their mean: a take hit harder moves more)."""
+
+    sync: Any                       # odsplat.sync.SyncResult
+    poses: dict[str, dict]          # by take name: K, R, t
+    takes: list                     # the chosen odsplat.sync.TakeSync
+    force_ratio: dict[str, float]   # impulse (as synced) / the synced takes' mean; 1 where unknown
+
+
+def posed_takes(capture: Capture, max_views: int) -> PosedTakes | None:
+    """Up to max_views synced takes with aligned frames and a pose, spread over the capture; None where the capture
+    has no poses.json (one that is there must read) or no such take."""
+    poses = _poses(capture)
+    if poses is None:
+        log.info("no 2D check: %s not found", capture.paths.poses_json)
+        return None
+    sync = load_sync(capture)
+    takes = [tk for tk in sync.ok if tk.aligned_file and tk.name in poses
+             and capture.paths.listed(tk.aligned_file).is_file()]
+    if not takes:
+        log.info("no 2D check: no synced take has aligned frames and a pose")
+        return None
+    impulse = {tk.name: (tk.impulse_n_s or np.nan) * (tk.impulse_scale or 1.0) for tk in sync.ok}
+    mean_impulse = float(np.nanmean(list(impulse.values())))
+    chosen = [takes[int(i)] for i in np.unique(np.linspace(0, len(takes) - 1, min(max_views, len(takes))).round())]
+    ratio = {tk.name: float(np.nan_to_num(impulse[tk.name] / mean_impulse, nan=1.0)) for tk in chosen}
+    return PosedTakes(sync, poses, chosen, ratio)
+
+
+def box_frames(capture: Capture, posed: PosedTakes, take, points_m: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+    """A posed take's aligned frames (mono) in the box of the points (`_structure_box`, padded: sync filters only
+    the pixels it is asked for, so memory is the box's), their times, the camera K moved to the box, and the box
+    (y0, y1, x0, x1)."""
+    p = posed.poses[take.name]
+    with AlignedTake(capture, capture.paths.listed(take.aligned_file), posed.sync.generation) as ff:
+        y0, y1, x0, x1 = _structure_box(points_m, p["K"], p["R"], p["t"], ff.frame_shape[:2], pad_px=32)
+
+        def box(frame: np.ndarray, y0=y0, y1=y1, x0=x0, x1=x1) -> np.ndarray:
+            frame = frame[y0:y1, x0:x1]
+            return frame.mean(axis=-1) if frame.ndim == 3 else frame
+
+        frames, times = ff.read_frames(spatial=box), ff.times_s
+    K = np.asarray(p["K"], float).copy()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    return frames, times, K, (y0, y1, x0, x1)
+
+
 def crosscheck_views(capture: Capture, motion: SurfaceMotion, *, max_views: int = 6, n_points: int = 30,
                      method: str = "gradient", k: int = 16, outlier_factor: float | None = 2.0) -> list[ViewCheck]:
     """check_view on up to max_views synced takes spread over the capture (those with aligned frames and a
     pose); none when the capture has no aligned frames or no poses.json (one that is there must read)."""
-
-    poses = _poses(capture)
-    if poses is None:
-        log.info("no 2D cross-check: %s not found", capture.paths.poses_json)
+    posed = posed_takes(capture, max_views)
+    if posed is None:
         return []
-    sync = load_sync(capture)
-    synced = sync.ok
-    takes = [tk for tk in synced if tk.aligned_file and tk.name in poses
-             and capture.paths.listed(tk.aligned_file).is_file()]
-    if not takes:
-        log.info("no 2D cross-check: no synced take has aligned frames and a pose")
-        return []
-    impulse = {tk.name: (tk.impulse_n_s or np.nan) * (tk.impulse_scale or 1.0) for tk in synced}
-    mean_impulse = float(np.nanmean(list(impulse.values())))
-    chosen = [takes[int(i)] for i in np.unique(np.linspace(0, len(takes) - 1, min(max_views, len(takes))).round())]
     out = []
-    for tk in chosen:
-        p = poses[tk.name]
-        with AlignedTake(capture, capture.paths.listed(tk.aligned_file), sync.generation) as ff:
-            # only the structure's box is read (sync filters the pixels it is asked for): memory in the box
-            y0, y1, x0, x1 = _structure_box(motion.points_m, p["K"], p["R"], p["t"], ff.frame_shape[:2], pad_px=32)
-
-            def box(frame: np.ndarray, y0=y0, y1=y1, x0=x0, x1=x1) -> np.ndarray:
-                frame = frame[y0:y1, x0:x1]
-                return frame.mean(axis=-1) if frame.ndim == 3 else frame
-
-            frames, times = ff.read_frames(spatial=box), ff.times_s
-        K = np.asarray(p["K"], float).copy()
-        K[0, 2] -= x0
-        K[1, 2] -= y0
+    for tk in posed.takes:
+        frames, times, K, _ = box_frames(capture, posed, tk, motion.points_m)
+        p = posed.poses[tk.name]
         check = check_view(frames, times, motion, K, p["R"], p["t"], take=tk.name, n_points=n_points,
-                           method=method, force_ratio=float(np.nan_to_num(impulse[tk.name] / mean_impulse, nan=1.0)),
-                           k=k, outlier_factor=outlier_factor)
+                           method=method, force_ratio=posed.force_ratio[tk.name], k=k, outlier_factor=outlier_factor)
         if check is not None:
             log.info("%s: gain %.3f, correlation %.3f over %d points (%.3f px rms)", tk.name, check.gain,
                      check.correlation, check.n_points, check.motion_rms_px)

@@ -16,11 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from odsplat.spine.store import Capture
-from odsplat.sync import AlignedTake, load_sync
 
 from .correlation import mac, modal_scale_factor
 from .crlb import projection_jacobian
-from .crosscheck import _poses, _structure_box, _to_pixels, _visible
+from .crosscheck import PosedTakes, _to_pixels, _visible, box_frames, gain_correlation, posed_takes, track_noise
 from .ods import SurfaceMotion, fit_decay
 from .tracking import track_points
 
@@ -90,65 +89,45 @@ def _candidates(motion: SurfaceMotion, n: int, k: int, outlier_factor: float | N
     return np.asarray(chosen, int)
 
 
-def _view_tracks(capture: Capture, sync, tk, pose: dict, motion: SurfaceMotion, points_m: np.ndarray,
+def _view_tracks(capture: Capture, posed: PosedTakes, take, motion: SurfaceMotion, points_m: np.ndarray,
                  window_px: int, method: str) -> tuple[np.ndarray, np.ndarray, float]:
     """One view's tracks (T, P, 2) at the motion's timesteps (NaN where the point is not visible or lost), its
-    Jacobians (P, 2, 3), and its tracks' noise: their rms over the frames before the impact (NaN: under 3)."""
-    K, R, t = (np.asarray(pose[key], float) for key in ("K", "R", "t"))
-    with AlignedTake(capture, capture.paths.listed(tk.aligned_file), sync.generation) as ff:
-        shape = ff.frame_shape[:2]
-        y0, y1, x0, x1 = _structure_box(points_m, K, R, t, shape, pad_px=32)
-
-        def box(frame: np.ndarray) -> np.ndarray:
-            frame = frame[y0:y1, x0:x1]
-            return frame.mean(axis=-1) if frame.ndim == 3 else frame
-
-        frames, times = ff.read_frames(spatial=box), ff.times_s
+    Jacobians (P, 2, 3), and its tracks' noise before the impact (`crosscheck.track_noise`)."""
+    frames, times, K, (y0, y1, x0, x1) = box_frames(capture, posed, take, points_m)
+    pose = posed.poses[take.name]
+    R, t = np.asarray(pose["R"], float), np.asarray(pose["t"], float)
     pick = np.array([int(np.argmin(np.abs(times - ti))) for ti in motion.times_s])
-    cam, uv = _to_pixels(points_m, K, R, t)
-    # visible: in front, in the frame, and the nearest surface point on its pixel (the Gaussians' own occlusion)
-    vis_all = _visible(*_to_pixels(motion.points_m, K, R, t), shape)
+    cam, uv = _to_pixels(points_m, K, R, t)                                     # in the box's pixels
+    # visible: in front, in the box, and the nearest surface point on its pixel (the Gaussians' own occlusion)
+    vis_all = _visible(*_to_pixels(motion.points_m, K, R, t), (y1 - y0, x1 - x0))
     near = np.array([int(np.argmin(np.linalg.norm(motion.points_m - p, axis=1))) for p in points_m])
     margin = window_px // 2 + 3
-    ok = vis_all[near] & (uv[:, 0] >= x0 + margin) & (uv[:, 0] < x1 - margin) & (uv[:, 1] >= y0 + margin) \
-        & (uv[:, 1] < y1 - margin) & (cam[:, 2] > 0)
+    ok = vis_all[near] & (uv[:, 0] >= margin) & (uv[:, 0] < x1 - x0 - margin) & (uv[:, 1] >= margin) \
+        & (uv[:, 1] < y1 - y0 - margin) & (cam[:, 2] > 0)
     out = np.full((len(pick), len(points_m), 2), np.nan)
     noise = float("nan")
     if ok.sum():
-        tr = track_points(frames[pick], uv[ok] - [x0, y0], method=method, window_px=window_px).displacement_px
+        tr = track_points(frames[pick], uv[ok], method=method, window_px=window_px).displacement_px
         out[:, ok] = tr - tr[:1]
-        pre = np.flatnonzero(np.asarray(times) < 0)
-        if len(pre) >= 3:
-            d = track_points(frames[pre], uv[ok] - [x0, y0], method=method, window_px=window_px).displacement_px[1:]
-            d = d[np.isfinite(d)]
-            noise = float(np.sqrt(np.mean(d ** 2))) if d.size else noise
+        noise = track_noise(frames, times, uv[ok], method, window_px)
     return out, projection_jacobian(points_m, K, R, t), noise
 
 
 def triangulation_check(capture: Capture, motion: SurfaceMotion, poles_rad_s: np.ndarray, *, max_views: int = 8,
                         n_points: int = 24, window_px: int = 15, method: str = "gradient", k: int = 16,
                         outlier_factor: float | None = 2.0, t_min_s: float = 0.0) -> Triangulation | None:
-    """Track up to n_points of the surface in up to max_views synced, posed takes spread over the capture,
-    triangulate them, and compare with the Gaussians' motion there (see the module's doc); None where fewer than
-    3 points are seen by MIN_VIEWS views."""
-    poses = _poses(capture)
-    if poses is None:
+    """Track up to n_points of the surface in up to max_views synced, posed takes spread over the capture
+    (`crosscheck.posed_takes`), triangulate them, and compare with the Gaussians' motion there (see the module's
+    doc); None where fewer than 3 points are seen by MIN_VIEWS views."""
+    posed = posed_takes(capture, max_views)
+    if posed is None or len(posed.takes) < MIN_VIEWS:
         return None
-    sync = load_sync(capture)
-    takes = [tk for tk in sync.ok if tk.aligned_file and tk.name in poses
-             and capture.paths.listed(tk.aligned_file).is_file()]
-    if len(takes) < MIN_VIEWS:
-        return None
-    impulse = {tk.name: (tk.impulse_n_s or np.nan) * (tk.impulse_scale or 1.0) for tk in sync.ok}
-    mean_impulse = float(np.nanmean(list(impulse.values())))
-    chosen = [takes[int(i)] for i in np.unique(np.linspace(0, len(takes) - 1, min(max_views, len(takes))).round())]
     idx = _candidates(motion, 3 * n_points, k, outlier_factor)
     points = motion.points_m[idx]
     tracks, jacobians, noises = [], [], []
-    for tk in chosen:
-        d, J, noise = _view_tracks(capture, sync, tk, poses[tk.name], motion, points, window_px, method)
-        ratio = float(np.nan_to_num(impulse[tk.name] / mean_impulse, nan=1.0))
-        tracks.append(d / ratio)
+    for tk in posed.takes:
+        d, J, noise = _view_tracks(capture, posed, tk, motion, points, window_px, method)
+        tracks.append(d / posed.force_ratio[tk.name])
         jacobians.append(J)
         noises.append(noise)
     tri, count, cond = triangulate(tracks, jacobians)
@@ -160,8 +139,7 @@ def triangulation_check(capture: Capture, motion: SurfaceMotion, poles_rad_s: np
     ref = motion.at_points(points[good], k=k, outlier_factor=outlier_factor)                 # (T, P, 3)
     ref = ref - ref[:1]
     a, b = tri[:, good].ravel(), ref.ravel()
-    gain = float(a @ b / max(b @ b, 1e-300))
-    corr = float(np.corrcoef(a, b)[0, 1]) if np.std(a) > 0 and np.std(b) > 0 else float("nan")
+    gain, corr = gain_correlation(a, b)
     T = len(motion.times_s)
     fit_tri = fit_decay(motion.times_s, tri[:, good].reshape(T, -1), poles_rad_s, t_min_s=t_min_s).amplitudes
     fit_ref = fit_decay(motion.times_s, ref.reshape(T, -1), poles_rad_s, t_min_s=t_min_s).amplitudes
@@ -170,7 +148,7 @@ def triangulation_check(capture: Capture, motion: SurfaceMotion, poles_rad_s: np
     seen = [np.einsum("pij,tpj->tpi", J[good], ref) for J in jacobians]                 # (T, P, 2) per view
     motion_px = float(np.sqrt(np.mean([np.mean(v ** 2) for v in seen])))
     noise_px = float(np.nanmedian(noises)) if np.isfinite(noises).any() else float("nan")
-    out = Triangulation(int(good.sum()), len(chosen), float(np.median(count[good])), gain, corr,
+    out = Triangulation(int(good.sum()), len(posed.takes), float(np.median(count[good])), gain, corr,
                         float(np.sqrt(np.mean(b ** 2))), float(np.sqrt(np.mean((a - gain * b) ** 2))), macs, scales,
                         float(np.median(cond[good])), motion_px, noise_px)
     log.info("triangulation: %d points in %d views: gain %.3f, correlation %.3f (%.3f expected from %.4f px of "
