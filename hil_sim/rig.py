@@ -569,31 +569,46 @@ class TakeTruth:
 
     def save(self, path: str | Path) -> Path:
         """Write atomically (temporary file, fsync, rename): a reader never sees half a truth file."""
-        path = Path(path)
-        arrays = {f.name: np.asarray(getattr(self, f.name)) for f in fields(self) if getattr(self, f.name) is not None}
-        with atomic_open(path, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-        return path
+        return save_fields(self, path)
 
     @classmethod
     def load(cls, path: str | Path) -> TakeTruth:
-        path = Path(path)
-        try:
-            data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as e:
-            raise InputError(str(path), f"not a readable ground-truth file (.npz): {e}") from None
-        with data:
+        with open_truth(path) as data:
             version = int(data["format_version"]) if "format_version" in data else None
             if version != 1:
                 raise InputError(str(path), f"ground-truth format_version 1 expected, found {version}")
-            kw = {}
-            for f in fields(cls):
-                if f.name in data:
-                    value = data[f.name]
-                    kw[f.name] = value.item() if value.ndim == 0 and value.dtype.kind in "fiuU" else value
-                elif f.default is not None or f.name == "format_version":
-                    raise InputError(str(path), f"ground-truth field {f.name!r} is missing")
-        return cls(**kw)
+            return cls(**read_fields(cls, data, path))
+
+
+def save_fields(truth, path: str | Path) -> Path:
+    """A ground-truth dataclass's fields (those not None) as one .npz, written atomically (temporary file, fsync,
+    rename)."""
+    path = Path(path)
+    arrays = {f.name: np.asarray(getattr(truth, f.name)) for f in fields(truth) if getattr(truth, f.name) is not None}
+    with atomic_open(path, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+    return path
+
+
+def open_truth(path: str | Path):
+    """A ground-truth .npz, open (use it in `with`); one line naming the file where it is not one."""
+    try:
+        return np.load(Path(path), allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise InputError(str(path), f"not a readable ground-truth file (.npz): {e}") from None
+
+
+def read_fields(cls, data, path: str | Path) -> dict:
+    """The fields of dataclass `cls` from an open ground-truth .npz (scalars as Python values); one whose default
+    is None may be absent, any other is refused with one line when it is missing."""
+    kw = {}
+    for f in fields(cls):
+        if f.name in data:
+            value = data[f.name]
+            kw[f.name] = value.item() if value.ndim == 0 and value.dtype.kind in "fiuU" else value
+        elif f.default is not None or f.name == "format_version":
+            raise InputError(str(path), f"ground-truth field {f.name!r} is missing")
+    return kw
 
 
 def truth_path(take_path: str | Path) -> Path:

@@ -20,7 +20,7 @@ from odsplat.spine.errors import InputError
 
 from .camera import SimCameraConfig
 from .render import PinholeCamera
-from .rig import HAMMER, make_rig
+from .rig import HAMMER, make_rig, open_truth, read_fields, save_fields
 from .scene import STRUCTURE, STRUCTURE_TAG
 from .structure import STRUCTURES, Impact, make_structure
 
@@ -103,17 +103,12 @@ class VideoTruth:
         return out
 
     def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        with atomic_open(path, "wb") as f:
-            np.savez_compressed(f, **{k: np.asarray(getattr(self, k)) for k in self.__dataclass_fields__})
-        return path
+        return save_fields(self, path)
 
     @classmethod
     def load(cls, path: str | Path) -> VideoTruth:
-        with np.load(path) as z:
-            kw = {k: z[k] for k in cls.__dataclass_fields__}
-        kw["structure"], kw["fps"] = str(kw["structure"]), float(kw["fps"])
-        return cls(**kw)
+        with open_truth(path) as data:
+            return cls(**read_fields(cls, data, path))
 
 
 def _pulses(s: VideoSimSettings, t0_s: float, t1_s: float) -> list[Impact]:

@@ -61,8 +61,7 @@ READERS = {
     "odsplat/app/pipeline.py": "the stamps in derived/pipeline/",
     "bench/store.py": "its baseline: the same frames as one .npy, read whole",
     "bench/sensitivity.py": "derived/poses.json, to move every camera by a rounding error before a rerun",
-    "hil_sim/rig.py": "the simulated rig's ground truth (.npz), written beside the capture by hil_sim",
-    "hil_sim/video.py": "a simulated single-view video's ground truth (truth.npz), written beside it by hil_sim",
+    "hil_sim/rig.py": "the simulated rig's ground truth (.npz), written beside the capture or video by hil_sim",
     "analysis/video2d.py": "derived/analysis/video2d.json and video2d.npz (the 2D path's results)",
     "bench/oma.py": "LADISK's video displacements (../shared/data, .npy), the bench's real input",
 }
