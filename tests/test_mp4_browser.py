@@ -103,17 +103,23 @@ def _chromium() -> str | None:
 
 @pytest.mark.skipif(_chromium() is None, reason="no chromium, chromium-browser or google-chrome on PATH: the "
                                                 "browser check needs one (the decode test above still runs)")
-def test_headless_chromium_plays_the_mp4(tmp_path):
-    info = write_mp4(tmp_path / "clip.mp4", _frames(30, 45, 61), 29.97, comment="browser check")
-    page = tmp_path / "play.html"
-    page.write_text(_PAGE.format(src=info.path.name))
+def chromium_plays(video: Path, folder: Path) -> str:
+    """What headless Chromium says of `video` played in a page written in `folder` (_PAGE's title: "PLAYED WxH",
+    "ERROR code message", ...), or why it said nothing. Only where `_chromium()` finds one."""
+    page = folder / "play.html"
+    page.write_text(_PAGE.format(src=video.resolve().as_uri()))
     cmd = [_chromium(), "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
            "--autoplay-policy=no-user-gesture-required", "--allow-file-access-from-files",
-           f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=10000", "--dump-dom", page.as_uri()]
+           f"--user-data-dir={folder / 'profile'}", "--virtual-time-budget=10000", "--dump-dom", page.as_uri()]
     try:
         run = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     except subprocess.TimeoutExpired:
         pytest.fail("headless Chromium did not finish in 60 s")
     title = re.search(r"<title>(.*?)</title>", run.stdout, re.S)
-    result = title.group(1) if title else f"no page dumped (exit {run.returncode}): {run.stderr[-1500:]}"
+    return title.group(1) if title else f"no page dumped (exit {run.returncode}): {run.stderr[-1500:]}"
+
+
+def test_headless_chromium_plays_the_mp4(tmp_path):
+    info = write_mp4(tmp_path / "clip.mp4", _frames(30, 45, 61), 29.97, comment="browser check")
+    result = chromium_plays(info.path, tmp_path)
     assert result == f"PLAYED {info.width_px}x{info.height_px}" == "PLAYED 62x46", result

@@ -13,7 +13,7 @@ from odsplat.analysis.video2d import read_video2d
 from odsplat.hil_sim.video import VideoSimSettings, VideoTruth, simulate_video
 from odsplat.spine.store import Capture
 
-from .test_mp4_browser import _PAGE, _chromium
+from .test_mp4_browser import _chromium, chromium_plays
 
 SIM = VideoSimSettings(width_px=192, height_px=144, supersample=2, n_frames=768, fps=1000.0, excitation="hit",
                        peak_n=1500.0)
@@ -93,14 +93,8 @@ def test_the_report_shows_each_mode_with_a_clip_that_a_browser_plays(video_captu
     clip = capture.paths.analysis_dir / judged[0]["clip"]
     if _chromium() is None:
         pytest.skip("no chromium on PATH: the clip's playback is checked where there is one")
-    page = tmp_path / "play.html"
-    page.write_text(_PAGE.format(src=clip.as_uri()))
-    cmd = [_chromium(), "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-           "--autoplay-policy=no-user-gesture-required", "--allow-file-access-from-files",
-           f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=10000", "--dump-dom", page.as_uri()]
-    run = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
-    title = re.search(r"<title>(.*?)</title>", run.stdout, re.S)
-    assert title and title.group(1).startswith("PLAYED "), run.stderr[-1500:]
+    result = chromium_plays(clip, tmp_path)
+    assert result.startswith("PLAYED "), result
 
 
 def test_the_tacoma_footage_gives_one_clear_peak_and_its_amplified_clip(shared_data, tmp_path):
