@@ -26,6 +26,7 @@ import numpy as np
 import pyMRAW
 
 from odsplat.spine.io.video import open_video
+from odsplat.spine.shared_data import shared_data_dir
 
 log = logging.getLogger("bench.mraw")
 
@@ -37,11 +38,6 @@ SAMPLES = {
     "ball_12bit": Path("pymraw-samples") / "ball_12bit.cihx",  # packed 12-bit
     "showcase": Path("pyidi-samples") / "data_showcase.cih",   # 8-bit
 }
-
-
-def shared_data_dir() -> Path:
-    env = os.environ.get("ODSPLAT_SHARED_DATA")
-    return Path(env) if env else REPO.parent / "shared" / "data"
 
 
 def _best_of(fn: Callable[[], np.ndarray]) -> tuple[float, np.ndarray]:
@@ -97,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr, format="%(name)s: %(message)s")
     result: dict[str, Any] = {"bench": "mraw", "repeats": REPEATS, "chunk_frames": args.chunk,
                               "cpu_count": os.cpu_count(), "skipped": None}
-    data = shared_data_dir()
+    data = shared_data_dir(REPO)
     missing = [str(data / rel) for rel in SAMPLES.values() if not (data / rel).is_file()]
     if missing:
         result["skipped"] = f"real recordings not found: {missing} (set ODSPLAT_SHARED_DATA)"

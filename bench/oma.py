@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 import time
 from pathlib import Path
@@ -34,6 +33,7 @@ sys.path.insert(0, str(REPO))
 
 from odsplat.analysis.correlation import mac  # noqa: E402
 from odsplat.analysis.oma import identify  # noqa: E402
+from odsplat.spine.shared_data import shared_data_dir  # noqa: E402
 
 log = logging.getLogger("bench.oma")
 
@@ -144,8 +144,7 @@ def run_case(name: str, x: np.ndarray, fs: float, ref_hz, ref_damping, shapes: n
 def _shared_data(arg: str | None) -> Path:
     if arg:
         return Path(arg)
-    env = os.environ.get("ODSPLAT_SHARED_DATA")
-    return Path(env) if env else REPO.parent / "shared" / "data"
+    return shared_data_dir(REPO)
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -23,6 +23,7 @@ import numpy as np
 import pyMRAW
 
 from odsplat.spine.manifest import CameraInfo, Manifest
+from odsplat.spine.shared_data import shared_data_dir
 from odsplat.spine.store import Capture
 from odsplat.spine.take_reader import TakeReader
 
@@ -166,14 +167,9 @@ def bench_throughput(frames: np.ndarray, tmp: Path) -> dict[str, Any]:
     }
 
 
-def shared_data_dir() -> Path:
-    env = os.environ.get("ODSPLAT_SHARED_DATA")
-    return Path(env) if env else REPO.parent / "shared" / "data"
-
-
 def bench_ball(tmp: Path) -> dict[str, Any]:
     """Compression of a real 12-bit Photron recording, against uint16 words and the camera's packed 12-bit."""
-    cih = shared_data_dir() / BALL_CIH
+    cih = shared_data_dir(REPO) / BALL_CIH
     mraw = cih.with_suffix(".mraw")
     if not (cih.is_file() and mraw.is_file()):
         return {

@@ -66,6 +66,7 @@ sys.path.insert(0, str(REPO))
 
 from odsplat.analysis.crlb import NoiseModel, fisher_2d, fit_noise_model, sigma_2d_px  # noqa: E402
 from odsplat.analysis.tracking import good_points, track_points  # noqa: E402
+from odsplat.spine.shared_data import shared_data_dir  # noqa: E402
 
 log = logging.getLogger("bench.track_pyidi")
 
@@ -80,12 +81,6 @@ SHOWCASE = Path("pyidi-samples") / "data_showcase.cih"
 BACKGROUND_ROWS = (slice(0, 8), slice(36, 40))   # data_showcase's static background: above and below the beam
 SETTLED_FRAME = 5                      # data_showcase's background is within 0.5 % of its final brightness from here
 PAIR_DX_PX = 2                         # points this close in x are a pair at the same beam cross-section
-
-
-def shared_data_dir() -> Path:
-    """../shared/data next to the checkout, or $ODSPLAT_SHARED_DATA (as tests/conftest.py finds it)."""
-    env = os.environ.get("ODSPLAT_SHARED_DATA")
-    return Path(env) if env else REPO.parent / "shared" / "data"
 
 
 def import_pyidi():
@@ -343,7 +338,7 @@ def main(argv: list[str] | None = None) -> dict:
         if args.brighten:
             figures["simulated_brightening"] = simulated_case(pyidi, args, root, brighten=args.brighten)
             print(f"simulated, brightening: {time.perf_counter() - t0:.0f} s", file=sys.stderr)
-        cih = (args.data or shared_data_dir()) / SHOWCASE
+        cih = (args.data or shared_data_dir(REPO)) / SHOWCASE
         if cih.is_file():
             frames = load_showcase(cih)
             figures["showcase"] = showcase_case(pyidi, frames, 0, args, root, cih=cih)

@@ -13,14 +13,10 @@ from filelock import FileLock
 
 from odsplat.hil_sim.bench import SimBenchSettings, simulate_capture
 from odsplat.hil_sim.camera import SimCameraConfig
+from odsplat.spine.shared_data import shared_data_dir
 from odsplat.spine.store import Capture
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _shared_data_dir() -> Path:
-    env = os.environ.get("ODSPLAT_SHARED_DATA")
-    return Path(env) if env else REPO.parent / "shared" / "data"
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -38,7 +34,7 @@ def one_torch_thread():
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """The folder of real recordings made by others; tests that need it skip when it is absent."""
-    path = _shared_data_dir()
+    path = shared_data_dir(REPO)
     if not path.is_dir():
         pytest.skip(f"real recordings not found at {path} (set ODSPLAT_SHARED_DATA to their folder)")
     return path

@@ -26,14 +26,14 @@ from odsplat.app.demo import (
 )
 from odsplat.hil_sim.structure import make_structure
 from odsplat.spine.errors import InputError
+from odsplat.spine.shared_data import shared_data_dir
 
 REPO = Path(__file__).resolve().parents[1]
 BEAM_FIRST_MODE_HZ = 695.8   # the LADISK beam's first bending mode (docs/analysis.md: 695.74 Hz)
 
 
 def _shared_data() -> Path | None:
-    env = os.environ.get(SHARED_DATA_ENV)
-    path = Path(env) if env else REPO.parent / "shared" / "data"
+    path = shared_data_dir(REPO)
     return path if path.is_dir() else None
 
 

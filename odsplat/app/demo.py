@@ -41,6 +41,7 @@ from odsplat.app.pipeline import run_stage
 from odsplat.reconstruction import DynamicScene, camera_path, parse_times, render_sequence
 from odsplat.spine.errors import InputError
 from odsplat.spine.importer import import_capture
+from odsplat.spine.shared_data import SHARED_DATA_ENV
 from odsplat.spine.store import Capture
 
 log = logging.getLogger(__name__)
@@ -48,7 +49,6 @@ log = logging.getLogger(__name__)
 SIM_NAME = "sim-rig"           # OUT/sim-rig: the simulated capture
 BEAM_NAME = "ladisk-beam"      # OUT/ladisk-beam: the real recordings, imported
 MARKER = ".odsplat-demo"       # in each capture the demo made: what allows a rerun to replace it
-SHARED_DATA_ENV = "ODSPLAT_SHARED_DATA"
 DEFAULT_SHARED_DATA = Path("..") / "shared" / "data"   # from the working directory: the repo's neighbour for make
 FAULTS = "3:double_hit,9:dropped_packet"                # a rebound (the automatic hammer's double hit), lost samples
 
