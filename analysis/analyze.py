@@ -68,7 +68,6 @@ from .ods import (
     DecayFit,
     SurfaceMotion,
     fit_decay,
-    force_transform,
     receptance,
     record_ranks,
     stable_poles,
@@ -76,6 +75,7 @@ from .ods import (
 from .outputs import write_outputs
 from .plots2d import write_clips, write_figures
 from .result import AnalysisResult, Sensor, VideoModes
+from .sensorview import DECAY_T_MIN_S, sensor_view, take_force
 from .triangulate import MIN_VIEWS, triangulation_check
 from .verdict import DISCRIMINATION, NOT_DISCRIMINATED, Verdict, crosscheck_verdict, mac_verdict
 from .video2d import (
@@ -90,7 +90,6 @@ from .video2d import (
 
 log = logging.getLogger(__name__)
 
-DECAY_T_MIN_S = 1.5e-3    # the video's decay fit starts after a ~1 ms hammer pulse
 
 VIDEO_BAND = 0.45     # the camera's poles are sought below this fraction of its frame rate
 
@@ -147,6 +146,10 @@ class AnalyzeSettings:
     image_ranks: tuple[int, ...] | None = None       # None: as video_ranks, from the frames after the impact
     image_pixel_fraction: float = 0.05               # the most textured pixels of each view
     video2d: Video2DSettings = field(default_factory=Video2DSettings)  # a capture without force: the 2D path
+    sensor_view: bool = True                         # without a 3D video side, the accelerometers one synced view
+    #                                                  sees against its 2D tracks there (sensorview.py)
+    sensor_view_takes: int = 4                       # that view's takes fitted and averaged
+    sensor_view_max_tilt_deg: float = 15.0           # a sensor's axis may lie this far out of the image plane
 
     def __post_init__(self) -> None:
         check_choice("AnalyzeSettings.takes", self.takes, ("accepted", "all"))
@@ -162,6 +165,8 @@ class AnalyzeSettings:
             "crosscheck_points": Range(at_least=1, at_most=10_000, integer=True), "image_ranks": maybe(RANK),
             "triangulate_views": Range(at_least=0, at_most=1000, integer=True),
             "triangulate_points": Range(at_least=3, at_most=10_000, integer=True),
+            "sensor_view_takes": Range(at_least=1, at_most=1000, integer=True),
+            "sensor_view_max_tilt_deg": Range(at_least=0, at_most=90),
             "image_pixel_fraction": Range(above=0, at_most=1),
             "floor_margin_m": maybe(Range(at_least=0, at_most=MAX_LENGTH_M)),
             "outlier_factor": maybe(Range(at_least=1, at_most=1e6))})
@@ -279,19 +284,9 @@ def _sync_force(capture: Capture, force: str, poles: np.ndarray) -> np.ndarray:
     sync scaled each take's motion when it normalised the impulses)."""
 
     sync = load_sync(capture)
-    vals = []
-    for t in sync.ok:
-        with capture.open_take(t.name) as r:
-            f = r.channel(force).astype(float)
-            t0 = r.daq_t0_s - t.hit_daq_time_s
-            fs = r.sample_rate_hz
-        k0 = max(int((-t0 - 0.005) * fs), 0)                # the pulse and a little either side
-        k1 = min(int((-t0 + 0.02) * fs), len(f))
-        seg = f[k0:k1] - np.median(f[:max(k0, 1)])
-        vals.append(force_transform(seg, fs, t0 + k0 / fs, poles) * (t.impulse_scale or 1.0))
-    if not vals:
+    if not sync.ok:
         raise InputError(capture.paths.sync_json, "no synced take to take the force pulse from")
-    return np.mean(vals, axis=0)
+    return np.mean([take_force(capture, force, t, poles) for t in sync.ok], axis=0)
 
 
 def video_modes(capture: Capture, modes: ModalFit, sensors, force: str, s: AnalyzeSettings) -> VideoModes | None:
@@ -608,6 +603,10 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
         findings.append(UnplacedSensors(unplaced))
     video = video_modes(capture, modes, inputs.sensors, inputs.force, s) if not unplaced else None
     image = _image(capture, s)
+    single = sensor_view(capture, modes, inputs.sensors, inputs.force, max_takes=s.sensor_view_takes,
+                         window_px=s.video2d.window_px, method=s.video2d.tracker,
+                         max_tilt_deg=s.sensor_view_max_tilt_deg) \
+        if video is None and s.video and s.sensor_view and not unplaced else None
     cmp = _compare(frf, modes, video, image, s)
     findings += _video_findings(modes, video, cmp, tuple(sn.name for sn in inputs.sensors))
     for note in findings:
@@ -616,7 +615,7 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
                             cmp.ods_accel, cmp.ods_video, cmp.ods_surface, image, findings=tuple(findings),
                             mac_verdict=cmp.mac_verdict, crosscheck_verdict=cmp.crosscheck_verdict,
                             reference=inputs.reference, reference_automac=cmp.reference_automac,
-                            video_cross_mac=cmp.video_cross_mac)
+                            video_cross_mac=cmp.video_cross_mac, sensor_view=single)
     return _write(capture, result, s)
 
 

@@ -205,6 +205,8 @@ class AnalysisDocument:
     image_poles: ImagePolesSection | None = _omitted()
     correlation: CorrelationSection | None = _omitted()
     ods: tuple[OdsEntry, ...] = _omitted(())
+    # without a 3D video side: the accelerometers one view sees against its 2D tracks (sensorview.SensorView)
+    sensor_view: dict[str, Any] | None = _omitted()
     files: dict[str, str]                    # what -> file name in derived/analysis/
 
     # ------------------------------------------------------------------------------------------ the file

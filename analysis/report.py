@@ -526,6 +526,27 @@ def capture_setup(capture: Capture) -> dict:
     return out
 
 
+def _sensor_view(doc: AnalysisDocument) -> dict | None:
+    """One view against the accelerometers it sees (sensorview.py); None where the analysis has no such check."""
+    sv = doc.sensor_view
+    if not sv:
+        return None
+    sensors = [[s["name"], f"{s['pixel_px'][0]:.0f}, {s['pixel_px'][1]:.0f}", _num(s["px_per_m"], ".0f"),
+                _num(s["tilt_deg"], ".0f"), str(s["n_windows"]), _num(s["r2"], ".2f"), _num(s["noise_um"], ".3g")]
+               for s in sv["sensors"]]
+    modes = []
+    for m in sv["modes"]:
+        state = ("judged" if m["judged"] else "below the floor: not judged" if m["below_floor"] else
+                 f"not judged: the sensors here carry {100 * m['seen_share']:.0f} % of its motion"
+                 if m["seen_share"] < 0.3 else "not judged: fewer than 2 sensors")
+        modes.append({"css": "" if m["judged"] else "grey",
+                      "cells": [str(m["mode"]), _num(m["freq_hz"], ".2f"), _num(m["mac"], ".3f"),
+                                _num(m["scale"], ".2f"), _num(m["scale_phase_deg"], "+.0f"),
+                                _num(m["expected_mac"], ".3f"), state]})
+    return {"view": str(sv["view"]), "n_takes": str(len(sv["takes"])), "pose": sv["pose"], "sensors": sensors,
+            "left_out": [(s["name"], s["why"]) for s in sv["left_out"]], "modes": modes}
+
+
 def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict | None = None,
                   render: dict | None = None) -> str:
     """The report's HTML from a loaded analysis.json (`folder` holds it and its plots); `setup`: facts of the
@@ -534,7 +555,7 @@ def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict |
         title=doc.capture or title, created=doc.created_utc or "(no date)", n_sensors=len(doc.sensors),
         n_averages=str(doc.n_averages), summary=_summary(doc, setup or {}), notes=list(doc.notes),
         animations=_animations(doc, folder), render=render, hits=_hits(doc), modes=_modes(doc), video=_video(doc),
-        correlation=_correlation(doc), figures=_inline(doc, folder, ".png"),
+        sensor_view=_sensor_view(doc), correlation=_correlation(doc), figures=_inline(doc, folder, ".png"),
         settings=doc.settings_text() if doc.settings else None)
 
 

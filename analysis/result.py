@@ -29,6 +29,7 @@ from .frf import FRFResult
 from .imagepoles import ImagePoles
 from .noise import FLOOR_MAC, FLOOR_SIGMAS, NoiseFloor, RealModes
 from .notes import Note
+from .sensorview import SensorView
 from .triangulate import Triangulation
 from .verdict import Verdict
 
@@ -214,6 +215,7 @@ class AnalysisResult:
     #                                               the sensors: where two exceed verdict.DISCRIMINATION the MAC
     #                                               cannot tell those modes apart
     video_cross_mac: np.ndarray | None = None     # (R, R) the video's shapes' cross-MAC over every surface point
+    sensor_view: SensorView | None = None         # without a 3D side: one view's 2D tracks at the sensors it sees
 
     @property
     def notes(self) -> tuple[str, ...]:
@@ -240,6 +242,7 @@ class AnalysisResult:
             ods=tuple(OdsEntry(float(f), float(mac(a, b)[0, 0]))
                       for f, a, b in zip(self.ods_freq_hz, self.ods_accel, self.ods_video))
             if len(self.ods_freq_hz) and self.ods_video.size else (),
+            sensor_view=self.sensor_view.document() if self.sensor_view is not None else None,
             files=dict(files))
 
     def text(self) -> str:
@@ -280,6 +283,8 @@ class AnalysisResult:
             if self.mac_verdict is not None:
                 lines += [f"  mode {s.mode} ({s.freq_hz:.1f} Hz): {s.text}" for s in self.mac_verdict.modes]
                 lines.append(f"verdict ({self.mac_verdict.status}): {self.mac_verdict.line}")
+        if self.sensor_view is not None:
+            lines.append(self.sensor_view.text())
         lines += [f"note: {n}" for n in self.notes]
         lines.append(f"-> {', '.join(self.files.values())}")
         return "\n".join(lines)

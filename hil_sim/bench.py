@@ -278,17 +278,17 @@ def simulate_capture(out: str | Path, *, n_views: int = 27, n_frames: int = 100,
                      rig: SimRig | None = None, faults: Mapping[int, str] | None = None,
                      max_attempts: int = 5, hammer: AutoHammerSettings | None = None,
                      hammer_link: str = "serial", limits: QCLimits | None = None,
-                     feedback: Feedback | None = None) -> SessionReport:
+                     feedback: Feedback | None = None, plan: PlanSettings | None = None) -> SessionReport:
     """Record a whole capture on the simulated rig in this process: the guided session with the simulated
     engineer (`odsplat capture --sim --auto` without the command line). For tests, benches and the demo.
 
     `hammer`: fire the simulated automatic hammer over `hammer_link` at these settings; None: the engineer hits.
     `limits`: the session's QC limits (e.g. `QCLimits(min_tags=0)` where the floor tags are too small to find).
     `feedback`: what the session tells as it goes (e.g. `TextFeedback(print)`, as the command line does); None: the
-    log only."""
+    log only. `plan`: where the views are (its n_views wins over `n_views`); None: n_views on the default sphere."""
 
     with SimBench(rig, settings, faults=faults, hammer=hammer_link if hammer is not None else None) as bench:
-        session = SessionSettings(name=Path(out).name, plan=PlanSettings(n_views=n_views), n_frames=n_frames,
+        session = SessionSettings(name=Path(out).name, plan=plan or PlanSettings(n_views=n_views), n_frames=n_frames,
                                   pretrigger_frames=pretrigger_frames, max_attempts=max_attempts,
                                   trigger=HammerTrigger(pretrigger_s=pretrigger_s, record_s=record_s), hammer=hammer,
                                   limits=limits or QCLimits())

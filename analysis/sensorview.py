@@ -1,0 +1,399 @@
+"""One view against the accelerometers it sees: the 2D check of a capture filmed from a single viewpoint.
+
+With one view there is no 3D motion, but the camera still sees the accelerometers. Its pose comes from the
+pose stage where there is one, else from the floor's AprilTags in the take's first frame (PnP on the capture's
+intrinsics; tags on the structure too where that frame precedes the hit, the structure then at rest). Each placed
+accelerometer is projected into the view. Windows are tracked through the synced, aligned frames at its pixel and
+around it, up to one window's side away, and the one whose motion the accelerometer modes explain best is kept:
+a sensor whose axis lies in the image plane usually sits on a face seen edge-on, on the structure's silhouette,
+where a window on the pixel itself holds the static background too and reads part of the motion (0.39 of it at
+hil_sim's column). Its image motion along the sensor's projected axis, divided by that axis' image scale (px per
+metre, the projection's Jacobian), is the video's reading of the sensor's channel in metres. A decay fit at the
+accelerometer poles, divided by each take's force at the poles, gives the video's residues (m/N) beside the
+accelerometers'; their MAC and scale say whether one camera and the sensors agree on each mode.
+
+What it reads: the view sees two components of the motion and a uniaxial sensor one. Where the sensor's axis d
+lies in the image plane, the image motion along its projected axis is exactly d . u, whatever else the structure
+does (motion across the axis projects across it; motion along the line of sight projects to nothing). Tilted by
+an angle out of the image plane, the reading gains sin(tilt) of the motion along the line of sight, which one view
+cannot see: on the hil_sim arm filmed from 34 degrees above, the tip's z sensor (tilt 19 degrees) reads 1.49x in
+its first mode, the tip moving along the line of sight. So a sensor tilted more than `max_tilt_deg` (15 by
+default, error <= 0.26 of the line-of-sight motion) is left out and the tilt of each one compared is reported:
+film the plane the sensors measure in, as one would for any 2D check. A sensor on a face
+the camera does not see is tracked on what covers it: its motion then hardly fits the modes, and it is named
+and left out of the MAC (`MIN_SENSOR_R2`). A mode that hardly moves the sensors compared (under `MIN_SEEN` of its
+motion over all the sensors, as the accelerometers measure it) is not judged: the view's sensors do not see it.
+Each mode's shape is known to the MAC its noise allows (snr / (1 + snr), the tracks' noise before the impact
+through the decay fit's gain): under FLOOR_MAC it is below the floor, reported and not judged.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from odsplat.reconstruction import PoseResult
+from odsplat.spine.store import Capture
+from odsplat.spine.tags import camera_pose_from_tags, detect_tags
+from odsplat.sync import AlignedTake, load_sync
+
+from .noise import design_gains
+from .notes import MIN_SENSOR_R2
+from .ods import fit_decay, force_transform
+from .tracking import project_displacement, track_points
+from .video2d import FLOOR_MAC, first_frame, floor_mac
+
+if TYPE_CHECKING:
+    from .result import Sensor
+
+log = logging.getLogger(__name__)
+
+DECAY_T_MIN_S = 1.5e-3    # the video's decay fit starts after a ~1 ms hammer pulse
+MAX_TILT_DEG = 15.0       # a sensor's axis out of the image plane by more than this is left out (module doc)
+BAND = 0.8                # modes below this fraction of the frame rate's Nyquist frequency are fitted
+ON_STRUCTURE = 0.5        # a window moving less than this share of its sensor's most moving one is astride an edge
+MIN_SEEN = 0.3           # a mode moves the sensors compared by at least this share of its motion over all of them
+MIN_PRE_FRAMES = 8        # the tracks' noise is read before the impact where there are this many frames, else from
+#                           the decay fit's residual
+
+
+@dataclass(frozen=True)
+class SensorView:
+    """The accelerometers one view sees, and the video's modes there against theirs."""
+
+    view: int | None
+    takes: tuple[str, ...]           # the view's synced takes, each fitted and the residues averaged
+    pose: str                        # where the pose came from, in words
+    sensors: tuple[str, ...]         # those compared
+    pixels_px: np.ndarray            # (S, 2) where each sits in the view
+    n_windows: np.ndarray            # (S,) windows on the structure around it whose median is its reading
+    px_per_m: np.ndarray             # (S,) the image scale of its axis: |J d|
+    tilt_deg: np.ndarray             # (S,) its axis out of the image plane (0: in it; the reading is exact)
+    left_out: tuple[tuple[str, str], ...]   # sensors not compared, and why
+    mode_index: np.ndarray           # (R,) the accelerometer modes fitted (those in the camera's band)
+    freq_hz: np.ndarray              # (R,)
+    video_residues: np.ndarray       # (R, S) complex, m/N along each sensor's axis
+    accel_residues: np.ndarray       # (R, S) complex, m/N
+    r2: np.ndarray                   # (S,) adjusted: the share of the track's motion the modes explain
+    noise_m: np.ndarray              # (S,) the tracks' rms noise along each axis, in metres
+    noise_from: str                  # "pre-impact frames" or "fit residual"
+    mac: np.ndarray                  # (R,) over the sensors seen moving (NaN with fewer than 2)
+    scale: np.ndarray                # (R,) complex: video ~ scale x accelerometers, least squares
+    expected_mac: np.ndarray         # (R,) what the noise allows: snr / (1 + snr)
+    seen_share: np.ndarray           # (R,) the mode's accelerometer motion at the sensors compared / at them all
+
+    @property
+    def below_floor(self) -> np.ndarray:
+        return self.expected_mac < FLOOR_MAC
+
+    @property
+    def judged(self) -> np.ndarray:
+        """(R,) modes the check judges: above the floor, moving the sensors compared, over two sensors or more."""
+        return ~self.below_floor & (self.seen_share >= MIN_SEEN) & np.isfinite(self.mac)
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(S,) the sensors whose tracks the modes explain: those the MAC is over."""
+        return self.r2 >= MIN_SENSOR_R2
+
+    def text(self) -> str:
+        lines = [f"one view against the accelerometers (view {self.view}, {len(self.takes)} take(s), pose from "
+                 f"{self.pose}): " + ", ".join(f"{n} at {p[0]:.0f},{p[1]:.0f} px ({s:.0f} px/m, tilt {a:.0f} deg)"
+                                               for n, p, s, a in zip(self.sensors, self.pixels_px, self.px_per_m,
+                                                                     self.tilt_deg))]
+        for n, why in self.left_out:
+            lines.append(f"  {n} left out: {why}")
+        for k in np.flatnonzero(~self.seen):
+            lines.append(f"  {self.sensors[k]}: the modes explain {100 * max(self.r2[k], 0):.0f} % of its track; "
+                         "the view does not see it move (left out of the MAC)")
+        for r, i in enumerate(self.mode_index):
+            state = ("judged" if self.judged[r] else "BELOW THE FLOOR (not judged)" if self.below_floor[r] else
+                     f"not judged: the sensors compared carry {100 * self.seen_share[r]:.0f} % of its motion"
+                     if self.seen_share[r] < MIN_SEEN else "not judged: fewer than 2 sensors")
+            lines.append(f"  mode {i + 1} ({self.freq_hz[r]:.2f} Hz): MAC {self.mac[r]:.3f}, scale "
+                         f"{abs(self.scale[r]):.3f} at {np.degrees(np.angle(self.scale[r])):+.0f} deg; the noise "
+                         f"allows MAC {self.expected_mac[r]:.3f}: {state}")
+        return "\n".join(lines)
+
+    def document(self) -> dict[str, Any]:
+        """Plain data for analysis.json (residues in micrometres per newton)."""
+        def fin(x):
+            return float(x) if np.isfinite(x) else None
+        return {"view": self.view, "takes": list(self.takes), "pose": self.pose,
+                "sensors": [{"name": n, "pixel_px": [float(p[0]), float(p[1])], "n_windows": int(o),
+                             "px_per_m": float(s),
+                             "tilt_deg": float(ip), "r2": float(r2), "noise_um": fin(1e6 * nz), "seen": bool(sn)}
+                            for n, p, o, s, ip, r2, nz, sn in zip(self.sensors, self.pixels_px, self.n_windows,
+                                                                  self.px_per_m,
+                                                               self.tilt_deg, self.r2, self.noise_m, self.seen)],
+                "left_out": [{"name": n, "why": w} for n, w in self.left_out], "noise_from": self.noise_from,
+                "floor_mac": FLOOR_MAC,
+                "modes": [{"mode": int(i) + 1, "freq_hz": float(f), "mac": fin(m), "scale": fin(abs(sc)),
+                           "scale_phase_deg": fin(np.degrees(np.angle(sc))), "expected_mac": float(e),
+                           "below_floor": bool(e < FLOOR_MAC), "seen_share": float(sh), "judged": bool(j),
+                           "video_um_per_n": [[float(1e6 * v.real), float(1e6 * v.imag)] for v in vr],
+                           "accel_um_per_n": [[float(1e6 * a.real), float(1e6 * a.imag)] for a in ar]}
+                          for i, f, m, sc, e, vr, ar, sh, j in zip(
+                              self.mode_index, self.freq_hz, self.mac, self.scale, self.expected_mac,
+                              self.video_residues, self.accel_residues, self.seen_share, self.judged)]}
+
+
+# ------------------------------------------------------------------------------------------------- force
+
+def take_force(capture: Capture, force: str, take, poles_rad_s: np.ndarray) -> np.ndarray:
+    """F(lambda_r) of one synced take's hammer pulse on the impact-locked timeline (scaled as sync scaled the
+    take's motion when it normalised the impulses)."""
+    with capture.open_take(take.name) as r:
+        f = r.channel(force).astype(float)
+        t0 = r.daq_t0_s - take.hit_daq_time_s
+        fs = r.sample_rate_hz
+    k0 = max(int((-t0 - 0.005) * fs), 0)                # the pulse and a little either side
+    k1 = min(int((-t0 + 0.02) * fs), len(f))
+    seg = f[k0:k1] - np.median(f[:max(k0, 1)])
+    return force_transform(seg, fs, t0 + k0 / fs, poles_rad_s) * (take.impulse_scale or 1.0)
+
+
+# -------------------------------------------------------------------------------------------------- pose
+
+def view_pose(capture: Capture, take: str, *, at_rest: bool = False
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
+    """(K, R, t, where from) of the camera that filmed `take`: the pose stage's where it posed it, else the tags'
+    in its first frame (the capture's intrinsics; the structure's tags too where `at_rest`: that frame precedes the
+    hit); None where neither can."""
+    if capture.paths.poses_json.exists():
+        for v in PoseResult.read(capture).views:
+            if v.name == take:
+                return np.asarray(v.K, float), np.asarray(v.R, float), np.asarray(v.t, float), "the pose stage"
+    cam, layout = capture.manifest.camera, capture.manifest.tags
+    if cam.intrinsics is None or layout is None:
+        log.info("%s: no pose (%s)", take, "no camera intrinsics" if cam.intrinsics is None else "no tag layout")
+        return None
+    K = cam.intrinsics.matrix()
+    dist = np.asarray(cam.intrinsics.dist, float) if cam.intrinsics.dist else None
+    frame = first_frame(capture, take)
+    top = float(np.percentile(frame, 99.9)) or 1.0
+    pose = camera_pose_from_tags(detect_tags(np.clip(frame / top * 255, 0, 255).astype(np.uint8),
+                                             family=layout.family), layout, K, dist, min_tags=1,
+                                  use_structure_tags=at_rest)
+    if pose is None or pose.center_m[2] <= 0:
+        log.info("%s: no pose from the tags in its first frame", take)
+        return None
+    return K, pose.R, pose.t, (f"tags {', '.join(str(i) for i in pose.tag_ids)} in its first frame (PnP, "
+                               f"{pose.rms_px:.2f} px rms)")
+
+
+def _place(sensors: list[Sensor], K, R, t, shape: tuple[int, int], margin_px: int, max_tilt_deg: float
+           ) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray, list[tuple[str, str]]]:
+    """The sensors the view sees: their index, pixel (S, 2), axis image direction (S, 2, px per m) and tilt out of
+    the image plane (S, degrees); the others with why."""
+    h, w = shape
+    keep, uvs, axes, shares, out = [], [], [], [], []
+    for i, sn in enumerate(sensors):
+        if not sn.placed:
+            out.append((sn.name, "no position or direction in the capture"))
+            continue
+        c = R @ sn.position_m + t
+        if c[2] <= 0:
+            out.append((sn.name, "behind the camera"))
+            continue
+        uv = (K @ c)[:2] / c[2]
+        if not (margin_px <= uv[0] < w - margin_px and margin_px <= uv[1] < h - margin_px):
+            out.append((sn.name, f"outside the frame (at {uv[0]:.0f},{uv[1]:.0f} px)"))
+            continue
+        j = project_displacement(sn.direction[None, None], sn.position_m[None], K, R, t)[0, 0]
+        sight = (sn.position_m + R.T @ t) / np.linalg.norm(sn.position_m + R.T @ t)   # from the camera's centre
+        tilt = float(np.degrees(np.arcsin(min(abs(float(sight @ sn.direction)), 1.0))))
+        if tilt > max_tilt_deg:
+            out.append((sn.name, f"its axis is {tilt:.0f} deg out of the image plane (at most {max_tilt_deg:g}): the "
+                                 "view would read the motion along its line of sight into it"))
+            continue
+        keep.append(i)
+        uvs.append(uv)
+        axes.append(j)
+        shares.append(tilt)
+    return keep, np.reshape(uvs, (-1, 2)), np.reshape(axes, (-1, 2)), np.asarray(shares, float), out
+
+
+# ---------------------------------------------------------------------------------------------- the check
+
+def _view_takes(capture: Capture, max_takes: int) -> tuple[Any, list]:
+    """The sync result and the synced takes with aligned frames of the first such view, up to max_takes."""
+    sync = load_sync(capture)
+    takes = [tk for tk in sync.ok if tk.aligned_file and capture.paths.listed(tk.aligned_file).is_file()]
+    if not takes:
+        return sync, []
+    views = sorted({tk.view for tk in takes if tk.view is not None})
+    first = [tk for tk in takes if tk.view == views[0]] if views else takes
+    return sync, first[:max_takes]
+
+
+def _track(capture: Capture, sync, take, uv: np.ndarray, window_px: int, method: str
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """The take's aligned frames in the sensors' box, tracked at uv: displacement (T, S, 2) px and times (T,)."""
+    pad = window_px + 8
+    with AlignedTake(capture, capture.paths.listed(take.aligned_file), sync.generation) as ff:
+        h, w = ff.frame_shape[:2]
+        x0, y0 = max(int(uv[:, 0].min()) - pad, 0), max(int(uv[:, 1].min()) - pad, 0)
+        x1, y1 = min(int(uv[:, 0].max()) + pad + 1, w), min(int(uv[:, 1].max()) + pad + 1, h)
+
+        def box(frame: np.ndarray) -> np.ndarray:
+            frame = frame[y0:y1, x0:x1]
+            return frame.mean(axis=-1) if frame.ndim == 3 else frame
+
+        frames, times = ff.read_frames(spatial=box), ff.times_s
+    tracks = track_points(frames, uv - [x0, y0], method=method, window_px=window_px)
+    return tracks.displacement_px, times
+
+
+def _exposure_gain(poles: np.ndarray, exposure_s: float | None) -> np.ndarray:
+    """(R,) what a frame's exposure does to a mode's complex amplitude at mid-exposure: the mean of e^(s t) over
+    the exposure, sinh(s T / 2) / (s T / 2)."""
+    if not exposure_s:
+        return np.ones(len(poles), complex)
+    x = 0.5 * poles * exposure_s
+    return np.sinh(x) / x
+
+
+def _candidates(uv: np.ndarray, window_px: int) -> np.ndarray:
+    """(S, C, 2) the windows tried for each sensor: its pixel first, then a 5 x 5 grid up to a window's side away."""
+    steps = np.array([0.0, -0.5, 0.5, -1.0, 1.0]) * window_px
+    grid = np.array([(dx, dy) for dy in steps for dx in steps])
+    return uv[:, None, :] + grid[None]
+
+
+def _adjusted_r2(fit, times: np.ndarray) -> np.ndarray:
+    """The share of each channel's motion the modes explain, less what as many parameters explain of pure noise."""
+    n = int(np.sum(times >= DECAY_T_MIN_S))
+    p = 2 * len(fit.poles_rad_s) + 1
+    return 1 - (1 - fit.r2) * (n - 1) / max(n - p - 1, 1)
+
+
+@dataclass
+class _Fitted:
+    residues: np.ndarray     # (R, S) m/N, averaged over the takes
+    r2: np.ndarray           # (S,)
+    noise_m: np.ndarray      # (S,) of the average
+    noise_from: str
+    force_abs: np.ndarray    # (R,) |F(lambda_r)|, averaged
+    gain: np.ndarray         # (R,) design_gains
+
+
+def _fit(capture: Capture, force: str, records, poles: np.ndarray, exposure_s: float | None) -> _Fitted:
+    """Each take's readings (T, S) fitted at the poles, divided by its force; averaged over the takes."""
+    residues, r2s, noises, forces, pre_ok = [], [], [], [], True
+    for tk, x, times in records:
+        fit = fit_decay(times, x, poles, t_min_s=DECAY_T_MIN_S)
+        amps = fit.amplitudes / _exposure_gain(poles, tk.exposure_s or exposure_s)[:, None]
+        forces.append(take_force(capture, force, tk, poles))
+        residues.append(amps / forces[-1][:, None])
+        r2s.append(_adjusted_r2(fit, times))
+        pre = times < 0
+        if pre.sum() >= MIN_PRE_FRAMES:
+            noises.append(np.sqrt(np.mean((x[pre] - x[pre].mean(axis=0)) ** 2, axis=0)))
+        else:
+            pre_ok = False
+            after = times >= DECAY_T_MIN_S
+            noises.append(np.sqrt(np.mean((x[after] - fit.synthesize(times[after])) ** 2, axis=0)))
+    return _Fitted(np.mean(residues, axis=0), np.mean(r2s, axis=0),
+                   np.sqrt(np.mean(np.square(noises), axis=0)) / np.sqrt(len(records)),
+                   "pre-impact frames" if pre_ok else "fit residual", np.mean(np.abs(forces), axis=0),
+                   design_gains(records[0][2], poles, DECAY_T_MIN_S))
+
+
+def _median(fitted: _Fitted, on: np.ndarray) -> _Fitted:
+    """Each sensor's reading (S of them, C windows each; `on` (S, C) the windows kept) as its windows' median: of the
+    residues (real and imaginary parts), the fit's share and the noise."""
+    S, C = on.shape
+    res = fitted.residues.reshape(len(fitted.residues), S, C)
+    r2, noise = fitted.r2.reshape(S, C), fitted.noise_m.reshape(S, C)
+    out_res = np.zeros((len(res), S), complex)
+    out_r2, out_noise = np.full(S, -np.inf), np.full(S, np.nan)
+    for k in range(S):
+        w = on[k]
+        if not w.any():
+            continue
+        out_res[:, k] = np.median(res[:, k, w].real, axis=1) + 1j * np.median(res[:, k, w].imag, axis=1)
+        out_r2[k], out_noise[k] = np.median(r2[k, w]), np.median(noise[k, w])
+    return dataclasses.replace(fitted, residues=out_res, r2=out_r2, noise_m=out_noise)
+
+
+def sensor_view(capture: Capture, modes, sensors, force: str, *, max_takes: int = 4, window_px: int = 11,
+                method: str = "gradient", max_tilt_deg: float = MAX_TILT_DEG) -> SensorView | None:
+    """The accelerometers the first synced view sees, against the video there (module doc); None where no view
+    has aligned frames, no pose can be had, no sensor is in view or no mode is in the camera's band."""
+    sync, takes = _view_takes(capture, max_takes)
+    if not takes:
+        log.info("no single-view check: no synced take with aligned frames")
+        return None
+    pose = view_pose(capture, takes[0].name, at_rest=takes[0].offset_s is not None and takes[0].offset_s < 0)
+    if pose is None:
+        return None
+    K, R, t, pose_from = pose
+    cam = capture.manifest.camera
+    shape = (cam.height_px or int(2 * K[1, 2] + 1), cam.width_px or int(2 * K[0, 2] + 1))
+    idx, uv, axes, tilts, left_out = _place(list(sensors), K, R, t, shape, 2 * window_px + 3, max_tilt_deg)
+    for n, why in left_out:
+        log.info("single view: %s left out: %s", n, why)
+    if not idx:
+        log.info("no single-view check: no accelerometer in view %s", takes[0].view)
+        return None
+    scale_px = np.linalg.norm(axes, axis=1)
+    e = axes / scale_px[:, None]
+    cand = _candidates(uv, window_px)                                              # (S, C, 2)
+    S, C = cand.shape[:2]
+    records = []
+    for tk in takes:
+        d_px, times = _track(capture, sync, tk, cand.reshape(-1, 2), window_px, method)
+        x = np.einsum("tsci,si->tsc", d_px.reshape(len(times), S, C, 2), e) / scale_px[:, None]   # m along axes
+        records.append((tk, x.reshape(len(times), -1), times))
+    nyquist_hz = 0.5 / float(np.median(np.diff(records[0][2])))
+    use = modes.freq_hz < BAND * nyquist_hz
+    if not use.any():
+        log.info("no single-view check: no accelerometer mode below %.0f Hz", BAND * nyquist_hz)
+        return None
+    poles = modes.poles_rad_s[use]
+    # each sensor's windows: those tracked throughout whose motion the modes explain, moving at least half as much as
+    # the one that moves most (on the structure, not astride its edge); their median is the sensor's reading
+    fit0 = fit_decay(records[0][2], np.nan_to_num(records[0][1]), poles, t_min_s=DECAY_T_MIN_S)
+    lost = ~np.all([np.isfinite(x).all(axis=0) for _, x, _ in records], axis=0)          # (S * C,)
+    amp = np.where(lost | (_adjusted_r2(fit0, records[0][2]) < MIN_SENSOR_R2), 0.0,
+                   np.linalg.norm(fit0.amplitudes, axis=0)).reshape(S, C)
+    on = (amp >= ON_STRUCTURE * amp.max(axis=1, keepdims=True)) & (amp > 0)
+    fitted = _fit(capture, force, [(tk, np.nan_to_num(x), times) for tk, x, times in records], poles, cam.exposure_s)
+    fitted = _median(fitted, on)
+    video, accel_all = fitted.residues, np.asarray(modes.shapes)[use]
+    accel = accel_all[:, idx]
+    seen = fitted.r2 >= MIN_SENSOR_R2
+    mac, scale = _compare(video[:, seen], accel[:, seen])
+    # the noise's share of each mode's fitted amplitude: sd of 2|C| per unit noise (design_gains), per channel
+    signal = np.sum(np.abs(2 * video[:, seen]) ** 2, axis=1)
+    noise_power = np.sum((fitted.gain[:, None] * fitted.noise_m[seen][None] / fitted.force_abs[:, None]) ** 2, axis=1)
+    expected = np.array([floor_mac(s / max(nz, 1e-300)) for s, nz in zip(signal, noise_power)])
+    placed = [k for k, sn in enumerate(sensors) if sn.placed]
+    share = np.linalg.norm(accel[:, seen], axis=1) / np.maximum(np.linalg.norm(accel_all[:, placed], axis=1), 1e-300)
+    out = SensorView(takes[0].view, tuple(tk.name for tk in takes), pose_from, tuple(sensors[i].name for i in idx),
+                     uv, on.sum(axis=1), scale_px, tilts, tuple(left_out), np.flatnonzero(use),
+                     modes.freq_hz[use], video, accel, fitted.r2, fitted.noise_m, fitted.noise_from, mac, scale,
+                     expected, share)
+    log.info("%s", out.text())
+    return out
+
+
+def _compare(video: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(R,) MAC (NaN over fewer than 2 sensors) and complex scale (video ~ scale x accel) per mode."""
+    R = video.shape[0]
+    if video.shape[1] == 0:
+        return np.full(R, np.nan), np.full(R, np.nan, complex)
+    num = np.einsum("rs,rs->r", accel.conj(), video)
+    aa = np.einsum("rs,rs->r", accel.conj(), accel).real
+    vv = np.einsum("rs,rs->r", video.conj(), video).real
+    mac = np.abs(num) ** 2 / np.maximum(aa * vv, 1e-300)
+    if video.shape[1] < 2:
+        mac = np.full(R, np.nan)
+    return mac, num / np.maximum(aa, 1e-300)
+
+
+__all__ = ["SensorView", "sensor_view", "take_force", "view_pose"]
