@@ -138,6 +138,63 @@ def good_points(frame, mask=None, *, max_points: int = 50, min_distance_px: floa
     return corners.reshape(-1, 2).astype(np.float64)
 
 
+def _border(shape: tuple[int, int], window_px: int) -> np.ndarray:
+    """(H, W) bool: the pixels far enough from the border for a window_px window (as track_points needs)."""
+    keep = np.zeros(shape, bool)
+    b = int(window_px) // 2 + 2
+    keep[b:-b, b:-b] = True
+    return keep
+
+
+def grid_points(frame, *, spacing_px: float, window_px: int = 15, quality_level: float = 0.005,
+                max_points: int | None = None) -> np.ndarray:
+    """A regular grid (P, 2) (x, y) every spacing_px over the frame, kept where a window_px window has texture
+    enough to track (the structure tensor's smaller eigenvalue at least `quality_level` times the frame's largest);
+    the spacing grows until at most max_points remain. Row by row, from the top left."""
+    img = np.asarray(frame, np.float32)
+    if img.ndim != 2 or img.size == 0:
+        raise InputError("grid_points.frame", f"expected a mono (H, W) image, got shape {img.shape}")
+    texture = cv2.cornerMinEigenVal(img, int(window_px) | 1)
+    ok = (texture >= quality_level * float(texture.max())) & _border(img.shape, window_px) if texture.max() > 0 \
+        else np.zeros(img.shape, bool)
+    step = float(spacing_px)
+    while True:
+        ys, xs = np.arange(0.0, img.shape[0], step), np.arange(0.0, img.shape[1], step)
+        gx, gy = np.meshgrid(xs, ys)
+        p = np.stack([gx.ravel(), gy.ravel()], axis=1)
+        p = p[ok[p[:, 1].astype(int), p[:, 0].astype(int)]]
+        if max_points is None or len(p) <= max_points:
+            return p
+        step *= np.sqrt(len(p) / max_points) * 1.01
+
+
+def edge_points(frame, *, spacing_px: float, window_px: int = 15, max_points: int = 300) -> np.ndarray:
+    """Points (P, 2) (x, y) on the frame's edges (Canny, thresholds from the gradient's median), strongest gradient
+    first, at least spacing_px apart: where a structure's outline moves across the image, the motion across the
+    edge is measured best (along it, the window sees the aperture problem)."""
+    img = np.asarray(frame, np.float32)
+    if img.ndim != 2 or img.size == 0:
+        raise InputError("edge_points.frame", f"expected a mono (H, W) image, got shape {img.shape}")
+    lo, hi = float(img.min()), float(img.max())
+    u8 = np.zeros(img.shape, np.uint8) if hi <= lo else ((img - lo) * (255.0 / (hi - lo))).astype(np.uint8)
+    grad = np.hypot(cv2.Sobel(u8, cv2.CV_32F, 1, 0), cv2.Sobel(u8, cv2.CV_32F, 0, 1))
+    med = float(np.median(grad[grad > 0])) if (grad > 0).any() else 0.0
+    edges = (cv2.Canny(u8, 0.5 * med, 1.5 * med, L2gradient=True) > 0) & _border(img.shape, window_px)
+    ys, xs = np.nonzero(edges)
+    order = np.argsort(-grad[ys, xs], kind="stable")
+    taken = np.zeros(img.shape, bool)
+    r = max(int(np.ceil(spacing_px)), 1)
+    out = []
+    for y, x in zip(ys[order], xs[order]):
+        if taken[y, x]:
+            continue
+        out.append((float(x), float(y)))
+        taken[max(y - r + 1, 0):y + r, max(x - r + 1, 0):x + r] = True
+        if len(out) == max_points:
+            break
+    return np.asarray(out, float).reshape(-1, 2)
+
+
 def project_displacement(displacement_m, points_m, K, R, t) -> np.ndarray:
     """First-order image displacement (T, P, 2) (x, y) in px of world displacements (T, P, 3) at world points (P, 3),
     seen by a pinhole K with the world-to-camera pose x_cam = R X + t (OpenCV: x right, y down, z forward)."""

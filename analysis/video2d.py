@@ -29,7 +29,7 @@ from odsplat.spine.store import Capture
 
 from .clips import band_hz
 from .oma import OMAResult, identify
-from .tracking import METHODS, good_points, track_points
+from .tracking import METHODS, edge_points, good_points, grid_points, track_points
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +39,7 @@ FLOOR_MAC = 0.95          # a shape the noise allows less than this MAC to is be
 MOVING_SNR = 10.0         # a point moves when its motion's variance in the band is this many times its noise's
 VIDEO_BAND = 0.45         # modes are sought below this fraction of the frame rate
 MAX_PEAKS = 3             # FDD peaks that no mode explains, reported as ODS lines
+POINT_LAYOUTS = ("texture", "grid", "edges")
 NOISE_FRAMES = 32         # the camera's noise is fitted on the take's first frames
 
 
@@ -49,8 +50,11 @@ class Video2DSettings:
     #                                           one part of the structure (15 px read 0.89-0.96 against 0.96-0.99
     #                                           on hil_sim's arm at 192x144 px)
     max_points: int = 300                     # points tracked, strongest texture first
-    min_distance_px: float | None = None      # between points; None: half the window's side
+    min_distance_px: float | None = None      # between points; None: half the window's side (a grid: its side)
     points_px: tuple[tuple[float, float], ...] | None = None  # track these (x, y) instead of picking points
+    layout: str = "texture"                   # where points are picked (POINT_LAYOUTS): "texture" (Shi-Tomasi, the
+    #                                           strongest first), "grid" (every min_distance_px where the texture
+    #                                           can be tracked) or "edges" (on the outlines, Canny)
     fmin_hz: float | None = None              # the identification's band; None: 3 lines of the FDD
     fmax_hz: float | None = None              # None: 0.45 x the frame rate
     n_modes: int | None = None                # keep the strongest this many
@@ -61,6 +65,9 @@ class Video2DSettings:
     clip_frames: int = 600                    # at most this many frames per clip
 
     def __post_init__(self) -> None:
+        if self.layout not in POINT_LAYOUTS:
+            raise InputError("analyze.video2d.layout", f"expected one of {', '.join(POINT_LAYOUTS)}; got "
+                                                        f"{self.layout!r}")
         if self.tracker not in METHODS:
             raise InputError("analyze.video2d.tracker", f"expected one of {', '.join(METHODS)}; got {self.tracker!r}")
         check_fields(self, {"window_px": Range(at_least=5, at_most=255, integer=True),
@@ -172,14 +179,20 @@ def first_frame(capture: Capture, take: str) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------ points
 
 def pick_points(frame: np.ndarray, s: Video2DSettings) -> np.ndarray:
-    """The points to track: those given, or the most textured ones (at least 0.5 % of the strongest's texture),
-    spaced half a window apart."""
+    """The points to track: those given, or as `layout` places them: the most textured ones (at least 0.5 % of the
+    strongest's texture, spaced half a window apart), a grid (a window apart where there is texture to track) or the
+    edges (half a window apart)."""
     if s.points_px is not None:
         p = np.asarray(s.points_px, float)
         if p.ndim != 2 or p.shape[1] != 2 or len(p) == 0:
             raise InputError("analyze.video2d.points_px", f"expected a list of [x, y] pixels; got shape {p.shape}")
         return p
     spacing = s.min_distance_px or 0.5 * s.window_px
+    if s.layout == "grid":
+        return grid_points(frame, spacing_px=s.min_distance_px or s.window_px, window_px=s.window_px,
+                           max_points=s.max_points)
+    if s.layout == "edges":
+        return edge_points(frame, spacing_px=spacing, window_px=s.window_px, max_points=s.max_points)
     return good_points(frame, max_points=s.max_points, min_distance_px=spacing, window_px=s.window_px,
                        quality_level=0.005)
 
