@@ -221,6 +221,8 @@ def _place(sensors: list[Sensor], K, R, t, shape: tuple[int, int], margin_px: in
 
 def _view_takes(capture: Capture, max_takes: int) -> tuple[Any, list]:
     """The sync result and the synced takes with aligned frames of the first such view, up to max_takes."""
+    if not capture.paths.sync_json.exists():       # sync did not apply (no take with frames): nothing to check
+        return None, []
     sync = load_sync(capture)
     takes = [tk for tk in sync.ok if tk.aligned_file and capture.paths.listed(tk.aligned_file).is_file()]
     if not takes:

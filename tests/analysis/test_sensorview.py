@@ -24,7 +24,7 @@ SIDE = PlanSettings(n_views=1, radius_m=1.0, target_m=(0.2, 0.0, 0.42), elevatio
 @pytest.fixture(scope="module")
 def side_capture(tmp_path_factory):
     cap = tmp_path_factory.mktemp("one-view") / "cap"
-    simulate_capture(cap, n_frames=400, record_s=0.5, plan=SIDE)
+    simulate_capture(cap, n_frames=300, record_s=0.5, plan=SIDE)
     run = subprocess.run([sys.executable, "-m", "odsplat", "run", str(cap)], capture_output=True, text=True,
                          timeout=900)
     assert run.returncode == 0, run.stdout + run.stderr
