@@ -75,7 +75,7 @@ from .ods import (
 from .outputs import write_outputs
 from .plots2d import write_clips, write_figures
 from .result import AnalysisResult, Sensor, VideoModes
-from .sensorview import DECAY_T_MIN_S, sensor_view, take_force
+from .sensorview import DECAY_T_MIN_S, sensor_ods, sensor_view, take_force
 from .triangulate import MIN_VIEWS, triangulation_check
 from .verdict import DISCRIMINATION, NOT_DISCRIMINATED, Verdict, crosscheck_verdict, mac_verdict
 from .video2d import (
@@ -619,9 +619,21 @@ def analyze_capture(capture: Capture | str | Path, settings: AnalyzeSettings | N
     return _write(capture, result, s)
 
 
+def _placed_accelerometers(capture: Capture) -> tuple[Sensor, ...]:
+    """The capture's acceleration channels with a position and a direction."""
+    return tuple(Sensor(c.name, np.asarray(c.position_m, float), np.asarray(c.direction, float)
+                        / np.linalg.norm(c.direction)) for c in capture.manifest.channels
+                 if c.kind == "acceleration" and c.position_m is not None and c.direction is not None)
+
+
 def video_only(capture: Capture, s: AnalyzeSettings) -> Video2DResult:
     """A capture without force: the 2D output-only path on its first view (video2d.py), its figures and clips."""
     result = analyze_video(capture, s.video2d, takes=s.takes)
+    if s.sensor_view:
+        sensors = _placed_accelerometers(capture)
+        result = dataclasses.replace(result, sensor_view=sensor_ods(
+            capture, result, sensors, window_px=s.video2d.window_px, method=s.video2d.tracker,
+            max_tilt_deg=s.sensor_view_max_tilt_deg) if sensors else None)
     dest = capture.paths.ensure(capture.paths.analysis_dir)
     files: dict[str, str] = {}
     if s.plots:

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy.signal import butter, find_peaks, get_window, sosfiltfilt
+from scipy.signal import butter, find_peaks, get_window, hilbert, sosfiltfilt
 from scipy.stats import chi2, kurtosis
 
 from odsplat.spine.errors import InputError
@@ -47,6 +47,9 @@ MIN_STABLE = 0.4          # a mode: stable poles in at least this share of the o
 PEAK_PROMINENCE = 0.5     # an FDD peak: the first singular value stands this many decades above its surroundings
 NOISE_LINES = 16          # identify() takes the noise above the highest mode too where it holds this many lines
 HARMONIC_KURTOSIS = 2.0   # a mode's band-passed modal coordinate flatter than this is a harmonic (a sine: 1.5)
+HARMONIC_TREND = 0.25      # ... and whose envelope's log changes by less than this over the record (a line fitted to
+#                           it): a lightly damped mode's free decay is flat too (kurtosis 1.92 for hil_sim's 23.5 Hz
+#                           over 0.5 s) but its envelope falls (-0.48); a steady sine's holds (LADISK's 2466 Hz: +0.05)
 PEAK_LINES = 2            # a pole stands on an FDD peak within this many lines (or 1 %, whichever is wider)
 _CHUNK_BYTES = 64 << 20   # the spectral matrices are decomposed a chunk of lines at a time
 
@@ -388,7 +391,9 @@ class OMAMode:
     sum |phi_c|^2 (OMAResult.noise_psd); n_stable: the model orders with a stable pole at the mode; kurtosis: that
     of the mode's coordinate (x band-passed around the mode, projected on the shape's real part): about 3 for a
     randomly excited mode, more for a free decay, 1.5 for a steady sine (a harmonic, not a mode: Brincker et al.
-    2007); `harmonic` below HARMONIC_KURTOSIS.
+    2007); envelope_trend: the change of that coordinate's log envelope (Hilbert) over the middle 80 % of the record,
+    from a line fitted to it: 0 for a steady sine or a stationary random response, -zeta omega T for a free decay;
+    `harmonic`: below HARMONIC_KURTOSIS, and |envelope_trend| below HARMONIC_TREND.
     """
 
     freq_hz: float
@@ -400,10 +405,11 @@ class OMAMode:
     snr: float
     n_stable: int
     kurtosis: float
+    envelope_trend: float = 0.0
 
     @property
     def harmonic(self) -> bool:
-        return self.kurtosis < HARMONIC_KURTOSIS
+        return self.kurtosis < HARMONIC_KURTOSIS and abs(self.envelope_trend) < HARMONIC_TREND
 
 
 @dataclass(frozen=True)
@@ -555,11 +561,27 @@ def modal_kurtosis(x: npt.ArrayLike, fs_hz: float, freq_hz: float, shape: npt.Ar
     return _kurtosis(x, fs, freq_hz, np.asarray(shape, complex).real, half_width_hz)
 
 
-def _kurtosis(x: np.ndarray, fs: float, freq_hz: float, phi: np.ndarray, half_width_hz: float) -> float:
+def _coordinate(x: np.ndarray, fs: float, freq_hz: float, phi: np.ndarray, half_width_hz: float) -> np.ndarray:
+    """x (T, C) projected on phi (C,), band-passed to freq_hz +- half_width_hz (4th order Butterworth, both ways)."""
     lo = max(freq_hz - half_width_hz, 0.5 * freq_hz)
     hi = min(freq_hz + half_width_hz, 0.5 * (freq_hz + fs / 2))
-    q = sosfiltfilt(butter(4, [lo, hi], "bandpass", fs=fs, output="sos"), x @ phi)   # projecting first: one series
-    return float(kurtosis(q, fisher=False))
+    return sosfiltfilt(butter(4, [lo, hi], "bandpass", fs=fs, output="sos"), x @ phi)   # projecting first: one series
+
+
+def _kurtosis(x: np.ndarray, fs: float, freq_hz: float, phi: np.ndarray, half_width_hz: float) -> float:
+    return float(kurtosis(_coordinate(x, fs, freq_hz, phi, half_width_hz), fisher=False))
+
+
+def _envelope_trend(q: np.ndarray) -> float:
+    """The change of log |hilbert(q)| over the middle 80 % of q (the filter's ends left out), from a line fitted."""
+    env = np.abs(hilbert(q))
+    n = len(env)
+    mid = env[n // 10: n - n // 10] if n >= 20 else env
+    if len(mid) < 4 or not np.all(mid > 0):
+        return 0.0
+    k = np.arange(len(mid), dtype=float)
+    slope = np.polyfit(k, np.log(mid), 1)[0]
+    return float(slope * (len(mid) - 1))
 
 
 def _mode(chart: StabilisationChart, pole: complex, spectrum: FDDResult, noise: np.ndarray,
@@ -569,9 +591,10 @@ def _mode(chart: StabilisationChart, pole: complex, spectrum: FDDResult, noise: 
     shape = normalise_shape(phi)
     k = spectrum.line(fn)
     peak = float(np.max(spectrum.singular_values[max(k - 1, 0):k + 2, 0]))
-    kurt = _kurtosis(x, spectrum.fs_hz, fn, shape.real, max(3 * zeta * fn, PEAK_LINES * spectrum.df_hz))
+    q = _coordinate(x, spectrum.fs_hz, fn, shape.real, max(3 * zeta * fn, PEAK_LINES * spectrum.df_hz))
     return OMAMode(freq_hz=fn, damping=zeta, pole_rad_s=complex(pole), shape=shape, mpc=float(mpc(phi)[0]),
-                   peak_psd=peak, snr=shape_snr(peak, phi, noise), n_stable=n_stable, kurtosis=kurt)
+                   peak_psd=peak, snr=shape_snr(peak, phi, noise), n_stable=n_stable,
+                   kurtosis=float(kurtosis(q, fisher=False)), envelope_trend=_envelope_trend(q))
 
 
 def shape_snr(peak_psd: float, shape: np.ndarray, noise_psd: np.ndarray) -> float:

@@ -526,9 +526,9 @@ def capture_setup(capture: Capture) -> dict:
     return out
 
 
-def _sensor_view(doc: AnalysisDocument) -> dict | None:
-    """One view against the accelerometers it sees (sensorview.py); None where the analysis has no such check."""
-    sv = doc.sensor_view
+def _sensor_view(sv: dict | None) -> dict | None:
+    """One view against the accelerometers it sees (sensorview.SensorView.document, in analysis.json or
+    video2d.json) as the report's rows; None where the analysis has no such check."""
     if not sv:
         return None
     sensors = [[s["name"], f"{s['pixel_px'][0]:.0f}, {s['pixel_px'][1]:.0f}", _num(s["px_per_m"], ".0f"),
@@ -540,11 +540,15 @@ def _sensor_view(doc: AnalysisDocument) -> dict | None:
                  f"not judged: the sensors here carry {100 * m['seen_share']:.0f} % of its motion"
                  if m["seen_share"] < 0.3 else "not judged: fewer than 2 sensors")
         modes.append({"css": "" if m["judged"] else "grey",
-                      "cells": [str(m["mode"]), _num(m["freq_hz"], ".2f"), _num(m["mac"], ".3f"),
+                      "cells": [m.get("label", f"mode {m['mode']}"), _num(m["freq_hz"], ".2f"), _num(m["mac"], ".3f"),
                                 _num(m["scale"], ".2f"), _num(m["scale_phase_deg"], "+.0f"),
                                 _num(m["expected_mac"], ".3f"), state]})
+    decay = sv.get("method", "decay") == "decay"
+    how = ("each mode's residues (m/N) from the same decay fit at the accelerometers' poles" if decay else
+           "each mode's shape from one FDD of the readings and the accelerometers (one phase, the accelerometers in "
+           "metres) at the 2D path's modes")
     return {"view": str(sv["view"]), "n_takes": str(len(sv["takes"])), "pose": sv["pose"], "sensors": sensors,
-            "left_out": [(s["name"], s["why"]) for s in sv["left_out"]], "modes": modes}
+            "how": how, "left_out": [(s["name"], s["why"]) for s in sv["left_out"]], "modes": modes}
 
 
 def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict | None = None,
@@ -555,7 +559,7 @@ def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict |
         title=doc.capture or title, created=doc.created_utc or "(no date)", n_sensors=len(doc.sensors),
         n_averages=str(doc.n_averages), summary=_summary(doc, setup or {}), notes=list(doc.notes),
         animations=_animations(doc, folder), render=render, hits=_hits(doc), modes=_modes(doc), video=_video(doc),
-        sensor_view=_sensor_view(doc), correlation=_correlation(doc), figures=_inline(doc, folder, ".png"),
+        sensor_view=_sensor_view(doc.sensor_view), correlation=_correlation(doc), figures=_inline(doc, folder, ".png"),
         settings=doc.settings_text() if doc.settings else None)
 
 
@@ -615,7 +619,7 @@ def render_video2d_report(capture: Capture) -> str:
     return _TEMPLATES.get_template("video2d.html").render(
         title=doc["capture"], created=doc.get("created_utc", ""), setup=setup, modes=_rows_2d(doc, folder),
         floor_mac=doc["floor_mac"], notes=doc.get("notes", []), spectrum=_own_uri(folder, files.get("spectrum")),
-        stabilisation=_own_uri(folder, files.get("stabilisation")))
+        stabilisation=_own_uri(folder, files.get("stabilisation")), sensor_view=_sensor_view(doc.get("sensor_view")))
 
 
 

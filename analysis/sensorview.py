@@ -44,7 +44,7 @@ from .noise import design_gains
 from .notes import MIN_SENSOR_R2
 from .ods import fit_decay, force_transform
 from .tracking import project_displacement, track_points
-from .video2d import FLOOR_MAC, first_frame, floor_mac
+from .video2d import FLOOR_MAC, first_frame, floor_mac, frames
 
 if TYPE_CHECKING:
     from .result import Sensor
@@ -75,8 +75,8 @@ class SensorView:
     left_out: tuple[tuple[str, str], ...]   # sensors not compared, and why
     mode_index: np.ndarray           # (R,) the accelerometer modes fitted (those in the camera's band)
     freq_hz: np.ndarray              # (R,)
-    video_residues: np.ndarray       # (R, S) complex, m/N along each sensor's axis
-    accel_residues: np.ndarray       # (R, S) complex, m/N
+    video_residues: np.ndarray       # (R, S) complex along each sensor's axis: m/N (decay), m/sqrt(Hz) (ods)
+    accel_residues: np.ndarray       # (R, S) complex, the same unit
     r2: np.ndarray                   # (S,) adjusted: the share of the track's motion the modes explain
     noise_m: np.ndarray              # (S,) the tracks' rms noise along each axis, in metres
     noise_from: str                  # "pre-impact frames" or "fit residual"
@@ -84,6 +84,9 @@ class SensorView:
     scale: np.ndarray                # (R,) complex: video ~ scale x accelerometers, least squares
     expected_mac: np.ndarray         # (R,) what the noise allows: snr / (1 + snr)
     seen_share: np.ndarray           # (R,) the mode's accelerometer motion at the sensors compared / at them all
+    method: str = "decay"            # "decay": residues (m/N) at the accelerometer poles after a hit; "ods": without
+    #                                  force, the joint ODS at the video's modes (m/sqrt(Hz), one phase reference)
+    labels: tuple[str, ...] = ()     # each mode's name in the text (default: "mode k" from mode_index)
 
     @property
     def below_floor(self) -> np.ndarray:
@@ -110,10 +113,11 @@ class SensorView:
             lines.append(f"  {self.sensors[k]}: the modes explain {100 * max(self.r2[k], 0):.0f} % of its track; "
                          "the view does not see it move (left out of the MAC)")
         for r, i in enumerate(self.mode_index):
+            name = self.labels[r] if self.labels else f"mode {i + 1}"
             state = ("judged" if self.judged[r] else "BELOW THE FLOOR (not judged)" if self.below_floor[r] else
                      f"not judged: the sensors compared carry {100 * self.seen_share[r]:.0f} % of its motion"
                      if self.seen_share[r] < MIN_SEEN else "not judged: fewer than 2 sensors")
-            lines.append(f"  mode {i + 1} ({self.freq_hz[r]:.2f} Hz): MAC {self.mac[r]:.3f}, scale "
+            lines.append(f"  {name} ({self.freq_hz[r]:.2f} Hz): MAC {self.mac[r]:.3f}, scale "
                          f"{abs(self.scale[r]):.3f} at {np.degrees(np.angle(self.scale[r])):+.0f} deg; the noise "
                          f"allows MAC {self.expected_mac[r]:.3f}: {state}")
         return "\n".join(lines)
@@ -122,7 +126,9 @@ class SensorView:
         """Plain data for analysis.json (residues in micrometres per newton)."""
         def fin(x):
             return float(x) if np.isfinite(x) else None
-        return {"view": self.view, "takes": list(self.takes), "pose": self.pose,
+        unit = "um/N" if self.method == "decay" else "um/sqrt(Hz)"
+        return {"view": self.view, "takes": list(self.takes), "pose": self.pose, "method": self.method,
+                "unit": unit,
                 "sensors": [{"name": n, "pixel_px": [float(p[0]), float(p[1])], "n_windows": int(o),
                              "px_per_m": float(s),
                              "tilt_deg": float(ip), "r2": float(r2), "noise_um": fin(1e6 * nz), "seen": bool(sn)}
@@ -131,14 +137,15 @@ class SensorView:
                                                                self.tilt_deg, self.r2, self.noise_m, self.seen)],
                 "left_out": [{"name": n, "why": w} for n, w in self.left_out], "noise_from": self.noise_from,
                 "floor_mac": FLOOR_MAC,
-                "modes": [{"mode": int(i) + 1, "freq_hz": float(f), "mac": fin(m), "scale": fin(abs(sc)),
+                "modes": [{"mode": int(i) + 1, "label": self.labels[k] if self.labels else f"mode {int(i) + 1}",
+                           "freq_hz": float(f), "mac": fin(m), "scale": fin(abs(sc)),
                            "scale_phase_deg": fin(np.degrees(np.angle(sc))), "expected_mac": float(e),
                            "below_floor": bool(e < FLOOR_MAC), "seen_share": float(sh), "judged": bool(j),
-                           "video_um_per_n": [[float(1e6 * v.real), float(1e6 * v.imag)] for v in vr],
-                           "accel_um_per_n": [[float(1e6 * a.real), float(1e6 * a.imag)] for a in ar]}
-                          for i, f, m, sc, e, vr, ar, sh, j in zip(
+                           "video": [[float(1e6 * v.real), float(1e6 * v.imag)] for v in vr],
+                           "accel": [[float(1e6 * a.real), float(1e6 * a.imag)] for a in ar]}
+                          for k, (i, f, m, sc, e, vr, ar, sh, j) in enumerate(zip(
                               self.mode_index, self.freq_hz, self.mac, self.scale, self.expected_mac,
-                              self.video_residues, self.accel_residues, self.seen_share, self.judged)]}
+                              self.video_residues, self.accel_residues, self.seen_share, self.judged))]}
 
 
 # ------------------------------------------------------------------------------------------------- force
@@ -160,9 +167,9 @@ def take_force(capture: Capture, force: str, take, poles_rad_s: np.ndarray) -> n
 
 def view_pose(capture: Capture, take: str, *, at_rest: bool = False
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, str] | None:
-    """(K, R, t, where from) of the camera that filmed `take`: the pose stage's where it posed it, else the tags'
-    in its first frame (the capture's intrinsics; the structure's tags too where `at_rest`: that frame precedes the
-    hit); None where neither can."""
+    """(K, R, t, where from) of the camera that filmed `take`: the pose stage's where it posed it, else the floor
+    tags' in its first frame (the capture's intrinsics), else the structure's tags' there (`at_rest`: that frame
+    precedes the hit); None where neither can."""
     if capture.paths.poses_json.exists():
         for v in PoseResult.read(capture).views:
             if v.name == take:
@@ -175,13 +182,17 @@ def view_pose(capture: Capture, take: str, *, at_rest: bool = False
     dist = np.asarray(cam.intrinsics.dist, float) if cam.intrinsics.dist else None
     frame = first_frame(capture, take)
     top = float(np.percentile(frame, 99.9)) or 1.0
-    pose = camera_pose_from_tags(detect_tags(np.clip(frame / top * 255, 0, 255).astype(np.uint8),
-                                             family=layout.family), layout, K, dist, min_tags=1,
-                                  use_structure_tags=at_rest)
+    found = detect_tags(np.clip(frame / top * 255, 0, 255).astype(np.uint8), family=layout.family)
+    pose = camera_pose_from_tags(found, layout, K, dist, min_tags=1)
+    where = "floor "
+    if pose is None or pose.center_m[2] <= 0:
+        # the structure's own tags: at rest before a hit; in operation they move, by far less than the pose's error
+        pose = camera_pose_from_tags(found, layout, K, dist, min_tags=1, use_structure_tags=True)
+        where = "" if at_rest else "structure (moving: its motion is far below the pose's error) "
     if pose is None or pose.center_m[2] <= 0:
         log.info("%s: no pose from the tags in its first frame", take)
         return None
-    return K, pose.R, pose.t, (f"tags {', '.join(str(i) for i in pose.tag_ids)} in its first frame (PnP, "
+    return K, pose.R, pose.t, (f"{where}tags {', '.join(str(i) for i in pose.tag_ids)} in its first frame (PnP, "
                                f"{pose.rms_px:.2f} px rms)")
 
 
@@ -384,6 +395,137 @@ def sensor_view(capture: Capture, modes, sensors, force: str, *, max_takes: int 
     return out
 
 
+# ------------------------------------------------------------------------------------------ without force
+
+def _daq_clock(capture: Capture, take: str):
+    """The take's sync record where sync put its frames on its DAQ's clock (flag "daq_clock"), else None."""
+    if not capture.paths.sync_json.exists():
+        return None
+    return next((tk for tk in load_sync(capture).ok if tk.name == take and "daq_clock" in tk.flags), None)
+
+
+def _at_frames(a: np.ndarray, fs: float, t0_s: float, frame_mid_s: np.ndarray, fps: float,
+               exposure_s: float) -> np.ndarray:
+    """Samples a (N, C) at fs from t0_s, as the camera sees them: low-passed under 0.45 fps (zero phase), averaged
+    over each frame's exposure and read at its middle (T, C)."""
+    from scipy.interpolate import CubicSpline
+    from scipy.signal import butter, sosfiltfilt
+    x = sosfiltfilt(butter(8, 0.45 * fps, fs=fs, output="sos"), a, axis=0)
+    n = max(int(round(exposure_s * fs)), 1)
+    if n > 1:
+        c = np.cumsum(np.vstack([np.zeros((1, x.shape[1])), x]), axis=0)
+        x = (c[n:] - c[:-n]) / n
+        t0_s += 0.5 * (n - 1) / fs                      # the mean over samples k..k+n-1 stands at their middle
+    t = t0_s + np.arange(len(x)) / fs
+    return CubicSpline(t, x, axis=0, extrapolate=False)(frame_mid_s)
+
+
+def _raw_tracks(capture: Capture, take: str, points: np.ndarray, window_px: int, method: str) -> np.ndarray:
+    """The take's raw frames (mono, in the points' box) tracked at points (P, 2): displacement (T, P, 2) px."""
+    pad = window_px + 8
+    cam = capture.manifest.camera
+    h, w = cam.height_px or 1 << 30, cam.width_px or 1 << 30
+    x0, y0 = max(int(points[:, 0].min()) - pad, 0), max(int(points[:, 1].min()) - pad, 0)
+    x1, y1 = min(int(points[:, 0].max()) + pad + 1, w), min(int(points[:, 1].max()) + pad + 1, h)
+    boxed = (f[y0:y1, x0:x1] for f in frames(capture, take))
+    return track_points(boxed, points - [x0, y0], method=method, window_px=window_px).displacement_px
+
+
+def sensor_ods(capture: Capture, video2d, sensors, *, window_px: int = 11, method: str = "gradient",
+               max_tilt_deg: float = MAX_TILT_DEG) -> SensorView | None:
+    """Without force: the accelerometers the 2D path's view sees against the video there, at the 2D path's modes
+    (video2d: its Video2DResult). Where sync put the take's frames on its DAQ's clock, each sensor's reading (the
+    median over its windows on the structure, as with force) and every accelerometer, filtered and sampled as the
+    camera sees it, share one FDD: the ODS at each mode's line (`oma.ods_at`, the 2D path's segment length) holds
+    both on one phase, the accelerometers' in metres (over -(2 pi f)^2). Per mode: MAC, scale, what the readings'
+    noise allows, the share of its motion the sensors compared carry; per sensor, the coherence of its reading with
+    its accelerometer near the modes (its `r2`). None where there is nothing to compare."""
+    from .oma import default_nperseg, noise_psd, ods_at
+    placed = [sn for sn in sensors if sn.placed]
+    if not video2d.modes or not placed:
+        return None
+    tk = _daq_clock(capture, video2d.take)
+    if tk is None:
+        log.info("no single-view check: %s's frames are not on its DAQ's clock", video2d.take)
+        return None
+    pose = view_pose(capture, video2d.take)
+    if pose is None:
+        return None
+    K, R, t, pose_from = pose
+    cam = capture.manifest.camera
+    shape = (cam.height_px or int(2 * K[1, 2] + 1), cam.width_px or int(2 * K[0, 2] + 1))
+    idx, uv, axes, tilts, left_out = _place(list(sensors), K, R, t, shape, 2 * window_px + 3, max_tilt_deg)
+    if not idx:
+        log.info("no single-view check: no accelerometer in view %s", video2d.view)
+        return None
+    fps = video2d.fps
+    scale_px = np.linalg.norm(axes, axis=1)
+    cand = _candidates(uv, window_px)
+    S, C = cand.shape[:2]
+    d = _raw_tracks(capture, video2d.take, cand.reshape(-1, 2), window_px, method)
+    x = np.einsum("tsci,si->tsc", d.reshape(len(d), S, C, 2), axes / scale_px[:, None]) / scale_px[:, None]
+    with capture.open_take(video2d.take) as r:
+        counters = r.frame_counter.astype(float)
+        a = np.stack([r.channel(sn.name).astype(float) for sn in placed], axis=1)
+        t_daq0, fs = r.daq_t0_s - tk.frame0_daq_time_s, r.sample_rate_hz
+    mid = counters * tk.period_s + tk.offset_s                                   # the frames' mid-exposure times
+    acc = _at_frames(a, fs, t_daq0, mid, fps, tk.exposure_s or 0.0)
+    lost = ~np.all(np.isfinite(x), axis=0)                                       # (S, C) windows lost somewhere
+    ok = np.all(np.isfinite(acc), axis=1)                                        # frames the DAQ's record covers
+    x, acc = np.nan_to_num(x[ok]), acc[ok]
+    if ok.sum() < 64:
+        log.info("no single-view check: %d frames have the DAQ's samples around them", ok.sum())
+        return None
+    nperseg = video2d.oma.fdd.nperseg if video2d.oma is not None else default_nperseg(len(x))
+    nperseg = min(nperseg, len(x))
+    f_hz = np.array([m.freq_hz for m in video2d.modes])
+    # each sensor's windows on the structure: those that move at least half as much as its most moving one
+    amp = np.sqrt(sum(np.abs(ods_at(x.reshape(len(x), -1), fps, f, nperseg=nperseg)) ** 2 for f in f_hz)).reshape(S, C)
+    amp = np.where(lost, 0.0, amp)
+    on = (amp >= ON_STRUCTURE * amp.max(axis=1, keepdims=True)) & (amp > 0)
+    if not on.any(axis=1).all():
+        log.info("no single-view check: %s: no window tracked around it", [sensors[i].name for i in
+                                                                          np.array(idx)[~on.any(axis=1)]])
+        return None
+    reading = np.stack([np.median(x[:, k, on[k]], axis=1) for k in range(S)], axis=1)        # (T, S) m
+    joint = np.concatenate([reading, acc], axis=1)
+    pos = [placed.index(sensors[i]) for i in idx]
+    video, accel, share = [], [], []
+    for f in f_hz:
+        v = ods_at(joint, fps, f, nperseg=nperseg)
+        am = v[S:] / -(2 * np.pi * f) ** 2
+        video.append(v[:S])
+        accel.append(am[pos])
+        share.append(np.linalg.norm(am[pos]) / max(np.linalg.norm(am), 1e-300))
+    video, accel = np.array(video), np.array(accel)
+    coherence = _coherence(reading, acc[:, pos], fps, f_hz, nperseg)
+    seen = coherence >= MIN_SENSOR_R2
+    mac, scale = _compare(video[:, seen], accel[:, seen])
+    lo, hi = video2d.oma.band_hz if video2d.oma is not None else (0.0, 0.45 * fps)
+    level = noise_psd(reading, fps, nperseg=nperseg, fmin_hz=lo, fmax_hz=hi, exclude_hz=f_hz)      # m^2/Hz
+    expected = np.array([floor_mac(np.sum(np.abs(vr[seen]) ** 2) / max(np.sum(level[seen]), 1e-300))
+                         for vr in video])
+    labels = tuple(f"{m.label} {k + 1}" for k, m in enumerate(video2d.modes))
+    out = SensorView(video2d.view, (video2d.take,), pose_from, tuple(sensors[i].name for i in idx), uv,
+                     on.sum(axis=1), scale_px, tilts, tuple(left_out), np.arange(len(f_hz)), f_hz, video, accel,
+                     coherence, np.sqrt(level * (hi - lo)), "noise PSD between the modes", mac, scale, expected,
+                     np.array(share), method="ods", labels=labels)
+    log.info("%s", out.text())
+    return out
+
+
+def _coherence(reading: np.ndarray, acc: np.ndarray, fps: float, f_hz: np.ndarray, nperseg: int) -> np.ndarray:
+    """(S,) each reading's magnitude-squared coherence with its accelerometer, averaged over the lines within 3
+    lines of the modes (segments an eighth of the record, at most nperseg: coherence needs averages)."""
+    from scipy.signal import coherence
+    n = max(min(nperseg, len(reading) // 8), 16)
+    f, c = coherence(reading, acc, fs=fps, nperseg=n, axis=0)
+    near = np.zeros(len(f), bool)
+    for f0 in f_hz:
+        near |= np.abs(f - f0) <= 3 * fps / n
+    return c[near].mean(axis=0) if near.any() else np.zeros(reading.shape[1])
+
+
 def _compare(video: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R,) MAC (NaN over fewer than 2 sensors) and complex scale (video ~ scale x accel) per mode."""
     R = video.shape[0]
@@ -398,4 +540,4 @@ def _compare(video: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return mac, num / np.maximum(aa, 1e-300)
 
 
-__all__ = ["SensorView", "sensor_view", "take_force", "view_pose"]
+__all__ = ["SensorView", "sensor_ods", "sensor_view", "take_force", "view_pose"]

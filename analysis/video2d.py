@@ -129,6 +129,7 @@ class Video2DResult:
     scale_m_per_px: float | None
     notes: tuple[str, ...] = ()
     files: dict[str, str] = field(default_factory=dict)
+    sensor_view: Any = None    # sensorview.SensorView: the accelerometers the view sees, at these modes
 
     def text(self) -> str:
         """A few lines for the engineer."""
@@ -143,6 +144,8 @@ class Video2DResult:
         if not self.modes:
             lines.append("  no mode found: " + ("; ".join(self.notes) or "nothing stands above the noise"))
         lines += [f"  note: {n}" for n in self.notes]
+        if self.sensor_view is not None:
+            lines.append(self.sensor_view.text())
         return "\n".join(lines)
 
 
@@ -365,7 +368,7 @@ def analyze_video(capture: Capture, s: Video2DSettings, *, takes: str = "accepte
                      "shapes are not judged")
     if oma.harmonics:
         notes.append("steady sines at " + ", ".join(f"{h.freq_hz:.2f}" for h in oma.harmonics)
-                     + " Hz look like forced harmonics, not modes (kurtosis of their coordinate): left out")
+                     + " Hz look like forced harmonics, not modes (their coordinate as flat as a sine's, its envelope steady): left out")
     return Video2DResult(take, view, fps, n_frames, s.tracker, s.window_px, points, moving, noise, crlb, camera,
                          d.astype(np.float32), tuple(modes), oma, scale, tuple(notes))
 
@@ -385,7 +388,8 @@ def _doc(result: Video2DResult, capture: Capture, s: Any) -> dict:
             "scale_m_per_px": result.scale_m_per_px, "floor_mac": FLOOR_MAC, "modes": modes,
             "camera_noise": result.camera_noise, **_floors(result),
             "band_hz": None if result.oma is None else list(result.oma.band_hz),
-            "notes": list(result.notes), "files": dict(result.files), "settings": plain(s)}
+            "notes": list(result.notes), "files": dict(result.files), "settings": plain(s),
+            "sensor_view": None if result.sensor_view is None else result.sensor_view.document()}
 
 
 def _floors(result: Video2DResult) -> dict:

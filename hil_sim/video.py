@@ -27,6 +27,7 @@ from .structure import STRUCTURES, Impact, make_structure
 log = logging.getLogger(__name__)
 
 EXCITATIONS = ("ambient", "hit")
+PAD_S = 0.01      # the accelerometers' record starts this much before the first frame and ends this much after
 # A view of each rig from the side and a little above, so that every mode moves across the image somewhere.
 VIEWS = {"arm": ((1.25, 0.95, 0.95), (0.2, 0.0, 0.45)),
          "plate": ((0.9, 0.75, 0.75), (0.0, 0.0, 0.1)),
@@ -47,6 +48,10 @@ class VideoSimSettings:
     peak_n: float = 60.0          # ambient: rms peak of a pulse; hit: the hit's peak
     supersample: int = 3          # the renderer's samples per pixel side (anti-aliasing)
     seed: int = 0
+    accelerometers: bool = False  # also record the rig's accelerometers (signals.csv), on the camera's clock
+    daq_rate_hz: float = 16000.0
+    eye_m: tuple[float, float, float] | None = None     # the camera's centre; None: VIEWS[structure]
+    target_m: tuple[float, float, float] | None = None  # where it looks; None: VIEWS[structure]
 
     def __post_init__(self) -> None:
         if self.structure not in STRUCTURES:
@@ -60,6 +65,9 @@ class VideoSimSettings:
                                                            f"{self.height_px}")
         if not (self.n_frames >= 16 and self.fps > 0 and self.pulses_per_s > 0 and self.peak_n > 0):
             raise InputError("VideoSimSettings", "expected n_frames >= 16 and fps, pulses_per_s, peak_n > 0")
+        if not self.daq_rate_hz >= 2 * self.fps:
+            raise InputError("VideoSimSettings.daq_rate_hz", f"expected at least twice the frame rate; got "
+                                                              f"{self.daq_rate_hz}")
 
 
 @dataclass(frozen=True)
@@ -132,6 +140,7 @@ def simulate_video(out: str | Path, settings: VideoSimSettings | None = None, *,
     out.mkdir(parents=True, exist_ok=True)
     rig = make_rig(s.structure, seed=s.seed)
     eye, target = VIEWS[s.structure]
+    eye, target = s.eye_m or eye, s.target_m or target
     pin = PinholeCamera.look_at(eye, target, fov_deg=s.fov_deg, width_px=s.width_px, height_px=s.height_px)
     cam = rig.mount_camera(pin, SimCameraConfig(fps=s.fps, supersample=s.supersample), seed=s.seed)
     lead_s = 1.0 if s.excitation == "ambient" else 0.0
@@ -152,16 +161,47 @@ def simulate_video(out: str | Path, settings: VideoSimSettings | None = None, *,
     truth.save(out / "truth.npz")
     with atomic_open(out / "video.npy", "wb") as f:
         np.save(f, frames)
-    atomic_write_text(out / "rig.toml", _rig_toml(s) + _tags_toml(rig.scene.tags))
+    signals = ""
+    if s.accelerometers:
+        signals = _record_accelerometers(out / "signals.csv", rig, s, t_start_s - PAD_S, duration_s + 2 * PAD_S,
+                                         float(rec.exposure_start_s[0]))
+    atomic_write_text(out / "rig.toml", _rig_toml(s, pin.K, cam.config.exposure) + signals + _tags_toml(rig.scene.tags))
     log.info("simulated %d frames of the %s at %g fps (%s) into %s", s.n_frames, s.structure, s.fps, s.excitation,
              out)
     return out / "rig.toml"
 
 
-def _rig_toml(s: VideoSimSettings) -> str:
+def _record_accelerometers(path: Path, rig, s: VideoSimSettings, t0_s: float, duration_s: float,
+                           frame0_s: float) -> str:
+    """The rig's DAQ accelerometers from t0_s for duration_s at s.daq_rate_hz into the CSV `path` (a time column in
+    the camera's time base, then m/s^2 with 0.1 % of each one's rms as noise), and the rig file's lines for them: the
+    channels, and the take's signals with the time of frame 0's exposure start on that clock."""
+    acc = rig.config.accelerometers
+    t = t0_s + np.arange(int(round(duration_s * s.daq_rate_hz))) / s.daq_rate_hz
+    st = rig.structure
+    phi = st.mode_shapes(np.array([a.point_m for a in acc], float))                  # (S, n_modes, 3)
+    dirs = np.array([a.direction for a in acc], float)
+    qdd = st.modal_response(rig.impacts, t).qdd                                      # (n_modes, T)
+    a = np.einsum("skc,sc,kt->ts", phi, dirs, qdd)
+    rng = np.random.default_rng(s.seed + 1)
+    a = a + rng.normal(size=a.shape) * 1e-3 * np.sqrt(np.mean(a ** 2, axis=0))
+    lines = ["time_s," + ",".join(x.name for x in acc)]
+    lines += [f"{ti:.9f}," + ",".join(f"{v:.7g}" for v in row) for ti, row in zip(t, a)]
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    out = f'signals = "{path.name}"\ncamera_trigger_time_s = {frame0_s!r}\ntrigger_frame = 0\n'
+    for x in acc:
+        out += (f'\n[[channels]]\nname = "{x.name}"\nkind = "acceleration"\nunit = "m/s^2"\n'
+                f"position_m = {list(map(float, x.point_m))}\ndirection = {list(map(float, x.direction))}\n")
+    return out
+
+
+def _rig_toml(s: VideoSimSettings, K: np.ndarray, exposure_s: float) -> str:
+    daq = "its accelerometers on the camera's clock" if s.accelerometers else "no DAQ"
     return (f'name = "video-{s.structure}"\n'
-            f'notes = "hil_sim: one camera, {s.excitation} excitation, no DAQ"\n\n'
-            f'[camera]\nmodel = "simulated"\nbit_depth = 12\n\n'
+            f'notes = "hil_sim: one camera, {s.excitation} excitation, {daq}"\n\n'
+            f'[camera]\nmodel = "simulated"\nbit_depth = 12\nexposure_s = {float(exposure_s)!r}\n'
+            f'intrinsics = {{ fx_px = {float(K[0, 0])!r}, fy_px = {float(K[1, 1])!r}, cx_px = {float(K[0, 2])!r}, '
+            f'cy_px = {float(K[1, 2])!r} }}\n\n'
             f'[[takes]]\nname = "video"\nview = 0\nvideo = "video.npy"\nfps = {s.fps!r}\n')
 
 

@@ -321,13 +321,21 @@ class _TakeAnalysis:
         """A take without a force channel (a video on its own, an operating machine nobody hits): there is no impact to
         lock it to, so it keeps its own frame times, counter 0's exposure starting at time 0."""
         r, out = self.r, self.out
-        self._counters()
+        counters = self._counters()
         out.method, out.period_s, out.frame0_daq_time_s = "frames", 1.0 / r.fps, 0.0
         out.exposure_s = self._exposure(out.period_s)
         out.offset_s = 0.5 * out.exposure_s
         out.flags.append("no_force")
         out.notes.append("no force channel: the take keeps its own frame times (time 0 is counter 0's exposure "
                          "start), not an impact's")
+        times = r.frame_times_s
+        zero = np.flatnonzero(counters == 0)
+        if r.n_samples and len(zero) and len(times) == len(counters) and np.isfinite(times[zero[0]]):
+            # the take says when counter 0 was exposed on the DAQ's clock: its samples stand on the frames' time
+            out.frame0_daq_time_s = float(times[zero[0]])
+            out.flags.append("daq_clock")
+            out.notes.append(f"its DAQ samples are on the same clock: counter 0's exposure starts at "
+                             f"{out.frame0_daq_time_s:.6f} s of the DAQ's time")
         self._check_tags(r.read_frames(0, min(8, r.n_frames)).astype(np.float64).mean(axis=0))   # tags need no rest
 
     def _exposure(self, period: float) -> float:
