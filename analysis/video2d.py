@@ -368,7 +368,8 @@ def analyze_video(capture: Capture, s: Video2DSettings, *, takes: str = "accepte
                      "shapes are not judged")
     if oma.harmonics:
         notes.append("steady sines at " + ", ".join(f"{h.freq_hz:.2f}" for h in oma.harmonics)
-                     + " Hz look like forced harmonics, not modes (their coordinate as flat as a sine's, its envelope steady): left out")
+                     + " Hz look like forced harmonics, not modes (their coordinate as flat as a sine's, its envelope "
+                       "steady): left out")
     return Video2DResult(take, view, fps, n_frames, s.tracker, s.window_px, points, moving, noise, crlb, camera,
                          d.astype(np.float32), tuple(modes), oma, scale, tuple(notes))
 

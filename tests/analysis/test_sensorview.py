@@ -14,6 +14,7 @@ import pytest
 from odsplat.acquisition.plan import PlanSettings
 from odsplat.analysis.sensorview import view_pose
 from odsplat.hil_sim.bench import simulate_capture
+from odsplat.hil_sim.video import VideoSimSettings, simulate_video
 from odsplat.spine.store import Capture
 
 # one view from the +y side, 10 degrees up, 1 m from the arm: 430-440 px/m at the sensors
@@ -62,3 +63,40 @@ def test_the_sensors_in_the_image_plane_agree_with_the_video(side_capture):
     assert "one view against the accelerometers" in stdout
     html = (cap / "derived" / "analysis" / "report.html").read_text()
     assert "One view against the accelerometers" in html and "acc_col_x" in html
+
+
+# ------------------------------------------------------------------------------------------ without force
+
+@pytest.fixture(scope="module")
+def unforced_capture(tmp_path_factory):
+    """The arm hit once by nobody's hammer, filmed from the same side (320x240 px, 1000 fps, 512 frames), its four
+    accelerometers recorded on the camera's clock; no force channel."""
+    folder = tmp_path_factory.mktemp("one-view-no-force")
+    rig = simulate_video(folder / "sim", VideoSimSettings(
+        structure="arm", accelerometers=True, excitation="hit", peak_n=1500.0, width_px=320, height_px=240,
+        fov_deg=40.0, eye_m=(0.22, 1.2, 0.5), target_m=(0.22, 0.0, 0.36), n_frames=512, fps=1000.0))
+    cap = folder / "cap"
+    for args in (["import", str(rig), "-o", str(cap)], ["run", str(cap), "--set", "analyze.video2d.clips=false",
+                                                     "--set", "analyze.video2d.max_points=100"]):
+        run = subprocess.run([sys.executable, "-m", "odsplat", *args], capture_output=True, text=True, timeout=900)
+        assert run.returncode == 0, run.stdout + run.stderr
+    return cap, run.stdout
+
+
+def test_without_force_the_sensors_in_the_image_plane_agree_with_the_video(unforced_capture):
+    cap, stdout = unforced_capture
+    sync = json.loads((cap / "derived" / "sync.json").read_text())["takes"][0]
+    assert "no_force" in sync["flags"] and "daq_clock" in sync["flags"]      # the DAQ's samples on the frames' time
+    doc = json.loads((cap / "derived" / "analysis" / "video2d.json").read_text())
+    sv = doc["sensor_view"]
+    assert sv["method"] == "ods" and [s["name"] for s in sv["sensors"]] == ["acc_tip_z", "acc_col_x"]
+    by_hz = {round(m["freq_hz"]): m for m in sv["modes"]}
+    # the in-plane bending modes (the 23.5 Hz one a free decay, no harmonic): shape and scale as the accelerometers'
+    for f in (24, 86, 262):
+        m = by_hz[f]
+        assert m["judged"] and m["mac"] >= 0.99 and abs(m["scale"] - 1) <= 0.1, m
+    assert not by_hz[31]["judged"] and by_hz[31]["seen_share"] < 0.3                # the y bending: out of view
+    assert all(s["r2"] > 0.5 for s in sv["sensors"])          # each reading coheres with its accelerometer
+    assert "one view against the accelerometers" in stdout
+    html = (cap / "derived" / "analysis" / "report.html").read_text()
+    assert "One view against the accelerometers" in html and "one FDD of the readings" in html
