@@ -277,7 +277,7 @@ def write_plots(dest: Path, result: AnalysisResult) -> dict[str, str]:
     jobs = {"frf": lambda: plot_frf(result.frf, m),
             "stabilisation": lambda: plot_stabilisation(m.chart, result.frf, band_hz=m.band_hz,
                                                          selected_hz=m.freq_hz)}
-    if m.n_modes > 1:
+    if m.n_modes > 1 and len(result.sensors) > 1:      # over one sensor every pair of shapes reads 1
         labels, shapes = _mode_labels(m.freq_hz), np.nan_to_num(np.asarray(m.shapes, complex))
         jobs["automac"] = lambda: plot_mac(mac(shapes, shapes), labels, labels, title="AutoMAC, accelerometers")
     if result.correlation is not None and result.video is not None:

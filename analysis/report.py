@@ -117,11 +117,24 @@ def _summary(doc: AnalysisDocument, setup: dict) -> dict:
     setup_rows = [[str(k), str(v)] for k, v in setup.items()]
     setup_rows += [["hits averaged", f"{doc.n_averages} of {len(doc.takes)}"], ["sensors", ", ".join(doc.sensors)],
                    ["fit band", f"{_num(doc.band_hz[0], '.0f')} to {_num(doc.band_hz[1], '.0f')} Hz"]]
-    css = _verdict(verdict)["css"] if verdict is not None and verdict.status in _CSS else (
-        "bad" if doc.notes or line else "")
-    return {"verdict": line, "css": css, "statuses": bool(statuses),
+    # no verdict (no video side, or none judged): the notes are there to read, not a failure
+    css = _verdict(verdict)["css"] if verdict is not None and verdict.status in _CSS else ("warn" if doc.notes else "")
+    return {"verdict": line, "css": css, "statuses": bool(statuses), "single": single_view_line(doc.sensor_view),
             "video": doc.video is not None, "n_modes": len(doc.modes), "n_notes": len(doc.notes),
             "setup": setup_rows, "modes": rows}
+
+
+def single_view_line(sv: dict | None) -> str | None:
+    """One sentence for the summary: the modes the single-view check judged, their MAC and scale, and how many it
+    did not judge (sensorview.py); None without the check."""
+    if not sv:
+        return None
+    judged = [m for m in sv["modes"] if m["judged"]]
+    out = (f"One view against its accelerometers ({len(sv['sensors'])} in the image plane): "
+           + ("; ".join(f"{m.get('label', 'mode ' + str(m['mode']))} ({m['freq_hz']:.1f} Hz) MAC {m['mac']:.3f}, "
+                        f"scale {m['scale']:.2f}" for m in judged) or "no mode judged"))
+    rest = len(sv["modes"]) - len(judged)
+    return out + (f"; {rest} not judged (below the floor, or hardly moving these sensors)." if rest else ".")
 
 
 def _hits(doc: AnalysisDocument) -> dict:
@@ -616,6 +629,9 @@ def render_video2d_report(capture: Capture) -> str:
               f"{doc['noise_px_median']:.3g} px rms per moving point over the band (median), "
               f"{doc['noise_over_crlb_median']:.2g}x its Cramér-Rao bound of {doc['crlb_px_median']:.3g} px "
               f"(one frame; camera noise: {doc.get('camera_noise', '?')})")]
+    single = single_view_line(doc.get("sensor_view"))
+    if single:
+        setup.append(("accelerometers", single))
     return _TEMPLATES.get_template("video2d.html").render(
         title=doc["capture"], created=doc.get("created_utc", ""), setup=setup, modes=_rows_2d(doc, folder),
         floor_mac=doc["floor_mac"], notes=doc.get("notes", []), spectrum=_own_uri(folder, files.get("spectrum")),

@@ -63,6 +63,7 @@ def test_the_sensors_in_the_image_plane_agree_with_the_video(side_capture):
     assert "one view against the accelerometers" in stdout
     html = (cap / "derived" / "analysis" / "report.html").read_text()
     assert "One view against the accelerometers" in html and "acc_col_x" in html
+    assert "One view against its accelerometers (2 in the image plane): mode 1 (23.5 Hz) MAC" in html   # the summary
 
 
 # ------------------------------------------------------------------------------------------ without force
@@ -100,3 +101,4 @@ def test_without_force_the_sensors_in_the_image_plane_agree_with_the_video(unfor
     assert "one view against the accelerometers" in stdout
     html = (cap / "derived" / "analysis" / "report.html").read_text()
     assert "One view against the accelerometers" in html and "one FDD of the readings" in html
+    assert "One view against its accelerometers (2 in the image plane): mode 1 (23.5 Hz) MAC" in html   # the setup

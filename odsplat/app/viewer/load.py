@@ -129,7 +129,8 @@ def _signals(capture: Capture, doc: AnalysisDocument | None, sensors: tuple[Sens
     try:
         with capture.open_take(takes[0]) as r:
             force = np.nan_to_num(r.channel(forces[0]))
-            accel = np.array([np.nan_to_num(r.channel(s.name)) for s in sensors]).reshape(len(sensors), -1)
+            accel = np.array([np.nan_to_num(r.channel(s.name)) for s in sensors]).reshape(len(sensors), -1) \
+                if sensors else np.zeros((0, len(force)))      # no placed sensor (an imported recording)
     except (OdsplatError, KeyError) as e:
         notes.append(f"no force record ({e}): modes drawn for an impulse of 1 N s")
         return 1.0, np.zeros(0), np.zeros(0), np.zeros((len(sensors), 0))
