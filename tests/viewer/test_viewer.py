@@ -243,6 +243,16 @@ def test_without_a_reconstruction_the_sensors_shapes_are_animated(captures):
         w.window.close()
 
 
+def test_the_default_view_shows_the_recorded_motion_at_its_largest_after_the_impact(data):
+    """A screenshot by default was taken at the first timestep, before the impact, where nothing moves (issue 46)."""
+    state = default_state(data)
+    sc = data.scene
+    assert state.mode is None and state.time_s >= 0
+    rms = np.sqrt(np.mean(np.sum(sc.displacement_m[:, sc.structure].astype(float) ** 2, axis=2), axis=1))
+    k = int(np.argmin(np.abs(sc.times_s - state.time_s)))
+    assert rms[k] == pytest.approx(rms[sc.times_s >= 0].max())
+
+
 def test_default_state_without_reconstruction_selects_a_mode(captures):
     acc = load_viewer(captures[2])
     img = render_view(acc, default_state(acc))

@@ -175,11 +175,25 @@ class ViewState:
     height_px: int = HEIGHT_PX
 
 
+def peak_time_s(scene: Scene) -> float:
+    """The time after the impact when the structure moves most (its points' rms displacement): where the recorded
+    motion is best seen; the first timestep when none is after it."""
+    t = np.asarray(scene.times_s, float)
+    after = t >= 0
+    if not after.any():
+        return float(t[0])
+    d = scene.displacement_m[:, scene.structure] if scene.structure.any() else scene.displacement_m
+    rms = np.sqrt(np.mean(np.sum(np.asarray(d, np.float64) ** 2, axis=2), axis=1))
+    return float(t[after][int(np.argmax(rms[after]))])
+
+
 def default_state(data: ViewerData, **kw) -> ViewState:
-    """A view of the whole structure from an oblique angle, the first mode selected where there is no motion."""
+    """A view of the whole structure from an oblique angle; the recorded motion at its largest after the impact, or
+    the first mode where there is no motion (a screenshot before the impact showed nothing)."""
     orbit = Orbit(tuple(float(v) for v in data.target_m), distance_m=1.6 * data.extent_m)
     mode = 0 if data.scene is None and data.modes else None
-    return ViewState(orbit, mode=mode, time_s=data.time_range_s[0] if mode is None else 0.0, **kw)
+    time_s = 0.0 if mode is not None else peak_time_s(data.scene) if data.scene is not None else data.time_range_s[0]
+    return ViewState(orbit, mode=mode, time_s=time_s, **kw)
 
 
 def camera_for(data: ViewerData, state: ViewState):
