@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from odsplat.app.viewer import default_state
-from odsplat.app.viewer.model import ALPHA_RANGE
+from odsplat.app.viewer.model import ALPHA_RANGE, mode_peak_time_s, peak_time_s, visible_alpha
 from odsplat.reconstruction import check_camera_spec
 from odsplat.spine.checks import (
     MAX_DURATION_S,
@@ -55,8 +55,9 @@ class ViewSettings:
 
     n_frames: int = 48                      # frames of the export
     fps: float = 24.0                       # frame rate of the export
-    alpha: float = 100.0                    # magnification in 3D, 1 to 1000 (displacements and rotations from rest
-    #                                         times alpha): the window's slider (viewer.model.ALPHA_RANGE)
+    alpha: float | None = None              # magnification in 3D, 1 to 10^5 (displacements and rotations from rest
+    #                                         times alpha): the window's slider (viewer.model.ALPHA_RANGE); None: the
+    #                                         one that moves the structure 5 % of its size (viewer.visible_alpha)
     mode: int | None = None                 # animate mode K (1-based, the analysis's numbering) at its frequency; the
     #                                         export is one cycle
     ods: int | None = None                  # animate ODS line K (1-based, the analysis's lines) at its frequency, per
@@ -71,7 +72,7 @@ class ViewSettings:
     size_px: tuple[int, int] = (640, 480)   # image width and height in px
 
     def __post_init__(self) -> None:
-        check_fields(self, {"alpha": Range(at_least=ALPHA_RANGE[0], at_most=ALPHA_RANGE[1]),
+        check_fields(self, {"alpha": maybe(Range(at_least=ALPHA_RANGE[0], at_most=ALPHA_RANGE[1])),
                             "n_frames": Range(at_least=1, at_most=MAX_EXPORT_FRAMES, integer=True),
                             "fps": PLAYBACK_FPS, "mode": maybe(Range(at_least=1, at_most=10_000, integer=True)),
                             "ods": maybe(Range(at_least=1, at_most=10_000, integer=True)),
@@ -94,11 +95,13 @@ def view_state(data: Any, s: ViewSettings) -> Any:
         if not 1 <= number <= len(index):
             raise InputError(f"ViewSettings.{field}", f"expected {'a mode' if kind == 'mode' else 'an ODS line'} "
                                                       f"from 1 to {len(index)}, got {number}")
-        state = replace(state, mode=index[number - 1], time_s=0.0)
+        state = replace(state, mode=index[number - 1], time_s=mode_peak_time_s(data.modes[index[number - 1]]))
     elif s.motion:
         if data.scene is None:
             raise InputError("ViewSettings.motion", "no reconstruction: only the modes can be shown (--mode K)")
-        state = replace(state, mode=None, time_s=data.time_range_s[0])
+        state = replace(state, mode=None, time_s=peak_time_s(data.scene))
+    if s.alpha is None:
+        state = replace(state, alpha=visible_alpha(data, state))
     if s.time_s is not None:
         state = replace(state, time_s=s.time_s)
     if s.camera is not None:

@@ -253,6 +253,34 @@ def test_the_default_view_shows_the_recorded_motion_at_its_largest_after_the_imp
     assert rms[k] == pytest.approx(rms[sc.times_s >= 0].max())
 
 
+def _pixels(cam, points_m: np.ndarray) -> np.ndarray:
+    c = points_m @ np.asarray(cam.R, float).T + np.asarray(cam.t, float)
+    return (c @ np.asarray(cam.K, float).T)[:, :2] / c[:, 2:3]
+
+
+def test_a_mode_at_the_default_magnification_moves_the_structure_visibly(data):
+    """At x100 a mode barely moved on the demo (issue 46): by default the magnification moves the structure's
+    largest motion 5 % of its size, at least 5 px on screen at the default view."""
+    from odsplat.app.display import ViewSettings, view_state
+    from odsplat.app.viewer.model import camera_for, motion_at
+
+    modes = [k for k, m in enumerate(data.modes) if m.kind == "mode" and m.gaussians is not None]
+    assert modes
+    sc = data.scene
+    for k in modes:
+        state = view_state(data, ViewSettings(mode=data.modes[k].number))
+        assert state.mode == k and state.alpha != 100.0
+        cam = camera_for(data, state)
+        disp, _ = motion_at(data, state)
+        rest = sc.means_m[sc.structure].astype(float)
+        moved = rest + state.alpha * disp[sc.structure].astype(float)
+        shift = np.linalg.norm(_pixels(cam, moved) - _pixels(cam, rest), axis=1)
+        assert np.percentile(shift, 99) >= 5.0, (k, state.alpha, np.percentile(shift, 99))
+    # the measured motion too, at its largest after the impact
+    state = view_state(data, ViewSettings(motion=True))
+    assert state.time_s >= 0 and state.alpha > 1
+
+
 def test_default_state_without_reconstruction_selects_a_mode(captures):
     acc = load_viewer(captures[2])
     img = render_view(acc, default_state(acc))
@@ -288,6 +316,13 @@ def test_playback_runs_at_the_speed_asked_and_loops(data, window):
     window.advance(1.0)                                  # 1 ms past the end: back to 1 ms after the start
     assert window.state.time_s == pytest.approx(t0 + 1e-3)
     window.speed_box.setValue(1.0)
+    # a mode plays one cycle in 1.5 s whatever its frequency (at 1 ms of test per second 23.5 Hz took 42 s)
+    from odsplat.app.viewer.app import MODE_CYCLE_S
+    f = data.modes[0].freq_hz
+    window.set_state(mode=0, time_s=0.0)
+    window.advance(0.5 * MODE_CYCLE_S)
+    assert window.state.time_s == pytest.approx(0.5 / f)
+    window.set_state(mode=None, time_s=t0)
 
 
 def test_the_dragged_box_and_the_colour_scale(data, window):

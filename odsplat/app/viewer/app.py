@@ -22,15 +22,20 @@ from odsplat.app.viewer.model import (
     ViewState,
     best_threads,
     default_state,
+    mode_peak_time_s,
+    peak_time_s,
     render_view,
     snap_orbit,
+    visible_alpha,
 )
 
 log = logging.getLogger(__name__)
 
-ALPHA_STEPS = 300          # the magnification slider's steps over 1x..1000x, logarithmic
+ALPHA_STEPS = 500          # the magnification slider's steps over ALPHA_RANGE, logarithmic
 TIME_STEPS = 1000          # the time scrubber's steps over the time range
 TICK_MS = 40               # the playback timer
+MODE_CYCLE_S = 1.5         # a mode plays one cycle in this many seconds, whatever its frequency (at 1 ms of test per
+#                            second, one cycle of 23.5 Hz took 42 s)
 
 
 def alpha_to_slider(alpha: float) -> int:
@@ -323,8 +328,13 @@ class ViewerWindow:
         self.refresh()
 
     def select_mode(self, index: int | None) -> None:
-        """index in data.modes, or None for the measured motion."""
-        self.set_state(mode=index, time_s=0.0 if index is not None else self.data.time_range_s[0])
+        """index in data.modes, or None for the measured motion: shown where it stands furthest from rest, at the
+        magnification that makes it visible (model.visible_alpha; the slider changes it after)."""
+        d = self.data
+        time_s = mode_peak_time_s(d.modes[index]) if index is not None else \
+            peak_time_s(d.scene) if d.scene is not None else d.time_range_s[0]
+        state = replace(self.state, mode=index, time_s=time_s)
+        self.set_state(mode=index, time_s=time_s, alpha=visible_alpha(d, state))
 
     def select_frequency(self, freq_hz: float) -> int | None:
         """Selects the mode nearest freq_hz (as a click on the FRF does); returns its index."""
@@ -449,8 +459,12 @@ class ViewerWindow:
             self.timer.stop()
 
     def advance(self, wall_s: float) -> None:
-        """Moves time on by wall_s of playback at the chosen speed (ms of test per second); at the end of the
-        measured motion, loops or stops."""
+        """Moves time on by wall_s of playback: a mode by one cycle per MODE_CYCLE_S; the measured motion at the
+        chosen speed (ms of test per second), at its end looping or stopping."""
+        if self.state.mode is not None:
+            f = self.data.modes[self.state.mode].freq_hz
+            self.set_time(self.state.time_s + wall_s / (MODE_CYCLE_S * max(f, 1e-9)))
+            return
         t = self.state.time_s + 1e-3 * self.speed_box.value() * wall_s
         if self.state.mode is None:
             t0, t1 = self.data.time_range_s

@@ -18,7 +18,8 @@ from odsplat.spine.store import Capture
 log = logging.getLogger(__name__)
 
 WIDTH_PX, HEIGHT_PX = 640, 480
-ALPHA_RANGE = (1.0, 1000.0)
+ALPHA_RANGE = (1.0, 1.0e5)   # real structures move micrometres: a mode needs up to 10^4-10^5 to be seen
+VISIBLE_SHARE = 0.05      # the default magnification moves the structure's largest motion this share of its size
 COLOUR_MODES = ("image", "displacement")
 
 
@@ -187,13 +188,54 @@ def peak_time_s(scene: Scene) -> float:
     return float(t[after][int(np.argmax(rms[after]))])
 
 
+def mode_peak_time_s(mode: Mode) -> float:
+    """The time in a mode's first cycle when its shape stands furthest from rest: Re(g e^(i theta)) is largest in the
+    sum of squares at theta = -arg(sum g^2) / 2 (a complex shape drawn at time 0 could stand near rest)."""
+    g = mode.gaussians if mode.gaussians is not None else mode.sensors_accel
+    if g is None or not mode.freq_hz > 0:
+        return 0.0
+    theta = (-0.5 * np.angle(np.sum(np.asarray(g, complex) ** 2))) % np.pi
+    return float(theta / (2 * np.pi * mode.freq_hz))
+
+
+def largest_motion_m(data: ViewerData, state: ViewState) -> float:
+    """The largest physical displacement the state shows (metres, before magnification): a mode's at the start of
+    its free decay after this test's hit (2 |A| J; an ODS line per newton), over the structure's Gaussians or, without
+    them, at the sensors; the measured motion's over its whole time (99th percentiles: a stray point aside)."""
+    sc = data.scene
+    if state.mode is not None:
+        m = data.modes[state.mode]
+        gain = 2 * data.impulse_n_s if m.kind == "mode" else 1.0
+        if m.gaussians is not None and sc is not None and sc.structure.any():
+            return gain * float(np.percentile(np.linalg.norm(np.abs(m.gaussians[sc.structure]), axis=1), 99))
+        return gain * float(np.max(np.abs(m.sensors_accel), initial=0.0)) if m.sensors_accel is not None else 0.0
+    if sc is None:
+        return 0.0
+    d = sc.displacement_m[:, sc.structure] if sc.structure.any() else sc.displacement_m
+    return float(np.percentile(np.linalg.norm(d, axis=2), 99)) if d.size else 0.0
+
+
+def visible_alpha(data: ViewerData, state: ViewState) -> float:
+    """The magnification that moves the structure's largest motion VISIBLE_SHARE of its size (ALPHA_RANGE at most;
+    100 where nothing moves): a mode at x100 was barely visible on the demo."""
+    top = largest_motion_m(data, state)
+    if not top > 0:
+        return 100.0
+    return float(np.clip(VISIBLE_SHARE * data.extent_m / top, *ALPHA_RANGE))
+
+
 def default_state(data: ViewerData, **kw) -> ViewState:
     """A view of the whole structure from an oblique angle; the recorded motion at its largest after the impact, or
     the first mode where there is no motion (a screenshot before the impact showed nothing)."""
     orbit = Orbit(tuple(float(v) for v in data.target_m), distance_m=1.6 * data.extent_m)
     mode = 0 if data.scene is None and data.modes else None
-    time_s = 0.0 if mode is not None else peak_time_s(data.scene) if data.scene is not None else data.time_range_s[0]
-    return ViewState(orbit, mode=mode, time_s=time_s, **kw)
+    if mode is not None:
+        time_s = mode_peak_time_s(data.modes[mode])
+    else:
+        time_s = peak_time_s(data.scene) if data.scene is not None else data.time_range_s[0]
+    alpha = kw.pop("alpha", None)
+    state = ViewState(orbit, mode=mode, time_s=time_s, **kw)
+    return replace(state, alpha=visible_alpha(data, state) if alpha is None else alpha)
 
 
 def camera_for(data: ViewerData, state: ViewState):
@@ -361,5 +403,5 @@ def best_threads(data: ViewerData, state: ViewState, repeats: int = 3) -> int:
 
 
 __all__ = ["ALPHA_RANGE", "COLOUR_MODES", "Mode", "Orbit", "Scene", "SensorInfo", "ViewState", "ViewerData",
-           "best_threads", "camera_for", "colour_scale", "default_state", "motion_at", "render_view", "snap_orbit",
-           "visible"]
+           "best_threads", "camera_for", "colour_scale", "default_state", "largest_motion_m", "motion_at",
+           "mode_peak_time_s", "peak_time_s", "render_view", "snap_orbit", "visible", "visible_alpha"]
