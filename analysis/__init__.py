@@ -34,14 +34,16 @@ from .result import AnalysisResult, Sensor, VideoModes
 from .results_h5 import read_results_h5, write_results_h5
 from .tracking import Tracks, good_points, project_displacement, track_points
 from .uff import read_uff, write_uff
+from .video2d import has_video2d, read_video2d
 
 run = analyze_capture  # the analyze stage's entry
 
-__all__ = ["AnalysisResult", "AnalyzeSettings", "CoherenceRecord", "Correlation", "DecayFit", "FRFRecord", "FRFResult",
-           "FRFSettings", "Geometry", "HitCheck", "LSFDResult", "MACRecord", "ModalFit", "ResultSet", "Sensor",
-           "ShapeRecord", "StabilisationChart", "StabilisationRecord", "SurfaceMotion", "TimeSeries", "Tracks",
-           "VideoModes", "analyze_capture", "check_frf_hit", "comac", "correlate", "estimate_frf", "fit_decay",
-           "fit_modes", "force_transform", "good_points", "lscf", "lsce_poles", "lsfd", "mac", "modal_scale_factor",
-           "pencil_poles", "project_displacement", "read_analysis", "read_results_h5", "read_uff", "receptance", "run",
-           "select_poles", "split_hits", "stabilisation", "stable_poles", "structure_mask", "track_points",
-           "write_report", "write_results_h5", "write_uff", "AnalysisDocument"]
+__all__ = ["AnalysisDocument", "AnalysisResult", "AnalyzeSettings", "CoherenceRecord", "Correlation", "DecayFit",
+           "FRFRecord", "FRFResult", "FRFSettings", "Geometry", "HitCheck", "LSFDResult", "MACRecord", "ModalFit",
+           "ResultSet", "Sensor", "ShapeRecord", "StabilisationChart", "StabilisationRecord", "SurfaceMotion",
+           "TimeSeries", "Tracks", "VideoModes", "analyze_capture", "check_frf_hit", "comac", "correlate",
+           "estimate_frf", "fit_decay", "fit_modes", "force_transform", "good_points", "has_video2d", "lsce_poles",
+           "lscf", "lsfd", "mac", "modal_scale_factor", "pencil_poles", "project_displacement", "read_analysis",
+           "read_results_h5", "read_uff", "read_video2d", "receptance", "run", "select_poles", "split_hits",
+           "stabilisation", "stable_poles", "structure_mask", "track_points", "write_report", "write_results_h5",
+           "write_uff"]

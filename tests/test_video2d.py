@@ -8,6 +8,7 @@ import sys
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from odsplat.analysis.video2d import read_video2d
 from odsplat.hil_sim.video import VideoSimSettings, VideoTruth, simulate_video
@@ -95,6 +96,23 @@ def test_the_report_shows_each_mode_with_a_clip_that_a_browser_plays(video_captu
         pytest.skip("no chromium on PATH: the clip's playback is checked where there is one")
     result = chromium_plays(clip, tmp_path)
     assert result.startswith("PLAYED "), result
+
+
+def test_odsplat_view_shows_a_mode_on_the_frame(video_capture, tmp_path):
+    """`odsplat view` on a capture the 2D path analysed: the first frame with a mode's shape drawn, magnified so that
+    its largest arrow is 5 % of the frame's width; one cycle as a GIF; no window (issue 46)."""
+    cap, _, _ = video_capture
+    png, gif = tmp_path / "v.png", tmp_path / "v.gif"
+    _odsplat("view", str(cap.root), "--screenshot", str(png), "--mode", "1")
+    img = np.asarray(Image.open(png).convert("RGB"), int)
+    assert img.shape == (SIM.height_px, SIM.width_px, 3)
+    coloured = np.abs(img[..., 0] - img[..., 2]) > 40            # the arrows: the frame itself is grey
+    assert coloured.sum() > 50
+    _odsplat("view", str(cap.root), "--export", str(gif), "--frames", "6")
+    assert Image.open(gif).n_frames == 6
+    run = subprocess.run([sys.executable, "-m", "odsplat", "view", str(cap.root), "--screenshot", str(png), "--mode",
+                          "99"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 2 and "--mode" in run.stderr and "Traceback" not in run.stderr, run.stderr
 
 
 def test_the_tacoma_footage_gives_one_clear_peak_and_its_amplified_clip(shared_data, tmp_path):

@@ -533,6 +533,8 @@ def view(capture_dir: Path, export_path: Path | None, screenshot_path: Path | No
     from odsplat.app.viewer import export_video, load_viewer, save_screenshot
 
     s = _settings(ViewSettings, VIEW_FLAGS)
+    if _view_2d(capture_dir, s, export_path, screenshot_path):
+        return
     data = load_viewer(capture_dir)
     try:
         state = view_state(data, s)
@@ -554,6 +556,34 @@ def view(capture_dir: Path, export_path: Path | None, screenshot_path: Path | No
     from odsplat.app.viewer.app import ViewerWindow
 
     sys.exit(ViewerWindow(data, state).run())
+
+
+def _view_2d(capture_dir: Path, s: Any, export_path: Path | None, screenshot_path: Path | None) -> bool:
+    """A capture the 2D path analysed (video2d.json, no analysis.json): its frame with a mode's 2D shape as a
+    screenshot or one cycle as a video (viewer/view2d.py); False for any other capture."""
+    from odsplat.analysis import has_video2d
+    from odsplat.spine.store import Capture
+
+    try:
+        cap = Capture.open(capture_dir)
+    except InputError:
+        return False                         # load_viewer says what is wrong with it
+    if cap.paths.analysis_json.exists() or not has_video2d(cap):
+        return False
+    from odsplat.app.viewer.view2d import export_2d, load_view2d, screenshot_2d
+
+    if export_path is None and screenshot_path is None:
+        raise InputError(capture_dir, "a capture the 2D path analysed (one camera, no force) has no 3D scene for the "
+                                      "window; use --screenshot or --export (or open its report)")
+    view = load_view2d(cap)
+    try:
+        if screenshot_path is not None:
+            click.echo(f"screenshot -> {screenshot_2d(view, screenshot_path, s.mode)}")
+        if export_path is not None:
+            click.echo(f"{s.n_frames} frames -> {export_2d(view, export_path, s.mode, s.n_frames, s.fps)}")
+    except InputError as exc:
+        raise blame(exc, VIEW_FLAGS) from None
+    return True
 
 
 # ------------------------------------------------------------------------------------------ the stage commands
