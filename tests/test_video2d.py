@@ -102,17 +102,20 @@ def test_odsplat_view_shows_a_mode_on_the_frame(video_capture, tmp_path):
     """`odsplat view` on a capture the 2D path analysed: the first frame with a mode's shape drawn, magnified so that
     its largest arrow is 5 % of the frame's width; one cycle as a GIF; no window (issue 46)."""
     cap, _, _ = video_capture
+    from click.testing import CliRunner
+
+    from odsplat.app.cli import main
     png, gif = tmp_path / "v.png", tmp_path / "v.gif"
-    _odsplat("view", str(cap.root), "--screenshot", str(png), "--mode", "1")
+    res = CliRunner().invoke(main, ["view", str(cap.root), "--screenshot", str(png), "--mode", "1"])
+    assert res.exit_code == 0, res.output
     img = np.asarray(Image.open(png).convert("RGB"), int)
     assert img.shape == (SIM.height_px, SIM.width_px, 3)
     coloured = np.abs(img[..., 0] - img[..., 2]) > 40            # the arrows: the frame itself is grey
     assert coloured.sum() > 50
-    _odsplat("view", str(cap.root), "--export", str(gif), "--frames", "6")
-    assert Image.open(gif).n_frames == 6
-    run = subprocess.run([sys.executable, "-m", "odsplat", "view", str(cap.root), "--screenshot", str(png), "--mode",
-                          "99"], capture_output=True, text=True, timeout=300)
-    assert run.returncode == 2 and "--mode" in run.stderr and "Traceback" not in run.stderr, run.stderr
+    res = CliRunner().invoke(main, ["view", str(cap.root), "--export", str(gif), "--frames", "6"])
+    assert res.exit_code == 0 and Image.open(gif).n_frames == 6, res.output
+    res = CliRunner().invoke(main, ["view", str(cap.root), "--screenshot", str(png), "--mode", "99"])
+    assert res.exit_code == 2 and "--mode" in res.output and "Traceback" not in res.output, res.output
 
 
 def test_the_tacoma_footage_gives_one_clear_peak_and_its_amplified_clip(shared_data, tmp_path):
