@@ -270,6 +270,22 @@ def _exposure_gain(poles: np.ndarray, exposure_s: float | None) -> np.ndarray:
     return np.sinh(x) / x
 
 
+def _posed_sensors(capture: Capture, take: str, sensors, window_px: int, max_tilt_deg: float, *,
+                   at_rest: bool = False):
+    """The take's pose (view_pose) and the sensors it sees (_place, two windows from the border): (where the pose
+    came from, index, pixel, axis image direction, tilt, the others with why); None without a pose."""
+    pose = view_pose(capture, take, at_rest=at_rest)
+    if pose is None:
+        return None
+    K, R, t, pose_from = pose
+    cam = capture.manifest.camera
+    shape = (cam.height_px or int(2 * K[1, 2] + 1), cam.width_px or int(2 * K[0, 2] + 1))
+    placed = _place(list(sensors), K, R, t, shape, 2 * window_px + 3, max_tilt_deg)
+    for n, why in placed[-1]:
+        log.info("single view: %s left out: %s", n, why)
+    return (pose_from, *placed)
+
+
 def _candidates(uv: np.ndarray, window_px: int) -> np.ndarray:
     """(S, C, 2) the windows tried for each sensor: its pixel first, then a 5 x 5 grid up to a window's side away."""
     steps = np.array([0.0, -0.5, 0.5, -1.0, 1.0]) * window_px
@@ -341,15 +357,12 @@ def sensor_view(capture: Capture, modes, sensors, force: str, *, max_takes: int 
     if not takes:
         log.info("no single-view check: no synced take with aligned frames")
         return None
-    pose = view_pose(capture, takes[0].name, at_rest=takes[0].offset_s is not None and takes[0].offset_s < 0)
-    if pose is None:
+    placed = _posed_sensors(capture, takes[0].name, sensors, window_px, max_tilt_deg,
+                            at_rest=takes[0].offset_s is not None and takes[0].offset_s < 0)
+    if placed is None:
         return None
-    K, R, t, pose_from = pose
+    pose_from, idx, uv, axes, tilts, left_out = placed
     cam = capture.manifest.camera
-    shape = (cam.height_px or int(2 * K[1, 2] + 1), cam.width_px or int(2 * K[0, 2] + 1))
-    idx, uv, axes, tilts, left_out = _place(list(sensors), K, R, t, shape, 2 * window_px + 3, max_tilt_deg)
-    for n, why in left_out:
-        log.info("single view: %s left out: %s", n, why)
     if not idx:
         log.info("no single-view check: no accelerometer in view %s", takes[0].view)
         return None
@@ -448,13 +461,10 @@ def sensor_ods(capture: Capture, video2d, sensors, *, window_px: int = 11, metho
     if tk is None:
         log.info("no single-view check: %s's frames are not on its DAQ's clock", video2d.take)
         return None
-    pose = view_pose(capture, video2d.take)
-    if pose is None:
+    seen = _posed_sensors(capture, video2d.take, sensors, window_px, max_tilt_deg)
+    if seen is None:
         return None
-    K, R, t, pose_from = pose
-    cam = capture.manifest.camera
-    shape = (cam.height_px or int(2 * K[1, 2] + 1), cam.width_px or int(2 * K[0, 2] + 1))
-    idx, uv, axes, tilts, left_out = _place(list(sensors), K, R, t, shape, 2 * window_px + 3, max_tilt_deg)
+    pose_from, idx, uv, axes, tilts, left_out = seen
     if not idx:
         log.info("no single-view check: no accelerometer in view %s", video2d.view)
         return None
