@@ -239,6 +239,10 @@ def test_without_a_reconstruction_the_sensors_shapes_are_animated(captures):
         assert np.abs(images[2] - images[0]).max() < 5
         assert len(w.frf_plot.listDataItems()) == len(acc.frf_names) == len(acc.sensors) > 0
         assert len(w.force_plot.listDataItems()) == 1
+        # each FRF and acceleration named in a legend (issue 46: the FRFs had none)
+        names = [label.text for _, label in w.frf_legend.items]
+        assert len(names) == len(acc.sensors) and all(s.name in " ".join(names) for s in acc.sensors), names
+        assert len(w.accel_legend.items) == len(acc.sensors)
     finally:
         w.window.close()
 

@@ -491,6 +491,7 @@ class ViewerWindow:
         d = self.data
         if len(d.signal_times_s):
             self.force_plot.plot(1e3 * d.signal_times_s, d.force_n, pen=pg.mkPen("y"))
+            self.accel_legend = self.accel_plot.addLegend(offset=(-10, 10), labelTextSize="8pt")
             for k, a in enumerate(d.accel_m_s2):
                 self.accel_plot.plot(1e3 * d.signal_times_s, a, pen=pg.intColor(k, max(1, len(d.accel_m_s2))),
                                      name=d.sensors[k].name if k < len(d.sensors) else str(k))
@@ -506,8 +507,10 @@ class ViewerWindow:
             f = d.frf_freq_hz
             top = max([m.freq_hz for m in d.modes], default=f[-1])
             band = f <= min(1.3 * top, f[-1])
+            self.frf_legend = self.frf_plot.addLegend(offset=(-10, 10), labelTextSize="8pt")
             for k, h in enumerate(d.frf_h1):
-                self.frf_plot.plot(f[band], np.abs(h[band]), pen=pg.intColor(k, max(1, len(d.frf_h1))))
+                name = d.frf_names[k].removeprefix("H1 ") if k < len(d.frf_names) else str(k)
+                self.frf_plot.plot(f[band], np.abs(h[band]), pen=pg.intColor(k, max(1, len(d.frf_h1))), name=name)
             self.frf_plot.setLogMode(x=False, y=True)
         self.frf_plot.setLabel("bottom", "frequency", "Hz")
         self.freq_cursor = pg.InfiniteLine(0.0, angle=90, pen=pg.mkPen("c", width=2))
