@@ -64,9 +64,11 @@ from .notes import (
     band_findings,
 )
 from .ods import (
+    DECAY_T_MIN_S,
     POLE_MIN_SIGNIFICANCE,
     DecayFit,
     SurfaceMotion,
+    adjusted_r2,
     fit_decay,
     receptance,
     record_ranks,
@@ -75,7 +77,7 @@ from .ods import (
 from .outputs import write_outputs
 from .plots2d import write_clips, write_figures
 from .result import AnalysisResult, Sensor, VideoModes
-from .sensorview import DECAY_T_MIN_S, sensor_ods, sensor_view, take_force
+from .sensorview import sensor_ods, sensor_view, take_force
 from .triangulate import MIN_VIEWS, triangulation_check
 from .verdict import DISCRIMINATION, NOT_DISCRIMINATED, Verdict, crosscheck_verdict, mac_verdict
 from .video2d import (
@@ -665,9 +667,7 @@ def _video_findings(modes: ModalFit, video: VideoModes | None, cmp: _Comparison,
         out.append(ModesAboveVideoBand(tuple(float(f) for i, f in enumerate(modes.freq_hz) if i not in fitted)))
     # The share of each sensor's motion the modes explain, less what a fit of that many parameters explains of pure
     # noise (adjusted R^2: 0 for noise alone, whatever the record's length)
-    n = int(np.sum(video.times_s >= DECAY_T_MIN_S))
-    p = 2 * len(video.poles_rad_s) + 1
-    adjusted = 1 - (1 - video.sensor_r2) * (n - 1) / max(n - p - 1, 1)
+    adjusted = adjusted_r2(video.sensor_r2, int(np.sum(video.times_s >= DECAY_T_MIN_S)), len(video.poles_rad_s))
     unseen = np.flatnonzero(adjusted < MIN_SENSOR_R2)
     if len(unseen):
         out.append(SensorsNotSeen(tuple(sensor_names[i] for i in unseen),

@@ -30,6 +30,7 @@ from .ema import pole_damping, pole_freq_hz
 log = logging.getLogger(__name__)
 
 READ_CHUNK = 2048   # points SurfaceMotion.at_points reads at a time
+DECAY_T_MIN_S = 1.5e-3    # the video's decay fit starts after a ~1 ms hammer pulse
 
 
 @dataclass(frozen=True)
@@ -169,6 +170,13 @@ def decay_design(times_s, poles_rad_s, *, offset: bool = True) -> np.ndarray:
     if offset:
         cols.append(np.ones((len(tu), 1)))
     return np.concatenate(cols, axis=1)
+
+
+def adjusted_r2(r2, n_samples: int, n_poles: int) -> np.ndarray:
+    """A decay fit's share of each channel's motion (r2) less what a fit of that many parameters (2 per pole and an
+    offset) explains of pure noise over n_samples: 0 for noise alone, whatever the record's length."""
+    p = 2 * n_poles + 1
+    return 1 - (1 - np.asarray(r2, float)) * (n_samples - 1) / max(n_samples - p - 1, 1)
 
 
 def fit_decay(times_s, x, poles_rad_s, *, t_min_s: float = 0.0, offset: bool = True) -> DecayFit:

@@ -222,14 +222,20 @@ def ods_at(x: npt.ArrayLike, fs_hz: float, freq_hz: float, *, nperseg: int | Non
     cross-spectral density matrix there (`fdd`), scaled by the square root of its singular value, so that each
     component is that channel's amplitude spectral density along the dominant shape (unit/sqrt(Hz)); its largest
     component real and positive (an ODS has no absolute phase without a reference)."""
+    return ods_lines(x, fs_hz, [freq_hz], nperseg=nperseg)[0]
+
+
+def ods_lines(x: npt.ArrayLike, fs_hz: float, freqs_hz: Sequence[float], *, nperseg: int | None = None) -> np.ndarray:
+    """`ods_at` at each of freqs_hz (L, C), from one FDD of x."""
     x, fs = _check_x(x, fs_hz)
-    f0 = float(freq_hz)
-    if not 0 <= f0 <= fs / 2:
-        raise InputError("oma.freq_hz", f"expected a frequency in 0..{fs / 2:g} Hz (Nyquist); got {freq_hz!r}")
+    f0 = np.asarray(freqs_hz, float).reshape(-1)
+    if f0.size == 0 or not np.all((f0 >= 0) & (f0 <= fs / 2)):
+        raise InputError("oma.freq_hz", f"expected frequencies in 0..{fs / 2:g} Hz (Nyquist); got "
+                                        f"{', '.join(f'{v:g}' for v in f0) or 'none'}")
     n = _check_nperseg(nperseg, x.shape[0])
-    res = fdd(x, fs, nperseg=n, fmax_hz=min(fs / 2, f0 + fs / n))
-    k = res.line(f0)
-    return res.first_vectors[k] * np.sqrt(res.singular_values[k, 0])
+    res = fdd(x, fs, nperseg=n, fmax_hz=min(fs / 2, float(f0.max()) + fs / n))
+    k = [res.line(f) for f in f0]
+    return res.first_vectors[k] * np.sqrt(res.singular_values[k, 0])[:, None]
 
 
 def noise_psd(x: npt.ArrayLike, fs_hz: float, *, nperseg: int | None = None, fmin_hz: float | None = None,

@@ -131,7 +131,7 @@ def single_view_line(sv: dict | None) -> str | None:
         return None
     judged = [m for m in sv["modes"] if m["judged"]]
     out = (f"One view against its accelerometers ({len(sv['sensors'])} in the image plane): "
-           + ("; ".join(f"{m.get('label', 'mode ' + str(m['mode']))} ({m['freq_hz']:.1f} Hz) MAC {m['mac']:.3f}, "
+           + ("; ".join(f"{m['label']} ({m['freq_hz']:.1f} Hz) MAC {m['mac']:.3f}, "
                         f"scale {m['scale']:.2f}" for m in judged) or "no mode judged"))
     rest = len(sv["modes"]) - len(judged)
     return out + (f"; {rest} not judged (below the floor, or hardly moving these sensors)." if rest else ".")
@@ -549,14 +549,10 @@ def _sensor_view(sv: dict | None) -> dict | None:
                for s in sv["sensors"]]
     modes = []
     for m in sv["modes"]:
-        state = ("judged" if m["judged"] else "below the floor: not judged" if m["below_floor"] else
-                 f"not judged: the sensors here carry {100 * m['seen_share']:.0f} % of its motion"
-                 if m["seen_share"] < 0.3 else "not judged: fewer than 2 sensors")
         modes.append({"css": "" if m["judged"] else "grey",
-                      "cells": [m.get("label", f"mode {m['mode']}"), _num(m["freq_hz"], ".2f"), _num(m["mac"], ".3f"),
-                                _num(m["scale"], ".2f"), _num(m["scale_phase_deg"], "+.0f"),
-                                _num(m["expected_mac"], ".3f"), state]})
-    decay = sv.get("method", "decay") == "decay"
+                      "cells": [m["label"], _num(m["freq_hz"], ".2f"), _num(m["mac"], ".3f"), _num(m["scale"], ".2f"),
+                                _num(m["scale_phase_deg"], "+.0f"), _num(m["expected_mac"], ".3f"), m["state"]]})
+    decay = sv["method"] == "decay"
     how = ("each mode's residues (m/N) from the same decay fit at the accelerometers' poles" if decay else
            "each mode's shape from one FDD of the readings and the accelerometers (one phase, the accelerometers in "
            "metres) at the 2D path's modes")

@@ -4,13 +4,15 @@ With one view there is no 3D motion, but the camera still sees the accelerometer
 pose stage where there is one, else from the floor's AprilTags in the take's first frame (PnP on the capture's
 intrinsics; tags on the structure too where that frame precedes the hit, the structure then at rest). Each placed
 accelerometer is projected into the view. Windows are tracked through the synced, aligned frames at its pixel and
-around it, up to one window's side away, and the one whose motion the accelerometer modes explain best is kept:
-a sensor whose axis lies in the image plane usually sits on a face seen edge-on, on the structure's silhouette,
-where a window on the pixel itself holds the static background too and reads part of the motion (0.39 of it at
-hil_sim's column). Its image motion along the sensor's projected axis, divided by that axis' image scale (px per
-metre, the projection's Jacobian), is the video's reading of the sensor's channel in metres. A decay fit at the
-accelerometer poles, divided by each take's force at the poles, gives the video's residues (m/N) beside the
-accelerometers'; their MAC and scale say whether one camera and the sensors agree on each mode.
+around it, up to one window's side away; those on the structure (moving at least half as much as the one that
+moves most, their motion the modes') are kept and their median is the reading. A sensor whose axis lies in the
+image plane usually sits on a face seen edge-on, on the structure's silhouette, where a window on the pixel itself
+holds the static background too and reads part of the motion (0.39 of it at hil_sim's column; the one window the
+modes explained best read 1.11-1.16x). Its image motion along the sensor's projected axis, divided by that axis'
+image scale (px per metre, the projection's Jacobian), is the video's reading of the sensor's channel in metres. A
+decay fit at the accelerometer poles, divided by each take's force at the poles, gives the video's residues (m/N)
+beside the accelerometers'; their MAC and scale say whether one camera and the sensors agree on each mode. Without
+force (`sensor_ods`), the readings and the accelerometers share one FDD at the 2D path's modes instead.
 
 What it reads: the view sees two components of the motion and a uniaxial sensor one. Where the sensor's axis d
 lies in the image plane, the image motion along its projected axis is exactly d . u, whatever else the structure
@@ -40,9 +42,11 @@ from odsplat.spine.store import Capture
 from odsplat.spine.tags import camera_pose_from_tags, detect_tags
 from odsplat.sync import AlignedTake, load_sync
 
+from .correlation import mac as mac_matrix
+from .correlation import modal_scale_factor
 from .noise import design_gains
 from .notes import MIN_SENSOR_R2
-from .ods import fit_decay, force_transform
+from .ods import DECAY_T_MIN_S, adjusted_r2, fit_decay, force_transform
 from .tracking import project_displacement, track_points
 from .video2d import FLOOR_MAC, first_frame, floor_mac, frames
 
@@ -51,7 +55,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-DECAY_T_MIN_S = 1.5e-3    # the video's decay fit starts after a ~1 ms hammer pulse
 MAX_TILT_DEG = 15.0       # a sensor's axis out of the image plane by more than this is left out (module doc)
 BAND = 0.8                # modes below this fraction of the frame rate's Nyquist frequency are fitted
 ON_STRUCTURE = 0.5        # a window moving less than this share of its sensor's most moving one is astride an edge
@@ -114,13 +117,22 @@ class SensorView:
                          "the view does not see it move (left out of the MAC)")
         for r, i in enumerate(self.mode_index):
             name = self.labels[r] if self.labels else f"mode {i + 1}"
-            state = ("judged" if self.judged[r] else "BELOW THE FLOOR (not judged)" if self.below_floor[r] else
-                     f"not judged: the sensors compared carry {100 * self.seen_share[r]:.0f} % of its motion"
-                     if self.seen_share[r] < MIN_SEEN else "not judged: fewer than 2 sensors")
+            state = self.state(r)
             lines.append(f"  {name} ({self.freq_hz[r]:.2f} Hz): MAC {self.mac[r]:.3f}, scale "
                          f"{abs(self.scale[r]):.3f} at {np.degrees(np.angle(self.scale[r])):+.0f} deg; the noise "
-                         f"allows MAC {self.expected_mac[r]:.3f}: {state}")
+                         f"allows MAC {self.expected_mac[r]:.3f}: "
+                         + ("BELOW THE FLOOR (not judged)" if state.startswith("below") else state))
         return "\n".join(lines)
+
+    def state(self, r: int) -> str:
+        """Mode r judged, or why not, in words (the summary, analysis.json and the reports)."""
+        if self.judged[r]:
+            return "judged"
+        if self.below_floor[r]:
+            return "below the floor (not judged)"
+        if self.seen_share[r] < MIN_SEEN:
+            return f"not judged: the sensors compared carry {100 * self.seen_share[r]:.0f} % of its motion"
+        return "not judged: fewer than 2 sensors"
 
     def document(self) -> dict[str, Any]:
         """Plain data for analysis.json (residues in micrometres per newton)."""
@@ -141,6 +153,7 @@ class SensorView:
                            "freq_hz": float(f), "mac": fin(m), "scale": fin(abs(sc)),
                            "scale_phase_deg": fin(np.degrees(np.angle(sc))), "expected_mac": float(e),
                            "below_floor": bool(e < FLOOR_MAC), "seen_share": float(sh), "judged": bool(j),
+                           "state": self.state(k),
                            "video": [[float(1e6 * v.real), float(1e6 * v.imag)] for v in vr],
                            "accel": [[float(1e6 * a.real), float(1e6 * a.imag)] for a in ar]}
                           for k, (i, f, m, sc, e, vr, ar, sh, j) in enumerate(zip(
@@ -201,7 +214,7 @@ def _place(sensors: list[Sensor], K, R, t, shape: tuple[int, int], margin_px: in
     """The sensors the view sees: their index, pixel (S, 2), axis image direction (S, 2, px per m) and tilt out of
     the image plane (S, degrees); the others with why."""
     h, w = shape
-    keep, uvs, axes, shares, out = [], [], [], [], []
+    keep, uvs, axes, tilts, out = [], [], [], [], []
     for i, sn in enumerate(sensors):
         if not sn.placed:
             out.append((sn.name, "no position or direction in the capture"))
@@ -224,8 +237,8 @@ def _place(sensors: list[Sensor], K, R, t, shape: tuple[int, int], margin_px: in
         keep.append(i)
         uvs.append(uv)
         axes.append(j)
-        shares.append(tilt)
-    return keep, np.reshape(uvs, (-1, 2)), np.reshape(axes, (-1, 2)), np.asarray(shares, float), out
+        tilts.append(tilt)
+    return keep, np.reshape(uvs, (-1, 2)), np.reshape(axes, (-1, 2)), np.asarray(tilts, float), out
 
 
 # ---------------------------------------------------------------------------------------------- the check
@@ -243,14 +256,19 @@ def _view_takes(capture: Capture, max_takes: int) -> tuple[Any, list]:
     return sync, first[:max_takes]
 
 
+def _box(points: np.ndarray, shape: tuple[int, int], window_px: int) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1): the pixels of a frame of `shape` (H, W) that windows at the points (P, 2) need, padded."""
+    pad = window_px + 8
+    h, w = shape
+    return (max(int(points[:, 0].min()) - pad, 0), max(int(points[:, 1].min()) - pad, 0),
+            min(int(points[:, 0].max()) + pad + 1, w), min(int(points[:, 1].max()) + pad + 1, h))
+
+
 def _track(capture: Capture, sync, take, uv: np.ndarray, window_px: int, method: str
            ) -> tuple[np.ndarray, np.ndarray]:
     """The take's aligned frames in the sensors' box, tracked at uv: displacement (T, S, 2) px and times (T,)."""
-    pad = window_px + 8
     with AlignedTake(capture, capture.paths.listed(take.aligned_file), sync.generation) as ff:
-        h, w = ff.frame_shape[:2]
-        x0, y0 = max(int(uv[:, 0].min()) - pad, 0), max(int(uv[:, 1].min()) - pad, 0)
-        x1, y1 = min(int(uv[:, 0].max()) + pad + 1, w), min(int(uv[:, 1].max()) + pad + 1, h)
+        x0, y0, x1, y1 = _box(uv, ff.frame_shape[:2], window_px)
 
         def box(frame: np.ndarray) -> np.ndarray:
             frame = frame[y0:y1, x0:x1]
@@ -294,10 +312,8 @@ def _candidates(uv: np.ndarray, window_px: int) -> np.ndarray:
 
 
 def _adjusted_r2(fit, times: np.ndarray) -> np.ndarray:
-    """The share of each channel's motion the modes explain, less what as many parameters explain of pure noise."""
-    n = int(np.sum(times >= DECAY_T_MIN_S))
-    p = 2 * len(fit.poles_rad_s) + 1
-    return 1 - (1 - fit.r2) * (n - 1) / max(n - p - 1, 1)
+    """The decay fit's share of each channel's motion, less what as many parameters explain of pure noise."""
+    return adjusted_r2(fit.r2, int(np.sum(times >= DECAY_T_MIN_S)), len(fit.poles_rad_s))
 
 
 @dataclass
@@ -435,11 +451,8 @@ def _at_frames(a: np.ndarray, fs: float, t0_s: float, frame_mid_s: np.ndarray, f
 
 def _raw_tracks(capture: Capture, take: str, points: np.ndarray, window_px: int, method: str) -> np.ndarray:
     """The take's raw frames (mono, in the points' box) tracked at points (P, 2): displacement (T, P, 2) px."""
-    pad = window_px + 8
     cam = capture.manifest.camera
-    h, w = cam.height_px or 1 << 30, cam.width_px or 1 << 30
-    x0, y0 = max(int(points[:, 0].min()) - pad, 0), max(int(points[:, 1].min()) - pad, 0)
-    x1, y1 = min(int(points[:, 0].max()) + pad + 1, w), min(int(points[:, 1].max()) + pad + 1, h)
+    x0, y0, x1, y1 = _box(points, (cam.height_px or 1 << 30, cam.width_px or 1 << 30), window_px)
     boxed = (f[y0:y1, x0:x1] for f in frames(capture, take))
     return track_points(boxed, points - [x0, y0], method=method, window_px=window_px).displacement_px
 
@@ -453,7 +466,7 @@ def sensor_ods(capture: Capture, video2d, sensors, *, window_px: int = 11, metho
     both on one phase, the accelerometers' in metres (over -(2 pi f)^2). Per mode: MAC, scale, what the readings'
     noise allows, the share of its motion the sensors compared carry; per sensor, the coherence of its reading with
     its accelerometer near the modes (its `r2`). None where there is nothing to compare."""
-    from .oma import default_nperseg, noise_psd, ods_at
+    from .oma import default_nperseg, noise_psd, ods_lines
     placed = [sn for sn in sensors if sn.placed]
     if not video2d.modes or not placed:
         return None
@@ -490,7 +503,7 @@ def sensor_ods(capture: Capture, video2d, sensors, *, window_px: int = 11, metho
     nperseg = min(nperseg, len(x))
     f_hz = np.array([m.freq_hz for m in video2d.modes])
     # each sensor's windows on the structure: those that move at least half as much as its most moving one
-    amp = np.sqrt(sum(np.abs(ods_at(x.reshape(len(x), -1), fps, f, nperseg=nperseg)) ** 2 for f in f_hz)).reshape(S, C)
+    amp = np.linalg.norm(ods_lines(x.reshape(len(x), -1), fps, f_hz, nperseg=nperseg), axis=0).reshape(S, C)
     amp = np.where(lost, 0.0, amp)
     on = (amp >= ON_STRUCTURE * amp.max(axis=1, keepdims=True)) & (amp > 0)
     if not on.any(axis=1).all():
@@ -500,14 +513,10 @@ def sensor_ods(capture: Capture, video2d, sensors, *, window_px: int = 11, metho
     reading = np.stack([np.median(x[:, k, on[k]], axis=1) for k in range(S)], axis=1)        # (T, S) m
     joint = np.concatenate([reading, acc], axis=1)
     pos = [placed.index(sensors[i]) for i in idx]
-    video, accel, share = [], [], []
-    for f in f_hz:
-        v = ods_at(joint, fps, f, nperseg=nperseg)
-        am = v[S:] / -(2 * np.pi * f) ** 2
-        video.append(v[:S])
-        accel.append(am[pos])
-        share.append(np.linalg.norm(am[pos]) / max(np.linalg.norm(am), 1e-300))
-    video, accel = np.array(video), np.array(accel)
+    v = ods_lines(joint, fps, f_hz, nperseg=nperseg)                                    # (R, S + all accelerometers)
+    video, am = v[:, :S], v[:, S:] / -(2 * np.pi * f_hz[:, None]) ** 2                  # accelerations in metres
+    accel = am[:, pos]
+    share = np.linalg.norm(accel, axis=1) / np.maximum(np.linalg.norm(am, axis=1), 1e-300)
     coherence = _coherence(reading, acc[:, pos], fps, f_hz, nperseg)
     seen = coherence >= MIN_SENSOR_R2
     mac, scale = _compare(video[:, seen], accel[:, seen])
@@ -519,7 +528,7 @@ def sensor_ods(capture: Capture, video2d, sensors, *, window_px: int = 11, metho
     out = SensorView(video2d.view, (video2d.take,), pose_from, tuple(sensors[i].name for i in idx), uv,
                      on.sum(axis=1), scale_px, tilts, tuple(left_out), np.arange(len(f_hz)), f_hz, video, accel,
                      coherence, np.sqrt(level * (hi - lo)), "noise PSD between the modes", mac, scale, expected,
-                     np.array(share), method="ods", labels=labels)
+                     share, method="ods", labels=labels)
     log.info("%s", out.text())
     return out
 
@@ -541,13 +550,8 @@ def _compare(video: np.ndarray, accel: np.ndarray) -> tuple[np.ndarray, np.ndarr
     R = video.shape[0]
     if video.shape[1] == 0:
         return np.full(R, np.nan), np.full(R, np.nan, complex)
-    num = np.einsum("rs,rs->r", accel.conj(), video)
-    aa = np.einsum("rs,rs->r", accel.conj(), accel).real
-    vv = np.einsum("rs,rs->r", video.conj(), video).real
-    mac = np.abs(num) ** 2 / np.maximum(aa * vv, 1e-300)
-    if video.shape[1] < 2:
-        mac = np.full(R, np.nan)
-    return mac, num / np.maximum(aa, 1e-300)
+    mac = np.diag(mac_matrix(accel, video)) if video.shape[1] >= 2 else np.full(R, np.nan)
+    return mac, modal_scale_factor(video, accel)
 
 
 __all__ = ["SensorView", "sensor_ods", "sensor_view", "take_force", "view_pose"]

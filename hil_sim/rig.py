@@ -330,14 +330,18 @@ class SimRig:
             force = force + c.force_noise_n * rng.standard_normal(n)
         rows = [force * c.force_sensitivity_v_per_n]
         if c.accelerometers:
-            qdd = self.structure.modal_response(self.impacts, t).qdd
-            acc = np.einsum("skc,sc,kt->st", self._acc_phi, self._acc_dirs, qdd)
+            acc = self.accelerations_m_s2(t)
             for k, a in enumerate(c.accelerometers):
                 noisy = acc[k] + (a.noise_m_s2 * rng.standard_normal(n) if a.noise_m_s2 else 0.0)
                 rows.append(noisy * a.sensitivity_v_per_m_s2)
         if c.ttl_channel:
             rows.append(self.camera.ttl(t) if self.camera is not None else np.zeros(n))
         return np.vstack(rows)
+
+    def accelerations_m_s2(self, t_s: np.ndarray) -> np.ndarray:
+        """(S, T) what the DAQ accelerometers feel along their axes at the rig's times t_s, without their noise."""
+        qdd = self.structure.modal_response(self.impacts, np.asarray(t_s, float)).qdd
+        return np.einsum("skc,sc,kt->st", self._acc_phi, self._acc_dirs, qdd)
 
     def register(self, name: str | None = None) -> str:
         """Make `simdaq://NAME` acquire from this rig; returns a URL prefix (add `?fs=...` and faults).

@@ -178,11 +178,7 @@ def _record_accelerometers(path: Path, rig, s: VideoSimSettings, t0_s: float, du
     channels, and the take's signals with the time of frame 0's exposure start on that clock."""
     acc = rig.config.accelerometers
     t = t0_s + np.arange(int(round(duration_s * s.daq_rate_hz))) / s.daq_rate_hz
-    st = rig.structure
-    phi = st.mode_shapes(np.array([a.point_m for a in acc], float))                  # (S, n_modes, 3)
-    dirs = np.array([a.direction for a in acc], float)
-    qdd = st.modal_response(rig.impacts, t).qdd                                      # (n_modes, T)
-    a = np.einsum("skc,sc,kt->ts", phi, dirs, qdd)
+    a = rig.accelerations_m_s2(t).T
     rng = np.random.default_rng(s.seed + 1)
     a = a + rng.normal(size=a.shape) * 1e-3 * np.sqrt(np.mean(a ** 2, axis=0))
     lines = ["time_s," + ",".join(x.name for x in acc)]

@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from odsplat.app.viewer import default_state
-from odsplat.app.viewer.model import ALPHA_RANGE, mode_peak_time_s, peak_time_s, visible_alpha
+from odsplat.app.viewer.model import ALPHA_RANGE, start_time_s, visible_alpha
 from odsplat.reconstruction import check_camera_spec
 from odsplat.spine.checks import (
     MAX_DURATION_S,
@@ -95,11 +95,11 @@ def view_state(data: Any, s: ViewSettings) -> Any:
         if not 1 <= number <= len(index):
             raise InputError(f"ViewSettings.{field}", f"expected {'a mode' if kind == 'mode' else 'an ODS line'} "
                                                       f"from 1 to {len(index)}, got {number}")
-        state = replace(state, mode=index[number - 1], time_s=mode_peak_time_s(data.modes[index[number - 1]]))
+        state = replace(state, mode=index[number - 1], time_s=start_time_s(data, index[number - 1]))
     elif s.motion:
         if data.scene is None:
             raise InputError("ViewSettings.motion", "no reconstruction: only the modes can be shown (--mode K)")
-        state = replace(state, mode=None, time_s=peak_time_s(data.scene))
+        state = replace(state, mode=None, time_s=start_time_s(data, None))
     if s.alpha is None:
         state = replace(state, alpha=visible_alpha(data, state))
     if s.time_s is not None:

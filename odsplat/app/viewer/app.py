@@ -22,10 +22,9 @@ from odsplat.app.viewer.model import (
     ViewState,
     best_threads,
     default_state,
-    mode_peak_time_s,
-    peak_time_s,
     render_view,
     snap_orbit,
+    start_time_s,
     visible_alpha,
 )
 
@@ -330,11 +329,9 @@ class ViewerWindow:
     def select_mode(self, index: int | None) -> None:
         """index in data.modes, or None for the measured motion: shown where it stands furthest from rest, at the
         magnification that makes it visible (model.visible_alpha; the slider changes it after)."""
-        d = self.data
-        time_s = mode_peak_time_s(d.modes[index]) if index is not None else \
-            peak_time_s(d.scene) if d.scene is not None else d.time_range_s[0]
+        time_s = start_time_s(self.data, index)
         state = replace(self.state, mode=index, time_s=time_s)
-        self.set_state(mode=index, time_s=time_s, alpha=visible_alpha(d, state))
+        self.set_state(mode=index, time_s=time_s, alpha=visible_alpha(self.data, state))
 
     def select_frequency(self, freq_hz: float) -> int | None:
         """Selects the mode nearest freq_hz (as a click on the FRF does); returns its index."""

@@ -188,14 +188,26 @@ def peak_time_s(scene: Scene) -> float:
     return float(t[after][int(np.argmax(rms[after]))])
 
 
+def peak_phase(shape: np.ndarray) -> float:
+    """The phase theta in [0, pi) at which a complex shape stands furthest from rest: Re(g e^(i theta)) is largest
+    in the sum of squares at theta = -arg(sum g^2) / 2 (a complex shape drawn at phase 0 could stand near rest)."""
+    return float((-0.5 * np.angle(np.sum(np.asarray(shape, complex) ** 2))) % np.pi)
+
+
 def mode_peak_time_s(mode: Mode) -> float:
-    """The time in a mode's first cycle when its shape stands furthest from rest: Re(g e^(i theta)) is largest in the
-    sum of squares at theta = -arg(sum g^2) / 2 (a complex shape drawn at time 0 could stand near rest)."""
+    """The time in a mode's first cycle when its shape stands furthest from rest (`peak_phase`)."""
     g = mode.gaussians if mode.gaussians is not None else mode.sensors_accel
     if g is None or not mode.freq_hz > 0:
         return 0.0
-    theta = (-0.5 * np.angle(np.sum(np.asarray(g, complex) ** 2))) % np.pi
-    return float(theta / (2 * np.pi * mode.freq_hz))
+    return peak_phase(g) / (2 * np.pi * mode.freq_hz)
+
+
+def start_time_s(data: ViewerData, mode: int | None) -> float:
+    """Where a view of mode `mode` (None: the measured motion) starts: the mode furthest from rest, the motion at its
+    largest after the impact (a screenshot before the impact showed nothing)."""
+    if mode is not None:
+        return mode_peak_time_s(data.modes[mode])
+    return peak_time_s(data.scene) if data.scene is not None else data.time_range_s[0]
 
 
 def largest_motion_m(data: ViewerData, state: ViewState) -> float:
@@ -229,12 +241,8 @@ def default_state(data: ViewerData, **kw) -> ViewState:
     the first mode where there is no motion (a screenshot before the impact showed nothing)."""
     orbit = Orbit(tuple(float(v) for v in data.target_m), distance_m=1.6 * data.extent_m)
     mode = 0 if data.scene is None and data.modes else None
-    if mode is not None:
-        time_s = mode_peak_time_s(data.modes[mode])
-    else:
-        time_s = peak_time_s(data.scene) if data.scene is not None else data.time_range_s[0]
     alpha = kw.pop("alpha", None)
-    state = ViewState(orbit, mode=mode, time_s=time_s, **kw)
+    state = ViewState(orbit, mode=mode, time_s=start_time_s(data, mode), **kw)
     return replace(state, alpha=visible_alpha(data, state) if alpha is None else alpha)
 
 
@@ -403,5 +411,6 @@ def best_threads(data: ViewerData, state: ViewState, repeats: int = 3) -> int:
 
 
 __all__ = ["ALPHA_RANGE", "COLOUR_MODES", "Mode", "Orbit", "Scene", "SensorInfo", "ViewState", "ViewerData",
-           "best_threads", "camera_for", "colour_scale", "default_state", "largest_motion_m", "motion_at",
-           "mode_peak_time_s", "peak_time_s", "render_view", "snap_orbit", "visible", "visible_alpha"]
+           "best_threads", "camera_for", "colour_scale", "default_state", "largest_motion_m", "mode_peak_time_s",
+           "motion_at", "peak_phase", "peak_time_s", "render_view", "snap_orbit", "start_time_s", "visible",
+           "visible_alpha"]

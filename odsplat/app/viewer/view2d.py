@@ -16,6 +16,8 @@ from odsplat.spine.errors import InputError
 from odsplat.spine.mp4 import display_range, to_8bit, write_mp4
 from odsplat.spine.store import Capture
 
+from .model import peak_phase
+
 log = logging.getLogger(__name__)
 
 VISIBLE_SHARE = 0.05      # the largest arrow's length as a share of the frame's width (as the 3D view's motion)
@@ -44,16 +46,11 @@ def load_view2d(capture: Capture) -> View2D:
                   np.asarray(arrays["freq_hz"], float), labels, np.asarray(arrays["shapes"], complex))
 
 
-def _theta(shape: np.ndarray) -> float:
-    """The phase at which the shape stands furthest from rest (as viewer.model.mode_peak_time_s)."""
-    return float(-0.5 * np.angle(np.sum(shape.astype(complex) ** 2)))
-
-
 def draw(view: View2D, k: int, theta: float | None = None, alpha: float | None = None) -> np.ndarray:
     """(H, W, 3) uint8: the frame with mode k's shape at phase theta as arrows from each moving point, magnified by
     alpha px per unit of shape (None: the largest arrow VISIBLE_SHARE of the frame's width)."""
     shape = view.shapes[k]
-    theta = _theta(shape) if theta is None else theta
+    theta = peak_phase(shape) if theta is None else theta
     h, w = view.frame.shape
     alpha = VISIBLE_SHARE * w / max(float(np.max(np.abs(shape))), 1e-12) if alpha is None else alpha
     img = cv2.cvtColor(view.frame, cv2.COLOR_GRAY2RGB)
@@ -95,7 +92,7 @@ def export_2d(view: View2D, path: str | Path, mode: int | None = None, n_frames:
         raise InputError(path, "expected an .mp4 or .gif file name")
     if not path.parent.exists():
         raise InputError(path.parent, "no such folder")
-    t0 = _theta(view.shapes[k])
+    t0 = peak_phase(view.shapes[k])
     frames = [draw(view, k, t0 + 2 * np.pi * i / n_frames) for i in range(n_frames)]
     if path.suffix.lower() == ".gif":
         Image.fromarray(frames[0]).save(path, save_all=True, append_images=[Image.fromarray(f) for f in frames[1:]],
