@@ -17,6 +17,7 @@ from odsplat.spine.errors import InputError
 
 from .animate import ods_gif
 from .correlation import mac
+from .shape3d import write_shapes
 
 if TYPE_CHECKING:
     from .correlation import Correlation
@@ -127,18 +128,34 @@ def plot_stabilisation(chart: StabilisationChart, frf: FRFResult | None = None, 
         twin.set_ylabel(f"sum of |H1| ({frf.output_unit}/{frf.input_unit})", color="0.5")
         ax.set_zorder(twin.get_zorder() + 1)   # the markers over the FRF
         ax.patch.set_visible(False)
+    picked = np.zeros(len(freq), bool)      # a stable pole within 0.5 % of a selected one: the column it came from
+    for f0 in selected_hz:
+        picked |= np.abs(freq - f0) <= 0.005 * f0
     for key, (marker, colour, label) in _STATUS_STYLE.items():
         sel = status == key
         if band_hz is not None:
             sel &= (freq >= lo) & (freq <= hi)
-        ax.scatter(freq[sel], order[sel], marker=marker, s=18, color=colour, label=f"{label} ({int(sel.sum())})",
-                   linewidths=0.9 if marker in "+x" else 0.5, edgecolors=None if marker in "+x" else "k")
+        if key == "stable":
+            sel &= ~picked
+        if not sel.any():           # no legend entry for what the chart does not show
+            continue
+        small = key != "stable" or len(selected_hz)     # beside the selected columns the rest recede
+        ax.scatter(freq[sel], order[sel], marker=marker, s=10 if small else 18, color=colour,
+                   alpha=0.45 if small else 1.0, label=f"{label} ({int(sel.sum())})",
+                   linewidths=0.8 if marker in "+x" else 0.3, edgecolors=None if marker in "+x" else "k")
+    sel = picked & (status == "stable")
+    if sel.any():
+        ax.scatter(freq[sel], order[sel], marker="o", s=22, color="tab:red", edgecolors="k", linewidths=0.5,
+                   label=f"stable, in a selected mode's column ({int(sel.sum())})")
     _mode_lines((ax,), selected_hz)
     if band_hz is not None:
         ax.set_xlim(lo, hi)
     ax.set(xlabel="frequency (Hz)", ylabel="model order",
-           title="Stabilisation chart" + (" (dotted: selected poles)" if len(selected_hz) else ""))
-    ax.legend(loc="upper left", fontsize="small", framealpha=0.9)
+           title="Stabilisation chart" + (f" ({len(selected_hz)} selected modes dotted)" if len(selected_hz) else ""))
+    handles, labels = ax.get_legend_handles_labels()
+    if handles:                     # below the axes: it never covers the poles
+        fig.legend(handles, labels, loc="outside lower center", ncol=min(3, len(handles)), fontsize="small",
+                   frameon=False)
     ax.grid(True, alpha=0.3)
     return fig
 
@@ -311,6 +328,11 @@ def write_plots(dest: Path, result: AnalysisResult) -> dict[str, str]:
             log.warning("animation %s failed: %s", key, exc, exc_info=True)
             continue
         files[key] = f"plots/{path.name}"
+    try:
+        if write_shapes(out / "shapes3d.json", result):
+            files["shapes3d"] = "plots/shapes3d.json"
+    except Exception as exc:  # noqa: BLE001 (see the docstring)
+        log.warning("3D shapes failed: %s", exc, exc_info=True)
     return files
 
 

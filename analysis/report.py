@@ -9,14 +9,10 @@ the analysis itself wrote in its own folder (`_own_file`), read here and encoded
 anywhere else is shown, escaped, with why it was left out."""
 from __future__ import annotations
 
-import base64
 import html
 import io
 import logging
-import math
-import os
-import stat
-from pathlib import Path, PurePosixPath, PureWindowsPath
+from pathlib import Path
 
 import jinja2
 import numpy as np
@@ -25,7 +21,6 @@ from markupsafe import Markup
 from odsplat.reconstruction import PoseResult
 from odsplat.spine.atomic import atomic_write_text
 from odsplat.spine.errors import InputError
-from odsplat.spine.guard import check_inside
 from odsplat.spine.store import Capture
 from odsplat.sync import load_sync
 
@@ -38,7 +33,25 @@ from .document import (
     VideoSection,
     read_analysis,
 )
-from .verdict import DISCRIMINATION, FULL_FIELD_DISTINCT, NOT_DISCRIMINATED, ModeStatus, Verdict
+from .pagekit import DASH
+from .pagekit import MEDIA as _MEDIA
+from .pagekit import SIGNATURES as _SIGNATURES
+from .pagekit import data_uri as _data_uri
+from .pagekit import finite as _finite
+from .pagekit import index_in as _index
+from .pagekit import num as _num
+from .pagekit import own_file as _own_file
+from .pagekit import read_own as _read_own
+from .report_parts import caption, capture_takes, noise_part, shapes_part, takes_part
+from .verdict import (
+    BELOW_FLOOR,
+    DISCRIMINATION,
+    FULL_FIELD_DISTINCT,
+    NOT_DISCRIMINATED,
+    NOT_SEPARATED,
+    ModeStatus,
+    Verdict,
+)
 from .video2d import has_video2d, read_video2d
 
 log = logging.getLogger(__name__)
@@ -59,31 +72,6 @@ _TEMPLATES = jinja2.Environment(loader=jinja2.FileSystemLoader(Path(__file__).wi
 
 
 # ---------------------------------------------------------------------------------------------- plain values
-# The document is typed and checked (analysis/document.py): a field of the wrong kind never reaches this module.
-# What a hand edit can still leave is a number that is no finite number, or an index that names nothing: those show
-# as a dash, or as they stand.
-
-DASH = "\u2013"    # where a number is missing or is no finite number
-
-
-def _finite(x: float | None) -> float | None:
-    """x where it is a finite number, else None."""
-    return x if x is not None and math.isfinite(x) else None
-
-
-def _index(i: int, n: int) -> int | None:
-    """i as an index into a list of n, or None where it names none."""
-    return i if 0 <= i < n else None
-
-
-def _num(x: float | None, fmt: str = ".3g", scale: float = 1.0) -> str:
-    """x times scale formatted with fmt; a dash where x is no finite number."""
-    v = None if x is None else x * scale
-    if v is None or not math.isfinite(v):
-        return DASH
-    text = format(v, fmt)
-    return format(0.0, fmt) if float(text) == 0 else text      # no "-0.0"
-
 
 def _mode_name(modes: tuple[ModeEntry, ...], k: int) -> str:
     """Mode k by number and frequency ("2 (31.00 Hz)"), or k as it stands where it names no mode."""
@@ -109,8 +97,7 @@ def _summary(doc: AnalysisDocument, setup: dict) -> dict:
         p = by_mode.get(k)
         st = statuses.get(k + 1)
         rows.append({"mode": str(k + 1), "freq": _num(m.freq_hz, ".2f"), "damping": _num(m.damping, ".2f", 100),
-                     "mac": DASH if p is None else _num(p.mac, ".3f"),
-                     "below": p is not None and bool(p.below_noise_floor),
+                     "mac": DASH if p is None else _num(p.mac, ".3f"), "grey": _grey(p, st),
                      "scale": DASH if p is None else _num(p.scale_factor_abs, ".2f"),
                      "status": None if st is None else _status(st)})
     line = verdict.line if verdict is not None and verdict.line else None
@@ -121,7 +108,35 @@ def _summary(doc: AnalysisDocument, setup: dict) -> dict:
     css = _verdict(verdict)["css"] if verdict is not None and verdict.status in _CSS else ("warn" if doc.notes else "")
     return {"verdict": line, "css": css, "statuses": bool(statuses), "single": single_view_line(doc.sensor_view),
             "video": doc.video is not None, "n_modes": len(doc.modes), "n_notes": len(doc.notes),
-            "setup": setup_rows, "modes": rows}
+            "setup": setup_rows, "modes": rows, "rests_on": _rests_on(doc)}
+
+
+def _grey(p: PairEntry | None, st: ModeStatus | None) -> str | None:
+    """Why a mode is not judged (grey wherever it is listed), or None where it is."""
+    if (p is not None and p.below_noise_floor) or (st is not None and st.status == BELOW_FLOOR):
+        return "below the noise floor: not judged"
+    if st is not None and st.status == NOT_SEPARATED:
+        return "not separated from a mode beside it: not judged"
+    return None
+
+
+def _rests_on(doc: AnalysisDocument) -> str | None:
+    """What the verdict rests on, in one sentence: the sensors, the video's points, the reference's AutoMAC."""
+    parts = [f"{len(doc.sensors)} accelerometer direction{'s' if len(doc.sensors) != 1 else ''}"]
+    if doc.video is not None:
+        parts.append(f"the video's shapes at {doc.video.n_surface_points} surface points")
+    auto = doc.correlation.reference_automac if doc.correlation is not None else None
+    fitted = doc.video.modes_fitted if doc.video is not None else ()
+    if auto is not None and len(auto) > 1:
+        a = np.array([[_finite(x) if _finite(x) is not None else np.nan for x in row] for row in auto], float)
+        if a.ndim == 2 and a.shape[0] == a.shape[1]:
+            a[np.diag_indices(len(a))] = np.nan
+            if np.isfinite(a).any():
+                i, j = np.unravel_index(np.nanargmax(a), a.shape)
+                parts.append(f"the accelerometers' AutoMAC at most {a[i, j]:.2f} off the diagonal (modes "
+                             f"{_fitted_mode(fitted, int(i)) + 1} and {_fitted_mode(fitted, int(j)) + 1}; above "
+                             f"{DISCRIMINATION:g} the sensors cannot tell two modes apart)")
+    return "Rests on " + ", ".join(parts) + "."
 
 
 def single_view_line(sv: dict | None) -> str | None:
@@ -380,52 +395,6 @@ def _matrices(doc: AnalysisDocument) -> list[dict]:
 
 # ---------------------------------------------------------------------------------------------- inlined files
 
-_ANALYSIS_FOLDER = "derived/analysis"
-_SIGNATURES = {".png": (b"\x89PNG\r\n\x1a\n",), ".gif": (b"GIF87a", b"GIF89a")}
-_MEDIA = {".png": "image/png", ".gif": "image/gif", ".mp4": "video/mp4"}
-
-
-def _own_file(folder: Path, rel, where: str = _ANALYSIS_FOLDER, writer: str = "the analysis") -> Path | str:
-    """The file `rel` names in `folder`, or why it is not one of the folder's own (one line). Its own: a relative
-    name of plain parts ("plots/frf.png": no `..`, `.` or empty part, no absolute path or drive, no backslash),
-    no symbolic link on the way from `folder` down (the file included), a regular file, and inside `folder` once
-    resolved. `where` names the folder in the line, `writer` what writes its files."""
-    outside = f"not a file {writer} wrote (outside {where})"
-    if not isinstance(rel, str) or not rel:
-        return outside
-    parts = rel.split("/")
-    if (PurePosixPath(rel).is_absolute() or PureWindowsPath(rel).anchor or "\\" in rel or "\0" in rel
-            or any(p in ("", ".", "..") for p in parts)):
-        return outside
-    path = folder.joinpath(*parts)
-    try:   # the parts are plain, so the one thing it can refuse is a link on the way
-        check_inside(folder, path)
-    except InputError:
-        return f"not a file {writer} wrote (a symbolic link)"
-    if not path.exists():
-        return "not found"
-    if not path.is_file():
-        return "not a regular file"
-    if not path.resolve().is_relative_to(folder.resolve()):
-        return outside
-    return path
-
-
-def _read_own(path: Path) -> bytes:
-    """A file `_own_file` accepted, opened without following a link (a link put in its place after the check makes
-    the open fail) and read only if it is still a regular file."""
-    flags = os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0)
-    with os.fdopen(os.open(path, flags), "rb") as fh:
-        if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
-            raise OSError(f"{path}: not a regular file")
-        return fh.read()
-
-
-def _data_uri(media: str, data: bytes) -> str:
-    """A data: URI of bytes read here: base64 holds no character HTML would need escaped."""
-    return f"data:{media};base64,{base64.b64encode(data).decode('ascii')}"
-
-
 def _inline(doc: AnalysisDocument, folder: Path, suffix: str) -> list[dict]:
     """Each output file of the analysis ending in `suffix`, as {"key", "file", "src"} with its data: URI, or with
     "problem" (one line naming the file) where it is missing ("missing" set) or is no file of the analysis's own
@@ -468,12 +437,32 @@ RENDER_WIDTH_PX = 480     # the render's frames, downscaled, as one animated Web
 _RENDER_FOLDER = "derived/reconstruction/render"
 
 
+MAX_INLINE_VIDEO_BYTES = 16 * 2**20     # a render.mp4 larger than this is shown as its frames (a WebP) instead
+
+
+def _render_mp4(folder: Path, n_frames: int) -> dict | None:
+    """The render's H.264 mp4 (render.mp4 in `folder`, the folder's own) inline as a video: {"n_frames", "video",
+    "left_out"}; None where there is none, or it is too large to inline."""
+    own = _own_file(folder, "render.mp4", _RENDER_FOLDER, "odsplat render")
+    if isinstance(own, str) or own.stat().st_size > MAX_INLINE_VIDEO_BYTES:
+        return None
+    try:
+        data = _read_own(own)
+    except OSError:
+        return None
+    return {"n_frames": n_frames, "src": None, "video": _data_uri("video/mp4", data), "left_out": []}
+
+
 def _render(folder: Path) -> dict | None:
-    """The render's frames in `folder` as one animated WebP: {"n_frames", "src", "left_out"}; None without frames.
-    Only the folder's own frames are read (`_own_file`); the others are named in left_out."""
+    """The render inline: its mp4 as a video where there is one small enough (`_render_mp4`), else its frames as one
+    animated WebP: {"n_frames", "src", "video", "left_out"}; None without frames. Only the folder's own files are
+    read (`_own_file`); the others are named in left_out."""
     frames = sorted(folder.glob("frame_*.png")) if folder.is_dir() else []
     if not frames:
         return None
+    video = _render_mp4(folder, len(frames))
+    if video is not None:
+        return video
     from PIL import Image
 
     images, left_out = [], []
@@ -493,15 +482,16 @@ def _render(folder: Path) -> dict | None:
             scale = min(1.0, RENDER_WIDTH_PX / w)
             images.append(im.convert("RGB").resize((max(1, round(w * scale)), max(1, round(h * scale)))))
     if not images:
-        return {"n_frames": 0, "src": None, "left_out": left_out}
+        return {"n_frames": 0, "src": None, "video": None, "left_out": left_out}
     buf = io.BytesIO()
     images[0].save(buf, format="WEBP", save_all=True, append_images=images[1:], duration=120, loop=0, quality=80)
-    return {"n_frames": len(images), "src": _data_uri("image/webp", buf.getvalue()), "left_out": left_out}
+    return {"n_frames": len(images), "src": _data_uri("image/webp", buf.getvalue()), "video": None,
+            "left_out": left_out}
 
 
 def render_video(folder: Path) -> str:
     """The reconstruction's magnified novel-view render (`odsplat render`'s frames in `folder`) as the report's
-    section, inline as an animated WebP (a few frames, small enough to inline). Empty where there are no frames."""
+    section, inline (its mp4, or its frames as an animated WebP). Empty where there are no frames."""
     render = _render(folder)
     if render is None:
         return ""
@@ -561,15 +551,40 @@ def _sensor_view(sv: dict | None) -> dict | None:
 
 
 def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict | None = None,
-                  render: dict | None = None) -> str:
+                  render: dict | None = None, takes: dict[str, dict] | None = None) -> str:
     """The report's HTML from a loaded analysis.json (`folder` holds it and its plots); `setup`: facts of the
-    capture for the summary (capture_setup); `render`: the render's frames (`_render`), where there are any."""
+    capture for the summary (capture_setup); `render`: the render's frames (`_render`), where there are any;
+    `takes`: the capture's takes and their QC (report_parts.capture_takes), for the takes left out."""
+    summary = _summary(doc, setup or {})
+    grey = {int(r["mode"]): r["grey"] for r in summary["modes"]}
+    status = {int(r["mode"]): r["status"]["status"] for r in summary["modes"] if r["status"] is not None}
+    shapes = shapes_part(doc, folder, grey, status)
+    gifs = {a["mode"]: a for a in _animations(doc, folder)}
+    for md in shapes["modes"]:                 # a GIF only where the page has no 3D shape of the mode
+        md["gif"] = None if md["shape"] else gifs.get(md["mode"])
+    figures = _inline(doc, folder, ".png")
+    for f in figures:
+        f["caption"] = _caption(doc, f["key"])
+    frf = next((f for f in figures if f["key"] == "frf"), None)
+    pairs = doc.correlation.pairs if doc.correlation is not None else ()
+    fitted = doc.video.modes_fitted if doc.video is not None else ()
+    noise = noise_part(doc, pairs, lambda p: _mode_name(doc.modes, _fitted_mode(fitted, p.b)))
     return _TEMPLATES.get_template("report.html").render(
         title=doc.capture or title, created=doc.created_utc or "(no date)", n_sensors=len(doc.sensors),
-        n_averages=str(doc.n_averages), summary=_summary(doc, setup or {}), notes=list(doc.notes),
-        animations=_animations(doc, folder), render=render, hits=_hits(doc), modes=_modes(doc), video=_video(doc),
-        sensor_view=_sensor_view(doc.sensor_view), correlation=_correlation(doc), figures=_inline(doc, folder, ".png"),
-        settings=doc.settings_text() if doc.settings else None)
+        n_averages=str(doc.n_averages), summary=summary, notes=list(doc.notes), takes=takes_part(doc, takes),
+        frf=frf, shapes=shapes, render=render, hits=_hits(doc), modes=_modes(doc), video=_video(doc),
+        noise=noise, sensor_view=_sensor_view(doc.sensor_view), correlation=_correlation(doc),
+        figures=[f for f in figures if f["key"] != "frf"], settings=doc.settings_text() if doc.settings else None)
+
+
+def _caption(doc: AnalysisDocument, key: str) -> str:
+    """A figure's caption: the ODS lines' with their frequency, the rest by kind (report_parts.caption)."""
+    if key.startswith("ods_") and key[4:].isdigit():
+        i = _index(int(key[4:]) - 1, len(doc.ods))
+        if i is not None:
+            return f"Operational deflection shape at {_num(doc.ods[i].freq_hz, '.2f')} Hz: the video's against the " \
+                   f"accelerometers' (MAC {_num(doc.ods[i].mac, '.3f')})."
+    return caption(key)
 
 
 # ---------------------------------------------------------------------------------------------- the 2D path's page
@@ -645,6 +660,6 @@ def write_report(capture: Capture) -> Path:
         return path
     doc = read_analysis(capture)
     atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name, capture_setup(capture),
-                                          _render(capture.paths.render_dir)))
+                                          _render(capture.paths.render_dir), capture_takes(capture)))
     log.info("report written to %s", path)
     return path

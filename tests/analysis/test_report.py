@@ -107,12 +107,12 @@ def test_write_plots_writes_every_figure_as_a_png(written, result):
     dest, files = written
     ods = {f"ods_{i + 1:02d}" for i in range(len(result.ods_freq_hz))}
     anims = {f"anim_{k + 1:02d}" for k in range(result.modes.n_modes)}
-    assert set(files) == {"frf", "stabilisation", "automac", "mac", "time"} | ods | anims
+    assert set(files) == {"frf", "stabilisation", "automac", "mac", "time", "shapes3d"} | ods | anims
     for key in anims:
         with Image.open(dest / files[key]) as im:
             assert files[key] == f"plots/{key}.gif" and im.format == "GIF" and im.n_frames == 12
     for key, rel in files.items():
-        if key in anims:
+        if key in anims or key == "shapes3d":
             continue
         path = dest / rel
         assert rel == f"plots/{key}.png" and path.is_file()
@@ -172,7 +172,10 @@ def test_report_embeds_the_numbers_and_figures(written, result):
     assert "double hit at +2.1 ms" in html and "3 of 4 hits used" in html
     imgs = re.findall(r'<img src="data:image/png;base64,([A-Za-z0-9+/=]+)"', html)
     assert len(imgs) == len([f for f in files.values() if f.endswith(".png")])
-    assert len(re.findall(r'<img src="data:image/gif;base64,', html)) == result.modes.n_modes
+    # each mode the video fitted in 3D (data for the page's plotly), the others as the accelerometers' GIF
+    n_3d = len(result.video.mode_index)
+    assert html.count('<div class="shape3d" data-mode=') == n_3d and 'id="shapes3d-data"' in html
+    assert len(re.findall(r'<img src="data:image/gif;base64,', html)) == result.modes.n_modes - n_3d
     assert all(base64.b64decode(b)[:8] == PNG_SIGNATURE for b in imgs)
     assert "bench-arm" in html and "2024-05-01" in html
 
@@ -217,6 +220,17 @@ def test_the_render_plays_inline_when_there_is_one(tmp_path):
     data = re.search(r'<img src="data:image/webp;base64,([^"]+)"', html).group(1)
     im = Image.open(io.BytesIO(base64.b64decode(data)))
     assert im.format == "WEBP" and im.n_frames == 5 and im.size == (400, 300)
+    # with the render's mp4 beside the frames (as `odsplat render` writes it), the page plays the mp4 itself
+    import av
+
+    from odsplat.spine.mp4 import write_mp4
+
+    write_mp4(tmp_path / "render.mp4", [np.full((300, 400, 3), 40 * k, np.uint8) for k in range(5)], 10.0)
+    html = render_video(tmp_path)
+    data = re.search(r'<video src="data:video/mp4;base64,([^"]+)" controls', html).group(1)
+    assert base64.b64decode(data) == (tmp_path / "render.mp4").read_bytes() and "image/webp" not in html
+    with av.open(io.BytesIO(base64.b64decode(data))) as container:
+        assert container.streams.video[0].codec_context.name == "h264"
 
 
 def test_a_camera_pole_off_every_mode_is_said_to_be_none_and_named_near_the_strongest_motions_products():

@@ -29,7 +29,7 @@ SHOWN = (".capture", ".created_utc", ".notes[0]", ".takes[0]", ".rejected_hits[0
          ".video.crosscheck[0].take", ".video.crosscheck_verdict.status", ".video.crosscheck_verdict.line",
          ".correlation.verdict.status", ".correlation.verdict.line", ".settings.response_channels[0]")
 PAGE_TAGS = {"html", "head", "meta", "title", "style", "body", "h1", "h2", "h3", "p", "b", "ul", "li", "table", "tr",
-             "th", "td", "span", "figure", "img", "figcaption", "details", "summary", "pre"}
+             "th", "td", "span", "figure", "img", "figcaption", "details", "summary", "pre", "section", "div"}
 IMAGE_SRC = re.compile(r"data:image/(png|gif|webp);base64,[A-Za-z0-9+/=]+")
 
 

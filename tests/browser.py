@@ -1,0 +1,68 @@
+"""A page as a reader sees it: the order of a report's sections in its HTML, and what headless Chromium shows of it
+in a first screen (where chosen elements end, how many 3D plots it drew, the errors it met, the requests it made
+beyond the file itself). Chromium is found on PATH; callers skip without it."""
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+SCREEN = (1400, 900)
+
+
+def chromium() -> str | None:
+    return next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome")) if p), None)
+
+
+def section_order(html: str) -> list[str]:
+    """The ids of the page's top-level sections, in the order they come."""
+    return re.findall(r'<section id="([a-z0-9-]+)"', html)
+
+
+_PROBE = """<script>
+window.addEventListener("load", () => setTimeout(() => {{
+  const bottom = {{}};
+  for (const id of {ids}) {{
+    const e = document.getElementById(id);
+    bottom[id] = e ? Math.round(e.getBoundingClientRect().bottom) : -1;
+  }}
+  document.title = "PROBE " + JSON.stringify({{
+    bottom, drawn: Number(document.body.dataset.shapes3d || 0),
+    errors: document.body.dataset.shapes3dErrors || "",
+    canvases: document.querySelectorAll(".shape3d canvas").length,
+    requests: performance.getEntriesByType("resource").map((e) => e.name) }});
+}}, 2500));
+</script>"""
+
+
+def first_screen(page: Path, folder: Path, ids: tuple[str, ...], size: tuple[int, int] = SCREEN) -> dict:
+    """`page` opened in headless Chromium at `size`: {"bottom": {id: px from the top, -1 where absent}, "drawn":
+    3D plots drawn, "errors": the page's script errors, "canvases", "requests": every URL the page asked for
+    beyond inline data (its resource timing entries; no name resolves, so nothing would leave), "console": every
+    line the page logged to its console}."""
+    probe = folder / "probe.html"
+    html = page.read_text()
+    probe.write_text(html.replace("</body>", _PROBE.format(ids=json.dumps(list(ids))) + "</body>"))
+    cmd = [chromium(), "--headless=new", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+           "--no-first-run", "--enable-logging=stderr", "--host-resolver-rules=MAP * ~NOTFOUND",
+           f"--user-data-dir={folder / 'profile'}",
+           f"--window-size={size[0]},{size[1]}", "--virtual-time-budget=8000", "--dump-dom", probe.as_uri()]
+    try:
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        pytest.fail("headless Chromium did not finish in 120 s")
+    title = re.search(r"<title>PROBE (.*?)</title>", run.stdout, re.S)
+    if title is None:
+        pytest.fail(f"the page said nothing (exit {run.returncode}): {run.stderr[-1500:]}")
+    out = json.loads(title.group(1).replace("&quot;", '"').replace("&amp;", "&"))
+    out["requests"] = [u for u in out["requests"] if not u.startswith(("data:", "blob:"))]
+    # what the page logged, less the browser's performance advice on reading pixels back (plotly's WebGL picking
+    # does, and the software GL of a headless run says it stalls)
+    advice = ("Canvas2D: Multiple readback", "GL Driver Message (OpenGL, Performance")
+    out["console"] = [line for line in run.stderr.splitlines()
+                      if ":CONSOLE" in line and not any(a in line for a in advice)]
+    return out
