@@ -66,3 +66,41 @@ def first_screen(page: Path, folder: Path, ids: tuple[str, ...], size: tuple[int
     out["console"] = [line for line in run.stderr.splitlines()
                       if ":CONSOLE" in line and not any(a in line for a in advice)]
     return out
+
+
+_VIDEOS = """<!doctype html><html><head><title>WAITING</title></head><body>
+{videos}
+<script>
+const result = {{}};
+const all = document.querySelectorAll("video");
+const done = () => {{
+  if (Object.keys(result).length === all.length) document.title = "VIDEOS " + JSON.stringify(result);
+}};
+all.forEach((v) => {{
+  v.addEventListener("error", () => {{ result[v.dataset.name] = "ERROR " + (v.error ? v.error.code : "?"); done(); }});
+  v.addEventListener("loadedmetadata", () => {{
+    result[v.dataset.name] = [v.duration, v.videoWidth, v.videoHeight]; done();
+  }});
+}});
+</script></body></html>
+"""
+
+
+def video_durations(videos: list[Path], folder: Path) -> dict:
+    """Each mp4 loaded into a <video> of one page in headless Chromium: {file name: [duration s, width, height]}, or
+    "ERROR code" where it refuses one (MediaError 4: no stream it can play)."""
+    tags = "\n".join(f'<video muted preload="metadata" data-name="{p.name}" src="{p.resolve().as_uri()}"></video>'
+                     for p in videos)
+    page = folder / "videos.html"
+    page.write_text(_VIDEOS.format(videos=tags))
+    cmd = [chromium(), "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
+           "--allow-file-access-from-files", f"--user-data-dir={folder / 'profile'}", "--virtual-time-budget=15000",
+           "--dump-dom", page.as_uri()]
+    try:
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+    except subprocess.TimeoutExpired:
+        pytest.fail("headless Chromium did not finish in 120 s")
+    title = re.search(r"<title>VIDEOS (.*?)</title>", run.stdout, re.S)
+    if title is None:
+        pytest.fail(f"the page said nothing of the videos (exit {run.returncode}): {run.stderr[-1500:]}")
+    return json.loads(title.group(1).replace("&quot;", '"').replace("&amp;", "&"))

@@ -123,3 +123,38 @@ def test_headless_chromium_plays_the_mp4(tmp_path):
     info = write_mp4(tmp_path / "clip.mp4", _frames(30, 45, 61), 29.97, comment="browser check")
     result = chromium_plays(info.path, tmp_path)
     assert result == f"PLAYED {info.width_px}x{info.height_px}" == "PLAYED 62x46", result
+
+
+def test_every_mp4_the_pipeline_writes_plays_in_chromium(piped_original, tmp_path):
+    """magnify's mp4 of the view to watch, export-video's of a raw take, the render's and the viewer's export (the
+    2D path's clips: tests/test_video2d.py) each load into a <video> of one page in headless Chromium, with the
+    duration and size their files hold."""
+    from click.testing import CliRunner
+
+    from odsplat.app.cli import main
+
+    from .browser import chromium, video_durations
+    from .conftest import piped_copy
+
+    cap = piped_copy(piped_original, tmp_path / "copy" / "cap")
+    videos = sorted((cap / "derived" / "magnified").rglob("*.mp4"))
+    assert videos, "magnify wrote no mp4"
+    runner = CliRunner()
+    take = sorted(p.name.split(".")[0] for p in (cap / "takes").glob("*.h5"))[0]
+    for args in (["export-video", str(cap), "--take", take, "-o", str(tmp_path / "raw.mp4")],
+                 ["render", str(cap), "--width", "64", "--times", "0:0.006:6", "-o", str(tmp_path / "render")],
+                 ["view", str(cap), "--export", str(tmp_path / "view.mp4"), "--frames", "8"]):
+        r = runner.invoke(main, args)
+        assert r.exit_code == 0, (args, r.output, r.exception)
+    videos += [tmp_path / "raw.mp4", tmp_path / "render" / "render.mp4", tmp_path / "view.mp4"]
+    if chromium() is None:
+        pytest.skip("no chromium on PATH: the browser check needs one")
+    seen = video_durations(videos, tmp_path)
+    for path in videos:
+        with av.open(str(path)) as container:
+            stream = container.streams.video[0]
+            assert stream.codec_context.name == "h264" and stream.codec_context.pix_fmt == "yuv420p", path
+            expected = count_frames(path) / float(stream.average_rate)
+            size = [stream.width, stream.height]
+        assert isinstance(seen[path.name], list), (path, seen[path.name])
+        assert seen[path.name][1:] == size and seen[path.name][0] == pytest.approx(expected, rel=0.05), (path, seen)
