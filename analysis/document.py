@@ -26,7 +26,7 @@ from odsplat.spine.manifest import load_json
 from odsplat.spine.store import Capture
 
 from .crosscheck import ViewCheck
-from .verdict import ModeStatus, Verdict
+from .verdict import BELOW_FLOOR, NOT_SEPARATED, ModeStatus, Verdict
 
 KIND = "odsplat.analysis"
 SCHEMA = 3              # 3: the correlation's reference AutoMAC, the video's full-field cross-MAC, per-mode statuses,
@@ -266,6 +266,25 @@ class AnalysisDocument:
             if 0 <= p.b < len(fitted) and 0 <= fitted[p.b] < len(self.modes):
                 out[fitted[p.b]] = p
         return out
+
+    def not_judged(self) -> dict[int, str]:
+        """Why each mode the video's verdict did not judge was not (by its index in `modes`): below the noise floor
+        (its pair's flag, or its status), or not separated from a mode beside it. The report's table and the
+        viewer's list grey these modes and say so."""
+        out = {k: NOT_JUDGED_BELOW for k, p in self.pair_by_mode().items() if p.below_noise_floor}
+        verdict = self.correlation.verdict if self.correlation is not None else None
+        for st in verdict.modes if verdict is not None else ():
+            k = st.mode - 1
+            if 0 <= k < len(self.modes) and k not in out:
+                if st.status == BELOW_FLOOR:
+                    out[k] = NOT_JUDGED_BELOW
+                elif st.status == NOT_SEPARATED:
+                    out[k] = NOT_JUDGED_APART
+        return out
+
+
+NOT_JUDGED_BELOW = "below the noise floor: not judged"
+NOT_JUDGED_APART = "not separated from a mode beside it: not judged"
 
 
 def read_analysis(capture: Capture) -> AnalysisDocument:

@@ -44,11 +44,9 @@ from .pagekit import own_file as _own_file
 from .pagekit import read_own as _read_own
 from .report_parts import caption, capture_takes, noise_part, shapes_part, takes_part
 from .verdict import (
-    BELOW_FLOOR,
     DISCRIMINATION,
     FULL_FIELD_DISTINCT,
     NOT_DISCRIMINATED,
-    NOT_SEPARATED,
     ModeStatus,
     Verdict,
 )
@@ -93,11 +91,12 @@ def _summary(doc: AnalysisDocument, setup: dict) -> dict:
     verdict = doc.correlation.verdict if doc.correlation is not None else None
     statuses = {s.mode: s for s in verdict.modes} if verdict is not None else {}
     rows = []
+    grey = doc.not_judged()
     for k, m in enumerate(doc.modes):
         p = by_mode.get(k)
         st = statuses.get(k + 1)
         rows.append({"mode": str(k + 1), "freq": _num(m.freq_hz, ".2f"), "damping": _num(m.damping, ".2f", 100),
-                     "mac": DASH if p is None else _num(p.mac, ".3f"), "grey": _grey(p, st),
+                     "mac": DASH if p is None else _num(p.mac, ".3f"), "grey": grey.get(k),
                      "scale": DASH if p is None else _num(p.scale_factor_abs, ".2f"),
                      "status": None if st is None else _status(st)})
     line = verdict.line if verdict is not None and verdict.line else None
@@ -109,15 +108,6 @@ def _summary(doc: AnalysisDocument, setup: dict) -> dict:
     return {"verdict": line, "css": css, "statuses": bool(statuses), "single": single_view_line(doc.sensor_view),
             "video": doc.video is not None, "n_modes": len(doc.modes), "n_notes": len(doc.notes),
             "setup": setup_rows, "modes": rows, "rests_on": _rests_on(doc)}
-
-
-def _grey(p: PairEntry | None, st: ModeStatus | None) -> str | None:
-    """Why a mode is not judged (grey wherever it is listed), or None where it is."""
-    if (p is not None and p.below_noise_floor) or (st is not None and st.status == BELOW_FLOOR):
-        return "below the noise floor: not judged"
-    if st is not None and st.status == NOT_SEPARATED:
-        return "not separated from a mode beside it: not judged"
-    return None
 
 
 def _rests_on(doc: AnalysisDocument) -> str | None:

@@ -11,7 +11,6 @@ import math
 from importlib import resources
 from pathlib import Path
 
-import numpy as np
 from markupsafe import Markup
 
 from odsplat.spine.errors import InputError, OdsplatError
@@ -20,7 +19,7 @@ from odsplat.spine.store import Capture
 
 from .document import AnalysisDocument, PairEntry
 from .pagekit import finite, num, own_file, read_own
-from .shape3d import KIND as SHAPES_KIND
+from .shape3d import parse_shapes
 
 log = logging.getLogger(__name__)
 
@@ -98,38 +97,13 @@ def takes_part(doc: AnalysisDocument, takes: dict[str, dict] | None) -> dict:
 
 # ---------------------------------------------------------------------------------------------- the 3D shapes
 
-def _array(value, shape_tail: tuple[int, ...], kind, what: str) -> np.ndarray:
-    a = np.asarray(value, kind)
-    if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail or (kind is float and not np.isfinite(a).all()):
-        raise ValueError(f"{what}: expected finite numbers of shape (n, {', '.join(map(str, shape_tail))})")
-    return a
-
-
 def _read_shapes(doc: AnalysisDocument, folder: Path) -> dict:
-    """plots/shapes3d.json read and checked: every number finite, every index in range. ValueError naming what is
-    wrong."""
-    rel = doc.files.get("shapes3d")
-    path = own_file(folder, rel)
+    """plots/shapes3d.json, the analysis's own file, read and checked (`shape3d.parse_shapes`). ValueError naming
+    what is wrong."""
+    path = own_file(folder, doc.files.get("shapes3d"))
     if isinstance(path, str):
         raise ValueError(path)
-    raw = json.loads(read_own(path).decode("utf-8"))
-    if not isinstance(raw, dict) or raw.get("kind") != SHAPES_KIND:
-        raise ValueError(f"expected kind {SHAPES_KIND!r}")
-    surface = raw["surface"]
-    points = _array(surface["points_m"], (3,), float, "surface.points_m")
-    n = len(points)
-    faces = _array(surface["faces"] or np.zeros((0, 3)), (3,), int, "surface.faces")
-    lines = _array(surface["lines"] or np.zeros((0, 2)), (2,), int, "surface.lines")
-    if (faces.size and (faces.min() < 0 or faces.max() >= n)) or (lines.size and (lines.min() < 0 or lines.max() >= n)):
-        raise ValueError("surface: an index names no point")
-    modes = {}
-    for i, m in enumerate(raw["modes"]):
-        k = int(m["mode"])
-        re_, im_ = (_array(m[c], (3,), float, f"modes[{i}].{c}") for c in ("re", "im"))
-        if len(re_) != n or len(im_) != n:
-            raise ValueError(f"modes[{i}]: expected {n} points")
-        modes[k] = {"re": re_, "im": im_, "judged": bool(m["judged"]), "source": str(m.get("source", ""))}
-    return {"points": points, "faces": faces, "lines": lines, "modes": modes}
+    return parse_shapes(read_own(path))
 
 
 def _plotly_js() -> Markup:

@@ -158,4 +158,43 @@ def write_shapes(path: Path, result: AnalysisResult) -> bool:
     return True
 
 
-__all__ = ["KIND", "SCHEMA", "alpha_faces", "drop_floaters", "shapes_document", "write_shapes"]
+def _array(value, shape_tail: tuple[int, ...], kind, what: str) -> np.ndarray:
+    a = np.asarray(value, kind)
+    if a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail or (kind is float and not np.isfinite(a).all()):
+        raise ValueError(f"{what}: expected finite numbers of shape (n, {', '.join(map(str, shape_tail))})")
+    return a
+
+
+def parse_shapes(data: bytes) -> dict:
+    """The file's contents (`write_shapes`) read back and checked, its one reader: {"points" (N, 3), "faces" (F, 3),
+    "lines" (L, 2), "modes": {mode number: {"re", "im" (N, 3), "judged", "source"}}}, every number finite and every
+    index in range. ValueError naming what is wrong (a hand edit, a file of another kind)."""
+    try:
+        raw = json.loads(data.decode("utf-8"))
+        if not isinstance(raw, dict) or raw.get("kind") != KIND:
+            raise ValueError(f"expected kind {KIND!r}")
+        surface = raw["surface"]
+        points = _array(surface["points_m"], (3,), float, "surface.points_m")
+        n = len(points)
+        faces = _array(surface["faces"] or np.zeros((0, 3)), (3,), int, "surface.faces")
+        lines = _array(surface["lines"] or np.zeros((0, 2)), (2,), int, "surface.lines")
+        for name, idx in (("faces", faces), ("lines", lines)):
+            if idx.size and (idx.min() < 0 or idx.max() >= n):
+                raise ValueError(f"surface.{name}: an index names no point")
+        modes = {}
+        for i, m in enumerate(raw["modes"]):
+            re_, im_ = (_array(m[c], (3,), float, f"modes[{i}].{c}") for c in ("re", "im"))
+            if len(re_) != n or len(im_) != n:
+                raise ValueError(f"modes[{i}]: expected {n} points")
+            modes[int(m["mode"])] = {"re": re_, "im": im_, "judged": bool(m["judged"]),
+                                     "source": str(m.get("source", ""))}
+    except (KeyError, TypeError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"not a 3D shapes file ({type(e).__name__}: {e})") from e
+    except ValueError as e:      # numpy's, on a value that is no number; ours name the field already
+        if str(e).startswith(("surface.", "modes[", "expected kind")):
+            raise
+        raise ValueError(f"not a 3D shapes file ({e})") from e
+    return {"points": points, "faces": faces, "lines": lines, "modes": modes}
+
+
+__all__ = ["KIND", "SCHEMA", "alpha_faces", "drop_floaters", "parse_shapes", "shapes_document", "write_shapes"]

@@ -58,6 +58,7 @@ READERS = {
     "reconstruction/gaussians.py": "the Gaussians' .ply",
     "analysis/document.py": "derived/analysis/analysis.json",
     "analysis/results_h5.py": "derived/analysis/results.h5 (its JSON attributes)",
+    "analysis/shape3d.py": "derived/analysis/plots/shapes3d.json (the report's 3D shapes)",
     "odsplat/app/pipeline.py": "the stamps in derived/pipeline/",
     "bench/store.py": "its baseline: the same frames as one .npy, read whole",
     "bench/sensitivity.py": "derived/poses.json, to move every camera by a rounding error before a rerun",

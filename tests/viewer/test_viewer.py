@@ -69,6 +69,23 @@ def test_the_structure_mask_is_the_analysis_rule_and_matches_the_truth(data, cap
     assert "above the floor" in data.scene.structure_rule
 
 
+def test_modes_the_analysis_did_not_judge_are_grey_and_say_why(data, window, captures):
+    """As in the report: the analysis's list of modes it did not judge (AnalysisDocument.not_judged) marks the same
+    modes in the viewer's list, grey, with why in their label; a mode marked so carries its reason (a hand-set one
+    here, where the capture's analysis judged every mode)."""
+    from odsplat.analysis import read_analysis
+
+    grey = read_analysis(captures[0]).not_judged()
+    modes = [m for m in data.modes if m.kind == "mode"]
+    assert [m.not_judged for m in modes] == [grey.get(k, "") for k in range(len(modes))]
+    for k, m in enumerate(modes):
+        colour = window.mode_list.item(k + 1).foreground().color()
+        assert (colour.red(), colour.green(), colour.blue()) == ((140, 140, 140) if m.not_judged else (0, 0, 0)) \
+            or not m.not_judged, (k, colour.name())
+    below = replace(modes[0], not_judged="below the noise floor: not judged")
+    assert below.label().endswith("(below the noise floor: not judged)") and "MAC" in below.label()
+
+
 def test_magnification_slider_grows_the_motion_in_proportion(data, window):
     t = _tip_time(data)
     window.set_state(structure_only=True, show_cameras=False, show_sensors=False, time_s=data.scene.times_s[0])

@@ -158,7 +158,7 @@ class ViewerWindow:
         self.timer.setInterval(TICK_MS)
         self.timer.timeout.connect(self._tick)
         self.window.resize(1500, 950)
-        self.threads = best_threads(data, self.state) if data.scene is not None else 1
+        self.threads: int | None = None     # the renderer's threads, measured when playback first starts
         self._sync_controls()
         self.refresh()
 
@@ -200,13 +200,15 @@ class ViewerWindow:
 
     def _build_motion_controls(self, panel) -> None:
         """What moves (the measured motion, a mode or an ODS line), the time and its playback."""
-        from PySide6 import QtCore, QtWidgets
+        from PySide6 import QtCore, QtGui, QtWidgets
 
         self.mode_list = QtWidgets.QListWidget()
         self.mode_list.addItem("measured motion" if self.data.scene is not None
                                else "measured motion (no reconstruction)")
         for m in self.data.modes:
             self.mode_list.addItem(m.label())
+            if m.not_judged:           # grey, as in the report: its shape is drawn, not judged
+                self.mode_list.item(self.mode_list.count() - 1).setForeground(QtGui.QColor(140, 140, 140))
         self.mode_list.currentRowChanged.connect(self._on_mode_row)
         panel.addWidget(QtWidgets.QLabel("what moves"))
         panel.addWidget(self.mode_list, 2)
@@ -447,6 +449,8 @@ class ViewerWindow:
         self.set_state(box_m=(lo, hi))
 
     def toggle_play(self) -> None:
+        if self.threads is None:        # playback renders many frames: worth a few to pick the faster threads
+            self.threads = best_threads(self.data, self.state) if self.data.scene is not None else 1
         self._playing = not self._playing
         self.play_button.setText("pause" if self._playing else "play")
         self._last_tick = time.perf_counter()

@@ -38,9 +38,8 @@ def load_viewer(capture: Capture | str, *, need_analysis: bool = True) -> Viewer
     scene = None
     if scene_data is not None:
         scene = _scene(capture, scene_data, doc)
-        # the background moves with no mode: its shapes are noise, and the analysis keeps them out of its own
-        modes = tuple(replace(m, gaussians=None if g is None else g * scene.structure[:, None])
-                      for m, g in zip(modes, _mode_shapes_on(results, modes, scene)))
+        # each mode's shape on the Gaussians when first asked for (`Mode.gaussians`)
+        modes = tuple(replace(m, shape_on_gaussians=_mode_shape_on(results, m, scene)) for m in modes)
     if scene is not None and scene.structure.any():
         pts = scene.means_m[scene.structure]
     elif sensors:      # the sensors and the floor under them (the view without a reconstruction shows both)
@@ -165,7 +164,9 @@ def _modes(doc: AnalysisDocument | None, results, sensors: tuple[SensorInfo, ...
                                      sensors)])
         return replace(mode, sensors_accel=at, sensors_video=at_video)
 
-    out = [at_sensors(Mode(k + 1, m.freq_hz, m.damping, macs.get(k, float("nan")))) for k, m in enumerate(doc.modes)]
+    grey = doc.not_judged()
+    out = [at_sensors(Mode(k + 1, m.freq_hz, m.damping, macs.get(k, float("nan")), not_judged=grey.get(k, "")))
+           for k, m in enumerate(doc.modes)]
     # the ODS lines (the modal frequencies by default, or those asked for with `odsplat analyze --ods F`)
     out += [at_sensors(Mode(k + 1, line.freq_hz, 0.0, line.mac, kind="ods")) for k, line in enumerate(doc.ods)]
     if out and results is None:
@@ -188,25 +189,25 @@ def _interpolate(points_m: np.ndarray, values: np.ndarray, at_m: np.ndarray, k: 
     return out
 
 
-def _mode_shapes_on(results, modes: tuple[Mode, ...], scene: Scene) -> list[np.ndarray | None]:
-    """Each mode's video shape (m/N) on every Gaussian: the analysis's surface residues, inverse-distance
-    interpolated from the 8 nearest surface points; zero further than 3 point spacings from any (the background
-    the analysis left out of its shapes)."""
+def _mode_shape_on(results, mode: Mode, scene: Scene):
+    """What computes the mode's video shape (m/N) on every Gaussian, or None without one: the analysis's surface
+    residues, inverse-distance interpolated from the 8 nearest surface points; zero further than 3 point spacings
+    from any, and on the background (it moves with no mode: its shapes are noise, and the analysis keeps them out of
+    its own)."""
     if results is None or results.geometry is None:
-        return [None] * len(modes)
-    shapes = {s.name: s for s in results.shapes}
-    node = {int(i): k for k, i in enumerate(results.geometry.node_ids)}
-    out: list[np.ndarray | None] = []
-    for m in modes:
-        vid = shapes.get(m.shape_names()[1])
-        if vid is None:
-            out.append(None)
-            continue
+        return None
+    vid = next((s for s in results.shapes if s.name == mode.shape_names()[1]), None)
+    if vid is None:
+        return None
+
+    def shape() -> np.ndarray:
+        node = {int(i): k for k, i in enumerate(results.geometry.node_ids)}
         pts = results.geometry.coords_m[[node[int(i)] for i in vid.node_ids]]
         spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else 1.0
-        out.append(_interpolate(pts, vid.values, scene.means_m.astype(float), SHAPE_NEIGHBOURS,
-                                3 * spacing).astype(np.complex64))
-    return out
+        g = _interpolate(pts, vid.values, scene.means_m.astype(float), SHAPE_NEIGHBOURS, 3 * spacing)
+        return (g * scene.structure[:, None]).astype(np.complex64)
+
+    return shape
 
 
 def _frfs(results, sensors):

@@ -3,8 +3,10 @@ shown (`ViewState`) and the one renderer from the second to the first (`render_v
 exporter, the tests and the bench call. The drawing over the rendered view is `draw.py`'s."""
 from __future__ import annotations
 
+import functools
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -43,8 +45,16 @@ class Mode:
     mac: float = float("nan")        # video against accelerometers
     sensors_accel: np.ndarray | None = None   # (S,) complex m/N along each sensor's direction
     sensors_video: np.ndarray | None = None   # (S,) complex m/N, the video's shape at the sensors
-    gaussians: np.ndarray | None = None       # (N, 3) complex m/N
     kind: str = "mode"               # or "ods": an ODS line, the receptance at freq_hz (m/N) of every point
+    not_judged: str = ""             # why the video's verdict did not judge it (below the noise floor, ...), or ""
+    # its shape on every Gaussian, computed the first time it is asked for (`gaussians`): the window's first frame
+    # needs none of them, and each is an interpolation over every Gaussian
+    shape_on_gaussians: Callable[[], np.ndarray | None] | None = field(default=None, compare=False, repr=False)
+
+    @functools.cached_property
+    def gaussians(self) -> np.ndarray | None:
+        """(N, 3) complex m/N on every Gaussian, None without a video shape."""
+        return None if self.shape_on_gaussians is None else self.shape_on_gaussians()
 
     def title(self) -> str:
         return f"mode {self.number}" if self.kind == "mode" else f"ODS line {self.number} ({self.freq_hz:.2f} Hz)"
@@ -53,7 +63,8 @@ class Mode:
         mac = "" if not math.isfinite(self.mac) else f", MAC {self.mac:.3f}"
         if self.kind == "ods":
             return f"ODS line {self.number}: {self.freq_hz:.2f} Hz (1 N harmonic){mac}"
-        return f"mode {self.number}: {self.freq_hz:.2f} Hz, {100 * self.damping:.2f} %{mac}"
+        text = f"mode {self.number}: {self.freq_hz:.2f} Hz, {100 * self.damping:.2f} %{mac}"
+        return f"{text} ({self.not_judged})" if self.not_judged else text
 
     def shape_names(self) -> tuple[str, str]:
         """Its shapes' names in results.h5: (accelerometers', video's)."""
