@@ -8,9 +8,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.patches import Rectangle
 
 from odsplat.spine.atomic import atomic_open
 from odsplat.spine.errors import InputError
@@ -20,6 +17,8 @@ from .correlation import mac
 from .shape3d import write_shapes
 
 if TYPE_CHECKING:
+    from matplotlib.figure import Figure
+
     from .correlation import Correlation
     from .ema import ModalFit, StabilisationChart
     from .frf import FRFResult
@@ -39,9 +38,20 @@ _STATUS_STYLE = {                     # stabilisation chart: (marker, colour, la
 
 
 def _figure(w_in: float, h_in: float) -> Figure:
+    # matplotlib is imported when a figure is drawn: the viewer and the command line import the analysis without
+    # drawing (a third of a second)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(w_in, h_in), dpi=DPI, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
+
+
+def _rectangle(*args, **kwargs):
+    from matplotlib.patches import Rectangle
+
+    return Rectangle(*args, **kwargs)
 
 
 def _positive(a: np.ndarray) -> np.ndarray:
@@ -180,7 +190,7 @@ def plot_mac(correlation_or_mac_matrix: Correlation | np.ndarray, labels_a: Sequ
             ax.text(j, i, "-" if not np.isfinite(v) else f"{v:.2f}", ha="center", va="center", fontsize=9,
                     color="k" if np.isfinite(v) and v > 0.6 else "w")
     for i, j in getattr(corr, "pairs", ()):
-        ax.add_patch(Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, ec="r", lw=1.5))
+        ax.add_patch(_rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, ec="r", lw=1.5))
     ax.set_xticks(range(nb), lb[:nb], rotation=45 if nb > 4 else 0, ha="right" if nb > 4 else "center")
     ax.set_yticks(range(na), la[:na])
     ax.set_title(title)
