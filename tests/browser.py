@@ -18,6 +18,20 @@ def chromium() -> str | None:
     return next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome")) if p), None)
 
 
+def page_title(page: Path, folder: Path, *flags: str, budget_ms: int = 8000,
+               timeout_s: float = 120) -> tuple[str | None, subprocess.CompletedProcess]:
+    """The title headless Chromium leaves on `page` once its virtual time (`budget_ms`) has run, with `flags` beside
+    the usual ones and its profile in `folder` (None where it dumped no page), and the run itself."""
+    cmd = [chromium(), "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run", *flags,
+           f"--user-data-dir={folder / 'profile'}", f"--virtual-time-budget={budget_ms}", "--dump-dom", page.as_uri()]
+    try:
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"headless Chromium did not finish in {timeout_s:g} s")
+    title = re.search(r"<title>(.*?)</title>", run.stdout, re.S)
+    return (None if title is None else title.group(1).replace("&quot;", '"').replace("&amp;", "&")), run
+
+
 def section_order(html: str) -> list[str]:
     """The ids of the page's top-level sections, in the order they come."""
     return re.findall(r'<section id="([a-z0-9-]+)"', html)
@@ -47,18 +61,11 @@ def first_screen(page: Path, folder: Path, ids: tuple[str, ...], size: tuple[int
     probe = folder / "probe.html"
     html = page.read_text()
     probe.write_text(html.replace("</body>", _PROBE.format(ids=json.dumps(list(ids))) + "</body>"))
-    cmd = [chromium(), "--headless=new", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
-           "--no-first-run", "--enable-logging=stderr", "--host-resolver-rules=MAP * ~NOTFOUND",
-           f"--user-data-dir={folder / 'profile'}",
-           f"--window-size={size[0]},{size[1]}", "--virtual-time-budget=8000", "--dump-dom", probe.as_uri()]
-    try:
-        run = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    except subprocess.TimeoutExpired:
-        pytest.fail("headless Chromium did not finish in 120 s")
-    title = re.search(r"<title>PROBE (.*?)</title>", run.stdout, re.S)
-    if title is None:
+    title, run = page_title(probe, folder, "--enable-unsafe-swiftshader", "--enable-logging=stderr",
+                            "--host-resolver-rules=MAP * ~NOTFOUND", f"--window-size={size[0]},{size[1]}")
+    if title is None or not title.startswith("PROBE "):
         pytest.fail(f"the page said nothing (exit {run.returncode}): {run.stderr[-1500:]}")
-    out = json.loads(title.group(1).replace("&quot;", '"').replace("&amp;", "&"))
+    out = json.loads(title[len("PROBE "):])
     out["requests"] = [u for u in out["requests"] if not u.startswith(("data:", "blob:"))]
     # what the page logged, less the browser's performance advice on reading pixels back (plotly's WebGL picking
     # does, and the software GL of a headless run says it stalls)
@@ -93,14 +100,7 @@ def video_durations(videos: list[Path], folder: Path) -> dict:
                      for p in videos)
     page = folder / "videos.html"
     page.write_text(_VIDEOS.format(videos=tags))
-    cmd = [chromium(), "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-           "--allow-file-access-from-files", f"--user-data-dir={folder / 'profile'}", "--virtual-time-budget=15000",
-           "--dump-dom", page.as_uri()]
-    try:
-        run = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
-    except subprocess.TimeoutExpired:
-        pytest.fail("headless Chromium did not finish in 120 s")
-    title = re.search(r"<title>VIDEOS (.*?)</title>", run.stdout, re.S)
-    if title is None:
+    title, run = page_title(page, folder, "--allow-file-access-from-files", budget_ms=15000)
+    if title is None or not title.startswith("VIDEOS "):
         pytest.fail(f"the page said nothing of the videos (exit {run.returncode}): {run.stderr[-1500:]}")
-    return json.loads(title.group(1).replace("&quot;", '"').replace("&amp;", "&"))
+    return json.loads(title[len("VIDEOS "):])

@@ -3,9 +3,6 @@ frames, size and rate), and where Chromium is installed, headless Chromium plays
 files OpenCV wrote before failed there with DEMUXER_ERROR_NO_SUPPORTED_STREAMS, MediaError 4)."""
 from __future__ import annotations
 
-import re
-import shutil
-import subprocess
 from fractions import Fraction
 from pathlib import Path
 
@@ -15,6 +12,8 @@ import pytest
 
 from odsplat.spine.errors import InputError
 from odsplat.spine.mp4 import Mp4Writer, codec, count_frames, read_comment, write_mp4
+
+from .browser import chromium, page_title
 
 
 def _frames(n: int, height: int, width: int, rgb: bool = True) -> list[np.ndarray]:
@@ -98,7 +97,7 @@ v.addEventListener("timeupdate", () => {{
 
 
 def _chromium() -> str | None:
-    return next((p for p in map(shutil.which, ("chromium", "chromium-browser", "google-chrome")) if p), None)
+    return chromium()
 
 
 @pytest.mark.skipif(_chromium() is None, reason="no chromium, chromium-browser or google-chrome on PATH: the "
@@ -108,15 +107,9 @@ def chromium_plays(video: Path, folder: Path) -> str:
     "ERROR code message", ...), or why it said nothing. Only where `_chromium()` finds one."""
     page = folder / "play.html"
     page.write_text(_PAGE.format(src=video.resolve().as_uri()))
-    cmd = [_chromium(), "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run",
-           "--autoplay-policy=no-user-gesture-required", "--allow-file-access-from-files",
-           f"--user-data-dir={folder / 'profile'}", "--virtual-time-budget=10000", "--dump-dom", page.as_uri()]
-    try:
-        run = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
-    except subprocess.TimeoutExpired:
-        pytest.fail("headless Chromium did not finish in 60 s")
-    title = re.search(r"<title>(.*?)</title>", run.stdout, re.S)
-    return title.group(1) if title else f"no page dumped (exit {run.returncode}): {run.stderr[-1500:]}"
+    title, run = page_title(page, folder, "--autoplay-policy=no-user-gesture-required",
+                            "--allow-file-access-from-files", budget_ms=10000, timeout_s=60)
+    return title if title is not None else f"no page dumped (exit {run.returncode}): {run.stderr[-1500:]}"
 
 
 def test_headless_chromium_plays_the_mp4(tmp_path):
@@ -133,7 +126,7 @@ def test_every_mp4_the_pipeline_writes_plays_in_chromium(piped_original, tmp_pat
 
     from odsplat.app.cli import main
 
-    from .browser import chromium, video_durations
+    from .browser import video_durations
     from .conftest import piped_copy
 
     cap = piped_copy(piped_original, tmp_path / "copy" / "cap")
