@@ -112,8 +112,7 @@ class BelowNoiseFloor:
 
     @property
     def text(self) -> str:
-        shape = f"{'complex ' if self.real else ''}shape"
-        half = " (its real mode keeps half that noise)" if self.real else ""
+        half = " (a little more once its shape is taken as a real mode)" if self.real else ""
         if self.full_field_mac is not None:
             return (f"mode {self.mode} ({self.freq_hz:.1f} Hz): above the video's noise floor at the sensors "
                     f"({length_text(self.amplitude_m)} against {length_text(self.floor_m)}), but over the whole "
@@ -121,7 +120,7 @@ class BelowNoiseFloor:
                     f"{self.full_field_mac:.2f}, too little to judge (MAC and scale not judged)")
         return (f"mode {self.mode} ({self.freq_hz:.1f} Hz): below the video's noise floor "
                 f"({length_text(self.amplitude_m)} against {length_text(self.floor_m)} at the sensors): the noise "
-                f"alone allows its {shape} a MAC of {self.expected_mac:.2f}{half}, too little to judge (MAC and "
+                f"alone allows its shape a MAC of {self.expected_mac:.2f}{half}, too little to judge (MAC and "
                 "scale not judged)")
 
 

@@ -29,8 +29,9 @@ log = logging.getLogger(__name__)
 def _reason(flags: tuple[str, ...], notes: str) -> str:
     """A take's QC flags and notes as words: "tags not visible (1 floor AprilTag(s) visible, 2 needed)"."""
     words = ", ".join(f.replace("_", " ") for f in flags)
-    if notes:
-        return f"{words} ({notes})" if words else notes
+    if notes:       # the notes say it in full; the flags only where the notes do not name them
+        said = all(f.replace("_", " ") in notes.lower() for f in flags)
+        return notes if said or not words else f"{words} ({notes})"
     return words or "rejected (no reason recorded)"
 
 
