@@ -151,12 +151,6 @@ def _hits(doc: AnalysisDocument) -> dict:
             "rows": rows}
 
 
-def _modes(doc: AnalysisDocument) -> dict:
-    return {"band": [_num(doc.band_hz[0], ".0f"), _num(doc.band_hz[1], ".0f")],
-            "rows": [[str(k + 1), _num(m.freq_hz, ".2f"), _num(m.damping, ".2f", 100)]
-                     for k, m in enumerate(doc.modes)]}
-
-
 def _background(v: VideoSection) -> dict | None:
     """The points left out of the shapes, and how much they move."""
     if not v.n_background_points:
@@ -562,7 +556,7 @@ def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict |
     return _TEMPLATES.get_template("report.html").render(
         title=doc.capture or title, created=doc.created_utc or "(no date)", n_sensors=len(doc.sensors),
         n_averages=str(doc.n_averages), summary=summary, notes=list(doc.notes), takes=takes_part(doc, takes),
-        frf=frf, shapes=shapes, render=render, hits=_hits(doc), modes=_modes(doc), video=_video(doc),
+        frf=frf, shapes=shapes, render=render, hits=_hits(doc), video=_video(doc),
         noise=noise, sensor_view=_sensor_view(doc.sensor_view), correlation=_correlation(doc),
         figures=[f for f in figures if f["key"] != "frf"], settings=doc.settings_text() if doc.settings else None)
 
