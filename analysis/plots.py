@@ -48,6 +48,22 @@ def _figure(w_in: float, h_in: float) -> Figure:
     return fig
 
 
+def _sensor_labels(sensors, apart_m: float) -> list[tuple[np.ndarray, str]]:
+    """One label per place: the sensors within apart_m of each other (a triaxial block's channels) named together,
+    so that their names do not print over one another."""
+    out: list[tuple[np.ndarray, list[str]]] = []
+    for s in sensors:
+        if s.position_m is None:
+            continue
+        p = np.asarray(s.position_m, float)
+        near = next((item for item in out if np.linalg.norm(item[0] - p) <= apart_m), None)
+        if near is None:
+            out.append((p, [s.name]))
+        else:
+            near[1].append(s.name)
+    return [(p, ", ".join(names)) for p, names in out]
+
+
 def _rectangle(*args, **kwargs):
     from matplotlib.patches import Rectangle
 
@@ -257,8 +273,8 @@ def plot_ods(result: AnalysisResult, line_index: int) -> Figure:
             vec = dirs * (scale * (shape * rot).real)[:, None]
             vec = np.where(np.isfinite(vec), vec, 0.0)
             ax.quiver(*pos.T, *vec.T, color=colour, lw=2, arrow_length_ratio=0.2, label=label, zorder=5)
-    for s in result.sensors:
-        ax.text(*s.position_m, f" {s.name}", fontsize=7, zorder=6)
+    for where, names in _sensor_labels(result.sensors, 0.01 * size):
+        ax.text(*where, f" {names}", fontsize=7, zorder=6)
     centre = np.mean([every.min(axis=0), every.max(axis=0)], axis=0) if len(every) else np.zeros(3)
     half = 0.5 * size * (1 + 2 * ODS_SCALE) if len(every) > 1 else 0.5
     for setter, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):

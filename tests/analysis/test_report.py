@@ -248,3 +248,17 @@ def test_a_camera_pole_off_every_mode_is_said_to_be_none_and_named_near_the_stro
     assert "no accelerometer mode" not in rows[0] and "no accelerometer mode" not in rows[2]
     assert "no accelerometer mode within 1 %; near 2 x mode 1 (47.0 Hz)" in rows[1], rows[1]
     assert "no accelerometer mode within 1 %" in rows[3] and "; near" not in rows[3]
+
+
+def test_sensors_at_one_place_are_named_in_one_label():
+    """A triaxial block's channels sit within millimetres: their names share one label in the ODS figures, instead
+    of printing over one another."""
+    from odsplat.analysis import Sensor
+    from odsplat.analysis.plots import _sensor_labels
+
+    tip = np.array([0.5, 0.0, 0.6])
+    sensors = [Sensor("tip_z", tip, np.array([0, 0, 1.0])), Sensor("tip_y", tip + [0, 0.002, 0], np.array([0, 1, 0.0])),
+               Sensor("col_x", np.array([0, 0, 0.3]), np.array([1, 0, 0.0])), Sensor("unplaced")]
+    labels = _sensor_labels(sensors, apart_m=0.009)
+    assert [names for _, names in labels] == ["tip_z, tip_y", "col_x"]
+    assert np.array_equal(labels[0][0], tip)
