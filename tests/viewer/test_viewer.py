@@ -69,6 +69,24 @@ def test_the_structure_mask_is_the_analysis_rule_and_matches_the_truth(data, cap
     assert "above the floor" in data.scene.structure_rule
 
 
+def test_a_clump_of_gaussians_apart_from_the_structure_is_hidden_and_the_structure_is_not():
+    """Structure only: a fit's stray clump beside the structure (20 Gaussians 5 cm off a 3000-point column) is
+    hidden, as the analysis's rule hides one isolated point; the column, whole, and what the rule already left out
+    stay as they were."""
+    from odsplat.app.viewer.load import without_floaters
+
+    rng = np.random.default_rng(2)
+    column = np.column_stack([rng.uniform(-0.02, 0.02, 3000), rng.uniform(-0.02, 0.02, 3000),
+                              rng.uniform(0.0, 0.6, 3000)])
+    clump = rng.normal([0.1, 0.0, 0.3], 0.003, (20, 3))
+    floor = np.column_stack([rng.uniform(-0.3, 0.3, 200), rng.uniform(-0.3, 0.3, 200), np.zeros(200)])
+    points = np.concatenate([column, clump, floor])
+    keep = np.r_[np.ones(3020, bool), np.zeros(200, bool)]
+    out, hidden = without_floaters(points, keep)
+    assert hidden == 20 and out[:3000].all() and not out[3000:].any()
+    assert without_floaters(column, np.ones(3000, bool))[1] == 0
+
+
 def test_modes_the_analysis_did_not_judge_are_grey_and_say_why(data, window, captures):
     """As in the report: the analysis's list of modes it did not judge (AnalysisDocument.not_judged) marks the same
     modes in the viewer's list, grey, with why in their label; a mode marked so carries its reason (a hand-set one
