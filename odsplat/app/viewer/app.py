@@ -467,15 +467,14 @@ class ViewerWindow:
             self.set_time(self.state.time_s + wall_s / (MODE_CYCLE_S * max(f, 1e-9)))
             return
         t = self.state.time_s + 1e-3 * self.speed_box.value() * wall_s
-        if self.state.mode is None:
-            t0, t1 = self.data.time_range_s
-            if t > t1:
-                if self.loop_box.isChecked():
-                    t = t0 + (t - t0) % max(t1 - t0, 1e-12)
-                else:
-                    t = t1
-                    if self._playing:
-                        self.toggle_play()
+        t0, t1 = self.data.time_range_s
+        if t > t1:
+            if self.loop_box.isChecked():
+                t = t0 + (t - t0) % max(t1 - t0, 1e-12)
+            else:
+                t = t1
+                if self._playing:
+                    self.toggle_play()
         self.set_time(t)
 
     def _tick(self) -> None:

@@ -43,35 +43,55 @@ def frame_states(data: ViewerData, state: ViewState, n_frames: int, *, turntable
 def export_video(data: ViewerData, state: ViewState, path: str | Path, *, n_frames: int = 48, fps: float = 24.0,
                  turntable: bool = False, progress: bool = True) -> Path:
     """Writes the view as mp4 or GIF (by the suffix) of n_frames at fps; returns the path."""
-    path = Path(path)
-    if path.suffix.lower() not in FORMATS:
-        raise InputError(path, f"expected an .mp4 or .gif file name, got {path.suffix or 'no suffix'}")
-    if not path.parent.exists():
-        raise InputError(path.parent, "no such folder")
+    path = check_video_path(path)
     states = frame_states(data, state, n_frames, turntable=turntable)
     frames = (render_view(data, s) for s in tqdm(states, desc="export", unit="frame", disable=not progress))
     what = data.modes[state.mode].label() if state.mode is not None else "measured motion"
-    comment = f"odsplat view {data.name}: {what}, alpha {state.alpha:g}, {n_frames} frames"
+    return write_frames(path, frames, fps, f"odsplat view {data.name}: {what}, alpha {state.alpha:g}, "
+                                          f"{n_frames} frames")
+
+
+def check_video_path(path: str | Path) -> Path:
+    """An export's file name: .mp4 or .gif, in a folder that exists (one line naming it where not)."""
+    path = Path(path)
+    if path.suffix.lower() not in FORMATS:
+        raise InputError(path, f"expected an .mp4 or .gif file name, got {path.suffix or 'no suffix'}")
+    return _in_folder(path)
+
+
+def write_frames(path: Path, frames, fps: float, comment: str) -> Path:
+    """(H, W, 3) uint8 frames as an mp4 (H.264, odsplat.spine.mp4) or a GIF by `path`'s suffix (check_video_path),
+    written whole or not at all; returns the path."""
     if path.suffix.lower() == ".mp4":
         info = write_mp4(path, frames, fps, comment=comment)
-        log.info("%s: %d frames", info.path, n_frames)
+        log.info("%s: %d frames", info.path, info.n_frames)
         return info.path
     images = [Image.fromarray(f) for f in frames]
     tmp = path.with_name(path.name + ".partial")
     images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0,
                    optimize=False, comment=comment.encode())
     tmp.replace(path)
-    log.info("%s: %d frames", path, n_frames)
+    log.info("%s: %d frames", path, len(images))
+    return path
+
+
+def write_png(path: str | Path, image: np.ndarray) -> Path:
+    """An (H, W, 3) uint8 image as a PNG in a folder that exists."""
+    path = _in_folder(Path(path))
+    Image.fromarray(image).save(path, format="PNG")
+    return path
+
+
+def _in_folder(path: Path) -> Path:
+    if not path.parent.exists():
+        raise InputError(path.parent, "no such folder")
     return path
 
 
 def save_screenshot(data: ViewerData, state: ViewState, path: str | Path) -> Path:
-    """The current view as a PNG."""
-    path = Path(path)
-    if not path.parent.exists():
-        raise InputError(path.parent, "no such folder")
-    Image.fromarray(render_view(data, state)).save(path, format="PNG")
-    return path
+    """The current view as a PNG (its folder checked before the render, which is the slow part)."""
+    return write_png(_in_folder(Path(path)), render_view(data, state))
 
 
-__all__ = ["FORMATS", "export_video", "frame_states", "save_screenshot"]
+__all__ = ["FORMATS", "check_video_path", "export_video", "frame_states", "save_screenshot", "write_frames",
+           "write_png"]

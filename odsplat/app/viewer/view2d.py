@@ -9,13 +9,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from PIL import Image
 
 from odsplat.analysis import read_video2d
 from odsplat.spine.errors import InputError
-from odsplat.spine.mp4 import display_range, to_8bit, write_mp4
+from odsplat.spine.mp4 import display_range, to_8bit
 from odsplat.spine.store import Capture
 
+from .export import check_video_path, write_frames, write_png
 from .model import peak_phase
 
 log = logging.getLogger(__name__)
@@ -77,29 +77,16 @@ def _mode(view: View2D, mode: int | None) -> int:
 
 
 def screenshot_2d(view: View2D, path: str | Path, mode: int | None = None) -> Path:
-    path = Path(path)
-    if not path.parent.exists():
-        raise InputError(path.parent, "no such folder")
-    Image.fromarray(draw(view, _mode(view, mode))).save(path, format="PNG")
-    return path
+    return write_png(path, draw(view, _mode(view, mode)))
 
 
 def export_2d(view: View2D, path: str | Path, mode: int | None = None, n_frames: int = 48, fps: float = 24.0) -> Path:
     """One cycle of the mode as an .mp4 (H.264) or .gif."""
-    path = Path(path)
     k = _mode(view, mode)
-    if path.suffix.lower() not in (".mp4", ".gif"):
-        raise InputError(path, "expected an .mp4 or .gif file name")
-    if not path.parent.exists():
-        raise InputError(path.parent, "no such folder")
+    path = check_video_path(path)
     t0 = peak_phase(view.shapes[k])
     frames = [draw(view, k, t0 + 2 * np.pi * i / n_frames) for i in range(n_frames)]
-    if path.suffix.lower() == ".gif":
-        Image.fromarray(frames[0]).save(path, save_all=True, append_images=[Image.fromarray(f) for f in frames[1:]],
-                                        duration=int(round(1000 / fps)), loop=0)
-    else:
-        write_mp4(path, frames, fps, comment=f"odsplat view {view.name}: {view.labels[k]}")
-    return path
+    return write_frames(path, frames, fps, f"odsplat view {view.name}: {view.labels[k]}")
 
 
 __all__ = ["View2D", "draw", "export_2d", "load_view2d", "screenshot_2d"]
