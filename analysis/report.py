@@ -117,15 +117,15 @@ def _rests_on(doc: AnalysisDocument) -> str | None:
         parts.append(f"the video's shapes at {doc.video.n_surface_points} surface points")
     auto = doc.correlation.reference_automac if doc.correlation is not None else None
     fitted = doc.video.modes_fitted if doc.video is not None else ()
-    if auto is not None and len(auto) > 1:
-        a = np.array([[_finite(x) if _finite(x) is not None else np.nan for x in row] for row in auto], float)
-        if a.ndim == 2 and a.shape[0] == a.shape[1]:
-            a[np.diag_indices(len(a))] = np.nan
-            if np.isfinite(a).any():
-                i, j = np.unravel_index(np.nanargmax(a), a.shape)
-                parts.append(f"the accelerometers' AutoMAC at most {a[i, j]:.2f} off the diagonal (modes "
-                             f"{_fitted_mode(fitted, int(i)) + 1} and {_fitted_mode(fitted, int(j)) + 1}; above "
-                             f"{DISCRIMINATION:g} the sensors cannot tell two modes apart)")
+    n = len(auto) if auto is not None else 0
+    if n > 1 and all(len(row) == n for row in auto):     # square, as the analysis writes it (a hand edit may not be)
+        a = np.array(auto, float)
+        a[~np.isfinite(a) | np.eye(n, dtype=bool)] = np.nan
+        if np.isfinite(a).any():
+            i, j = np.unravel_index(np.nanargmax(a), a.shape)
+            parts.append(f"the accelerometers' AutoMAC at most {a[i, j]:.2f} off the diagonal (modes "
+                         f"{_fitted_mode(fitted, int(i)) + 1} and {_fitted_mode(fitted, int(j)) + 1}; above "
+                         f"{DISCRIMINATION:g} the sensors cannot tell two modes apart)")
     return "Rests on " + ", ".join(parts) + "."
 
 
@@ -540,15 +540,13 @@ def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict |
     capture for the summary (capture_setup); `render`: the render's frames (`_render`), where there are any;
     `takes`: the capture's takes and their QC (report_parts.capture_takes), for the takes left out."""
     summary = _summary(doc, setup or {})
-    grey = {int(r["mode"]): r["grey"] for r in summary["modes"]}
-    status = {int(r["mode"]): r["status"]["status"] for r in summary["modes"] if r["status"] is not None}
-    shapes = shapes_part(doc, folder, grey, status)
+    shapes = shapes_part(doc, folder)
     gifs = {a["mode"]: a for a in _animations(doc, folder)}
     for md in shapes["modes"]:                 # a GIF only where the page has no 3D shape of the mode
         md["gif"] = None if md["shape"] else gifs.get(md["mode"])
     figures = _inline(doc, folder, ".png")
     for f in figures:
-        f["caption"] = _caption(doc, f["key"])
+        f["caption"] = caption(doc, f["key"])
     frf = next((f for f in figures if f["key"] == "frf"), None)
     pairs = doc.correlation.pairs if doc.correlation is not None else ()
     fitted = doc.video.modes_fitted if doc.video is not None else ()
@@ -559,16 +557,6 @@ def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict |
         frf=frf, shapes=shapes, render=render, hits=_hits(doc), video=_video(doc),
         noise=noise, sensor_view=_sensor_view(doc.sensor_view), correlation=_correlation(doc),
         figures=[f for f in figures if f["key"] != "frf"], settings=doc.settings_text() if doc.settings else None)
-
-
-def _caption(doc: AnalysisDocument, key: str) -> str:
-    """A figure's caption: the ODS lines' with their frequency, the rest by kind (report_parts.caption)."""
-    if key.startswith("ods_") and key[4:].isdigit():
-        i = _index(int(key[4:]) - 1, len(doc.ods))
-        if i is not None:
-            return f"Operational deflection shape at {_num(doc.ods[i].freq_hz, '.2f')} Hz: the video's against the " \
-                   f"accelerometers' (MAC {_num(doc.ods[i].mac, '.3f')})."
-    return caption(key)
 
 
 # ---------------------------------------------------------------------------------------------- the 2D path's page

@@ -18,7 +18,7 @@ from odsplat.spine.qcfile import QCFile
 from odsplat.spine.store import Capture
 
 from .document import AnalysisDocument, PairEntry
-from .pagekit import finite, num, own_file, read_own
+from .pagekit import finite, index_in, num, own_file, read_own
 from .shape3d import parse_shapes
 
 log = logging.getLogger(__name__)
@@ -119,28 +119,31 @@ def _script() -> Markup:
     return Markup(Path(__file__).with_name("templates").joinpath("shapes3d.js").read_text(encoding="utf-8"))
 
 
-def shapes_part(doc: AnalysisDocument, folder: Path, grey: dict[int, str | None], status: dict[int, str]) -> dict:
-    """Each mode's section: its header, the 3D shape where plots/shapes3d.json has it (the data re-serialised here as
-    JSON for the page's script, "<" escaped), grey with why where it is not judged (`grey`, by mode number)."""
+def shapes_part(doc: AnalysisDocument, folder: Path) -> dict:
+    """Each mode's section: its header and status, the 3D shape where plots/shapes3d.json has it (the data
+    re-serialised here as JSON for the page's script, "<" escaped), grey with why where the verdict did not judge it
+    (`AnalysisDocument.not_judged`)."""
     out = {"data": None, "plotly": None, "script": None, "problem": None, "surface": "", "modes": [],
            "why": "the analysis wrote no 3D shapes (no video surface and no placed sensors, or no plots)"}
     shapes = None
     if doc.files.get("shapes3d"):
         try:
             shapes = _read_shapes(doc, folder)
-        except (ValueError, KeyError, TypeError, OSError, UnicodeDecodeError) as e:
+        except (ValueError, OSError) as e:
             out["problem"] = f"{doc.files['shapes3d']}: {e}; the 3D shapes are left out"
             log.warning("report: %s", out["problem"])
+    grey = doc.not_judged()
+    verdict = doc.correlation.verdict if doc.correlation is not None else None
+    status = {st.mode: st.status for st in verdict.modes} if verdict is not None else {}
     page_modes = []
-    for k, m in enumerate(doc.modes, 1):
-        s = shapes["modes"].get(k) if shapes is not None else None
+    for k, m in enumerate(doc.modes):
+        s = shapes["modes"].get(k + 1) if shapes is not None else None
         why = grey.get(k)
-        row = {"mode": str(k), "freq": num(m.freq_hz, ".2f"), "damping": num(m.damping, ".2f", 100),
-               "status": why or status.get(k, ""), "judged": why is None and (s is None or s["judged"]),
+        row = {"mode": str(k + 1), "freq": num(m.freq_hz, ".2f"), "damping": num(m.damping, ".2f", 100),
+               "status": why or status.get(k + 1, ""), "judged": why is None and (s is None or s["judged"]),
                "shape": s is not None, "index": len(page_modes), "clip": None}
         if s is not None:
-            page_modes.append({"mode": k, "freq": float(m.freq_hz) if finite(m.freq_hz) else 0.0,
-                               "judged": row["judged"], "re": s["re"].tolist(), "im": s["im"].tolist()})
+            page_modes.append({"judged": row["judged"], "re": s["re"].tolist(), "im": s["im"].tolist()})
         out["modes"].append(row)
     if shapes is not None and page_modes:
         data = {"points_m": shapes["points"].tolist(), "faces": shapes["faces"].tolist(),
@@ -171,10 +174,10 @@ def noise_part(doc: AnalysisDocument, pairs: tuple[PairEntry, ...], mode_name) -
         ratio = a / f if a is not None and f else None
         below = bool(p.below_noise_floor)
         width = 0.0 if ratio is None or ratio <= 0 else BAR_EM_PER_DECADE * (math.log10(ratio) + 1)
+        width = min(max(width, 0.2), BAR_MAX_EM)
         rows.append({"mode": mode_name(p), "amplitude": num(a, ".3g"), "floor": num(f, ".3g"),
-                     "ratio": num(ratio, ".2g"), "grey": below,
-                     "width": f"{min(max(width, 0.2), BAR_MAX_EM):.2f}",
-                     "floor_at": f"{BAR_EM_PER_DECADE - min(max(width, 0.2), BAR_MAX_EM):.2f}",
+                     "ratio": num(ratio, ".2g"), "grey": below, "width": f"{width:.2f}",
+                     "floor_at": f"{BAR_EM_PER_DECADE - width:.2f}",
                      "words": ("below its floor: not judged" if below else
                                f"{num(ratio, '.2g')} times its floor" if ratio is not None else "")})
     text = (f"Where nothing moves, the video's surface points still wander by {num(nf.sigma_um, '.3g')} µm "
@@ -199,13 +202,18 @@ _CAPTIONS = {
 }
 
 
-def caption(key: str) -> str:
-    """A figure's caption in words, from its key in analysis.json's files."""
+def caption(doc: AnalysisDocument, key: str) -> str:
+    """A figure's caption in words, from its key in analysis.json's files: an ODS line's with its frequency and
+    MAC, the others by kind."""
     if key in _CAPTIONS:
         return _CAPTIONS[key]
     if key.startswith("ods_"):
-        return f"Operational deflection shape at spectral line {key[4:].lstrip('0') or '0'}: the video and the " \
-               "accelerometers."
+        i = index_in(int(key[4:]) - 1, len(doc.ods)) if key[4:].isdigit() else None
+        if i is not None:
+            return (f"Operational deflection shape at {num(doc.ods[i].freq_hz, '.2f')} Hz: the video's against the "
+                    f"accelerometers' (MAC {num(doc.ods[i].mac, '.3f')}).")
+        return (f"Operational deflection shape at spectral line {key[4:].lstrip('0') or '0'}: the video and the "
+                "accelerometers.")
     return key.replace("_", " ")
 
 

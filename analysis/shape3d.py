@@ -85,10 +85,6 @@ def drop_floaters(points_m: np.ndarray, faces: np.ndarray,
     return keep, kept_faces[(kept_faces >= 0).all(axis=1)]
 
 
-def _even(n: int, most: int) -> np.ndarray:
-    return np.arange(n) if n <= most else np.unique(np.linspace(0, n - 1, most).round().astype(int))
-
-
 def _rounded(x: np.ndarray) -> list:
     """Numbers to DIGITS significant digits (relative to the array's largest), as nested lists for JSON."""
     x = np.asarray(x, float)
@@ -101,15 +97,15 @@ def _rounded(x: np.ndarray) -> list:
 
 def shapes_document(result: AnalysisResult) -> dict | None:
     """What the page draws: {"kind", "schema", "surface": {"points_m", "faces", "lines"}, "modes": [...]}, each
-    mode {"mode", "freq_hz", "damping", "source", "judged", "state", "re", "im"} (its displacement at the points,
-    (N, 3), normalised to a largest amplitude of 1). None where no shape can be drawn."""
-    from .outputs import sensor_lines
+    mode {"mode", "freq_hz", "damping", "source", "judged" (above the video's noise floor), "re", "im"} (its
+    displacement at the points, (N, 3), normalised to a largest amplitude of 1). None where no shape can be drawn."""
+    from .outputs import sensor_lines, surface_subset
 
     m, v = result.modes, result.video
     video_rows = {int(k): r for r, k in enumerate(v.mode_index)} if v is not None and len(v.surface_points_m) else {}
     placed = bool(result.sensors) and all(s.placed for s in result.sensors)
     if video_rows:
-        pick = _even(len(v.surface_points_m), MAX_VERTICES)
+        pick = surface_subset(len(v.surface_points_m), MAX_VERTICES)
         points = np.asarray(v.surface_points_m, float)[pick]
         keep, faces = drop_floaters(points, alpha_faces(points))
         pick, points, lines = pick[keep], points[keep], []
@@ -130,15 +126,14 @@ def shapes_document(result: AnalysisResult) -> dict | None:
             r = video_rows[k]
             shape = np.asarray(v.surface_residues[r], complex)[pick]
             judged = below is None or not bool(below[r])
-            state = "above the video's noise floor" if judged else "below the video's noise floor: not judged"
         else:
             shape = np.asarray(m.shapes[k], complex)[:, None] * dirs
-            judged, state = True, "the accelerometers' shape at their positions"
+            judged = True
         shape = np.nan_to_num(shape)
         peak = float(np.linalg.norm(np.abs(shape), axis=1).max()) if len(shape) else 0.0
         shape = shape / peak if peak > 0 else shape
         modes.append({"mode": k + 1, "freq_hz": float(m.freq_hz[k]), "damping": float(m.damping[k]),
-                      "source": source, "judged": judged, "state": state,
+                      "source": source, "judged": judged,
                       "re": _rounded(shape.real), "im": _rounded(shape.imag)})
     if not modes:
         return None
