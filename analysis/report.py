@@ -534,16 +534,50 @@ def _sensor_view(sv: dict | None) -> dict | None:
             "how": how, "left_out": [(s["name"], s["why"]) for s in sv["left_out"]], "modes": modes}
 
 
+_CLIPS_FOLDER = "derived/mode_clips"
+
+
+def mode_clips(capture: Capture, n_modes: int) -> dict[int, dict]:
+    """Each mode's amplified clip the report stage rendered (derived/mode_clips/, `odsplat.app.report`), inline:
+    {mode number: {"src", "caption"}}, or {"src": None, "caption": why} where one is there but cannot be shown.
+    Only the folder's own files are read (`_own_file`)."""
+    folder = capture.paths.mode_clips_dir
+    out: dict[int, dict] = {}
+    if not folder.is_dir():
+        return out
+    for k in range(1, n_modes + 1):
+        name = capture.paths.mode_clip(k).name
+        own = _own_file(folder, name, _CLIPS_FOLDER, "the report stage")
+        if own == "not found":
+            continue
+        if isinstance(own, Path) and own.stat().st_size > MAX_INLINE_VIDEO_BYTES:
+            own = f"larger than {MAX_INLINE_VIDEO_BYTES // 2**20} MB, not inlined"
+        try:
+            src = _data_uri("video/mp4", _read_own(own)) if isinstance(own, Path) else None
+        except OSError as e:
+            own = f"could not be read ({e.strerror or e})"
+            src = None
+        if src is None:
+            log.warning("report: %s/%s: %s; left out", _CLIPS_FOLDER, name, own)
+        out[k] = {"src": src, "caption": (f"mode {k} on the reconstruction's Gaussians through one cycle, magnified "
+                                          "so that its largest motion is 5 % of the structure's size (the factor "
+                                          "is on the clip)") if src else f"{_CLIPS_FOLDER}/{name}: {own}"}
+    return out
+
+
 def render_report(doc: AnalysisDocument, folder: Path, title: str, setup: dict | None = None,
-                  render: dict | None = None, takes: dict[str, dict] | None = None) -> str:
+                  render: dict | None = None, takes: dict[str, dict] | None = None,
+                  clips: dict[int, dict] | None = None) -> str:
     """The report's HTML from a loaded analysis.json (`folder` holds it and its plots); `setup`: facts of the
     capture for the summary (capture_setup); `render`: the render's frames (`_render`), where there are any;
-    `takes`: the capture's takes and their QC (report_parts.capture_takes), for the takes left out."""
+    `takes`: the capture's takes and their QC (report_parts.capture_takes), for the takes left out; `clips`: each
+    mode's amplified clip (`mode_clips`)."""
     summary = _summary(doc, setup or {})
     shapes = shapes_part(doc, folder)
     gifs = {a["mode"]: a for a in _animations(doc, folder)}
     for md in shapes["modes"]:                 # a GIF only where the page has no 3D shape of the mode
         md["gif"] = None if md["shape"] else gifs.get(md["mode"])
+        md["clip"] = (clips or {}).get(int(md["mode"]))
     figures = _inline(doc, folder, ".png")
     for f in figures:
         f["caption"] = caption(doc, f["key"])
@@ -632,6 +666,7 @@ def write_report(capture: Capture) -> Path:
         return path
     doc = read_analysis(capture)
     atomic_write_text(path, render_report(doc, capture.paths.analysis_dir, capture.root.name, capture_setup(capture),
-                                          _render(capture.paths.render_dir), capture_takes(capture)))
+                                          _render(capture.paths.render_dir), capture_takes(capture),
+                                          mode_clips(capture, len(doc.modes))))
     log.info("report written to %s", path)
     return path

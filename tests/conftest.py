@@ -47,14 +47,14 @@ def pytest_addoption(parser):
 # The files that take longest (a minute or more on two cores), longest first: run first, so that pytest-xdist's
 # workers (a file each, in collection order: pyproject's addopts keep it, `--no-loadscope-reorder`, where xdist would
 # put the files with the most tests first) fill the rest of their time with the short ones instead of ending on one
-# long file while the other worker idles. The pipeline file comes second: while the first worker runs the plate,
-# the other builds the session's piped capture (piped_original), which the files after it wait for.
-LONG_FILES = ("test_fidelity.py", "test_pipeline.py", "analysis/test_run.py", "test_data_safety.py", "test_batch.py",
-              "test_derived_corruption.py", "test_demo.py", "acquisition/test_session.py",
-              "analysis/test_sensorview.py", "test_video2d.py", "reconstruction/test_run.py",
-              "analysis/test_imagepoles.py", "test_memory_flat.py", "reconstruction/test_modal.py",
-              "reconstruction/test_dynamic.py", "test_reproducible.py", "sync/test_sync.py", "processing/test_run.py",
-              "processing/test_video.py", "reconstruction/test_poses.py", "acquisition/test_auto_hammer.py")
+# long file while the other worker idles (the order of a measured run: each file's seconds, setup included).
+LONG_FILES = ("analysis/test_run.py", "test_batch.py", "test_data_safety.py", "test_demo.py",
+              "analysis/test_sensorview.py", "test_video2d.py", "acquisition/test_session.py",
+              "reconstruction/test_run.py", "analysis/test_imagepoles.py", "test_pipeline.py",
+              "test_derived_corruption.py", "test_memory_flat.py", "reconstruction/test_poses.py", "test_fidelity.py",
+              "processing/test_run.py", "reconstruction/test_linear.py", "processing/test_video.py",
+              "sync/test_sync.py", "acquisition/test_auto_hammer.py", "reconstruction/test_modal.py",
+              "test_reproducible.py", "test_mode_clips.py", "reconstruction/test_dynamic.py")
 
 
 _missing = [f for f in LONG_FILES if not (REPO / "tests" / f).is_file()]
@@ -149,6 +149,8 @@ image_poles = false
 crosscheck_views = 0
 triangulate_views = 0
 plots = false
+[report]
+mode_clips = false
 """
 
 

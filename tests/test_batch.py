@@ -39,6 +39,8 @@ image_poles = false
 crosscheck_views = 0
 triangulate_views = 0
 plots = false
+[report]
+mode_clips = false
 """
 # Above the 2000 fps camera's Nyquist: every view's magnifier refuses it, inside magnify's per-view tasks.
 BROKEN = CONFIG.replace("[magnify]\n", "[magnify]\nband_hz = [20, 1500]\n")

@@ -119,9 +119,9 @@ def test_headless_chromium_plays_the_mp4(tmp_path):
 
 
 def test_every_mp4_the_pipeline_writes_plays_in_chromium(piped_original, tmp_path):
-    """magnify's mp4 of the view to watch, export-video's of a raw take, the render's and the viewer's export (the
-    2D path's clips: tests/test_video2d.py) each load into a <video> of one page in headless Chromium, with the
-    duration and size their files hold."""
+    """magnify's mp4 of the view to watch, export-video's of a raw take, the render's, the viewer's export and the
+    report's mode clip (the 2D path's clips: tests/test_video2d.py) each load into a <video> of one page in
+    headless Chromium, with the duration and size their files hold."""
     from click.testing import CliRunner
 
     from odsplat.app.cli import main
@@ -136,10 +136,13 @@ def test_every_mp4_the_pipeline_writes_plays_in_chromium(piped_original, tmp_pat
     take = sorted(p.name.split(".")[0] for p in (cap / "takes").glob("*.h5"))[0]
     for args in (["export-video", str(cap), "--take", take, "-o", str(tmp_path / "raw.mp4")],
                  ["render", str(cap), "--width", "64", "--times", "0:0.006:6", "-o", str(tmp_path / "render")],
-                 ["view", str(cap), "--export", str(tmp_path / "view.mp4"), "--frames", "8"]):
+                 ["view", str(cap), "--export", str(tmp_path / "view.mp4"), "--frames", "8"],
+                 ["report", str(cap), "--clips", "--clip-frames", "8", "--clip-size", "160", "120"]):
         r = runner.invoke(main, args)
         assert r.exit_code == 0, (args, r.output, r.exception)
-    videos += [tmp_path / "raw.mp4", tmp_path / "render" / "render.mp4", tmp_path / "view.mp4"]
+    clips = sorted((cap / "derived" / "mode_clips").glob("*.mp4"))
+    assert clips, "the report stage rendered no mode clip"
+    videos += [tmp_path / "raw.mp4", tmp_path / "render" / "render.mp4", tmp_path / "view.mp4", clips[0]]
     if chromium() is None:
         pytest.skip("no chromium on PATH: the browser check needs one")
     seen = video_durations(videos, tmp_path)

@@ -14,6 +14,7 @@ import pytest
 
 from odsplat.app import config, pipeline, stages
 from odsplat.app.cli import main
+from odsplat.app.report import ReportSettings
 from odsplat.spine.manifest import ChannelInfo, Manifest
 from odsplat.spine.store import Capture
 
@@ -24,7 +25,7 @@ def test_the_configuration_the_graph_and_the_commands_are_the_table():
     names = tuple(s.name for s in stages.TABLE)
     assert names == ("qc", "sync", "magnify", "poses", "reconstruct", "analyze", "report")
     assert config.STAGES == pipeline.STAGES == names and pipeline.GRAPH is stages.TABLE
-    assert tuple(config.settings_types()) == names[:-1] and config.Config.defaults().settings("report") is None
+    assert tuple(config.settings_types()) == names and config.Config.defaults().settings("report") == ReportSettings()
     for st in stages.TABLE:
         assert pipeline.stage(st.name) is st and main.commands[st.name].help == st.doc
         if st.settings_path is not None:

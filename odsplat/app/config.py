@@ -20,7 +20,7 @@ from odsplat.spine.errors import InputError
 from odsplat.spine.manifest import MAX_TOML_DEPTH, from_plain, load_toml, parse_toml_value
 
 CONFIG_NAME = "odsplat.toml"
-_WITH_SETTINGS = tuple(name for name in STAGES if stage_record(name).settings_path is not None)  # the report has none
+_WITH_SETTINGS = tuple(name for name in STAGES if stage_record(name).settings_path is not None)
 MAX_SET_CHARS = 10_000          # one --set: a list of a thousand frequencies fits
 RUN = "run"                     # the section of the run's own settings (budget.py), beside the stages'
 
@@ -53,8 +53,6 @@ class Config:
         return cls()
 
     def settings(self, stage: str) -> Any:
-        if stage == "report":
-            return None
         if stage == RUN:
             return from_plain(RunSettings, self.table.get(RUN, {}), f"{', '.join(self.sources)}: {RUN}")
         if stage not in _WITH_SETTINGS:
@@ -74,6 +72,7 @@ class Config:
     poses = property(lambda self: self.settings("poses"))
     reconstruct = property(lambda self: self.settings("reconstruct"))
     analyze = property(lambda self: self.settings("analyze"))
+    report = property(lambda self: self.settings("report"))
     run = property(lambda self: self.settings(RUN))
 
     def replace(self, stage: str, settings: Any) -> Config:

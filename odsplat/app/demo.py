@@ -323,7 +323,7 @@ def run_demo(out: Path, *, quick: bool = False, shared_data: Path | None = None,
     (sim_root / "odsplat.toml").write_text(demo_settings(scale), encoding="utf-8")
     cap = Capture.open(sim_root)
     config = load_config(cap)
-    done = run_pipeline(cap, config, echo=say)
+    done = run_pipeline(cap, config, echo=say, stop="analyze")     # the report once, after the render (step 4)
     say(done.text())
 
     step(3, "render", f"an orbit render magnified {scale.alpha:g}x in 3D ({scale.orbit}, {scale.n_render} times over "
@@ -331,7 +331,7 @@ def run_demo(out: Path, *, quick: bool = False, shared_data: Path | None = None,
     render = render_orbit(cap, scale)
     say(f"render -> {render}")
 
-    step(4, "report", "the report again, with the render")
+    step(4, "report", "the report, with the render and each mode's amplified clip (derived/mode_clips/)")
     run_stage(cap, "report", config)
     result.captures.append(summarize(cap, f"simulated rig, {scale.n_views} views x {scale.n_frames} frames",
                                      render))

@@ -160,6 +160,11 @@ STAGE_FLAGS: dict[str, tuple[Flag, ...]] = {
         Flag("--plots/--no-plots", "plots"),
         Flag("--report/--no-report", None, default=True, help="Also write derived/analysis/report.html."),
     ),
+    "report": (
+        Flag("--clips/--no-clips", "mode_clips"),
+        Flag("--clip-frames", "clip_frames"),
+        Flag("--clip-size", "clip_size_px", metavar="W H"),
+    ),
 }
 
 # `odsplat render`'s and `odsplat view`'s flags, onto display.RenderSettings and display.ViewSettings.

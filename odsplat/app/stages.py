@@ -20,9 +20,10 @@ from odsplat.spine.errors import InputError
 
 if TYPE_CHECKING:   # the table's import paths, for the tools (the rule above); resolved on use at run time
     from odsplat.acquisition import QCSettings, run_qc  # noqa: F401
-    from odsplat.analysis import AnalyzeSettings, write_report  # noqa: F401
+    from odsplat.analysis import AnalyzeSettings  # noqa: F401
     from odsplat.analysis import run as analysis_run  # noqa: F401
     from odsplat.app.config import Config
+    from odsplat.app.report import ReportSettings, write_report  # noqa: F401
     from odsplat.processing import MagnifySettings  # noqa: F401
     from odsplat.processing import run as processing_run  # noqa: F401
     from odsplat.reconstruction import PoseSettings, ReconstructSettings, run_poses  # noqa: F401
@@ -37,7 +38,7 @@ class Stage:
     """One stage: its settings and entry (by import path), what it reads and writes, and its command's help."""
 
     name: str
-    settings_path: str | None                          # its settings class, "package:Class"; None: the report has none
+    settings_path: str | None                          # its settings class, "package:Class"; None: it has none
     entry_path: str                                    # run(capture, settings) -> result; saves its own outputs
     upstream: Callable[[Config], tuple[str, ...]]      # the stages whose outputs it reads, under this configuration
     outputs: Callable[[Capture, Any], list[Path]]      # the files and folders it writes
@@ -55,7 +56,8 @@ class Stage:
         return None if self.settings_path is None else resolve(self.settings_path)
 
     def entry(self, capture: Capture, settings: Any, **kwargs: Any) -> Any:
-        """Run the stage's entry, imported now. The report's takes no settings; the per-view stages' `executor=`."""
+        """Run the stage's entry, imported now (with no settings where it has none); the per-view stages'
+        `executor=`."""
         run = resolve(self.entry_path)
         return run(capture, **kwargs) if settings is None else run(capture, settings, **kwargs)
 
@@ -117,9 +119,11 @@ TABLE: tuple[Stage, ...] = (
           summary=lambda r: r.text(), geometry=True,
           doc="FRFs, modes, the video's 3D shapes and their correlation for CAPTURE_DIR, into derived/analysis/ "
               "(docs/analysis.md)."),
-    Stage("report", None, "odsplat.analysis:write_report", upstream=lambda c: ("analyze",),
-          outputs=lambda cap, s: [cap.paths.report_html], summary=str,
-          doc="Write derived/analysis/report.html from the last `odsplat analyze` of CAPTURE_DIR."),
+    Stage("report", "odsplat.app.report:ReportSettings", "odsplat.app.report:write_report",
+          upstream=lambda c: ("analyze",), outputs=lambda cap, s: [cap.paths.report_html, cap.paths.mode_clips_dir],
+          summary=str,
+          doc="Write derived/analysis/report.html from the last `odsplat analyze` of CAPTURE_DIR, and each mode's "
+              "amplified clip rendered from the Gaussians (derived/mode_clips/)."),
 )
 STAGES: tuple[str, ...] = tuple(s.name for s in TABLE)
 BY_NAME: dict[str, Stage] = {s.name: s for s in TABLE}

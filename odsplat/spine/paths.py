@@ -157,6 +157,15 @@ class DerivedPaths:
     def report_html(self) -> Path:
         return self._at("analysis", "report.html")
 
+    # -- report ------------------------------------------------------------------------------------------------
+    @property
+    def mode_clips_dir(self) -> Path:
+        """Each mode's amplified clip on the 3D path, written by the report stage (`odsplat.app.report`)."""
+        return self._at("mode_clips")
+
+    def mode_clip(self, number: int) -> Path:
+        return self._at("mode_clips", f"mode_{int(number):02d}.mp4")
+
     @staticmethod
     def ensure(folder: Path) -> Path:
         """Create `folder` (and its parents) for writing; returns it."""

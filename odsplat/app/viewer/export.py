@@ -20,14 +20,15 @@ FORMATS = (".mp4", ".gif")
 
 
 def frame_states(data: ViewerData, state: ViewState, n_frames: int, *, turntable: bool = False) -> list[ViewState]:
-    """The states of an export's frames: a mode through one cycle of its frequency (the last frame one step
-    before the first, so the video loops), the measured motion over the reconstruction's time span; a turntable
-    turns the camera once around the target meanwhile."""
+    """The states of an export's frames: a mode through one cycle of its frequency from the state's time (the
+    view's default: the shape furthest from rest, so the first frame shows it; the last frame one step before the
+    first, so the video loops), the measured motion over the reconstruction's time span; a turntable turns the
+    camera once around the target meanwhile."""
     if n_frames < 1:
         raise InputError("--frames", f"expected at least 1 frame, got {n_frames}")
     if state.mode is not None:
         period = 1.0 / data.modes[state.mode].freq_hz
-        times = np.arange(n_frames) * period / n_frames
+        times = state.time_s + np.arange(n_frames) * period / n_frames
     else:
         t0, t1 = data.time_range_s
         times = np.linspace(t0, t1, n_frames)
