@@ -11,6 +11,7 @@ import pytest
 from click.testing import CliRunner
 from PIL import Image, ImageSequence
 
+from odsplat.analysis import AnalyzeSettings, structure_mask
 from odsplat.app.cli import main
 from odsplat.app.viewer import default_state, load_viewer, render_view
 from odsplat.app.viewer.app import ViewerWindow, alpha_to_slider
@@ -69,22 +70,19 @@ def test_the_structure_mask_is_the_analysis_rule_and_matches_the_truth(data, cap
     assert "above the floor" in data.scene.structure_rule
 
 
-def test_a_clump_of_gaussians_apart_from_the_structure_is_hidden_and_the_structure_is_not():
-    """Structure only: a fit's stray clump beside the structure (20 Gaussians 5 cm off a 3000-point column) is
-    hidden, as the analysis's rule hides one isolated point; the column, whole, and what the rule already left out
-    stay as they were."""
-    from odsplat.app.viewer.load import without_floaters
-
+def test_a_clump_of_gaussians_apart_from_the_structure_is_not_the_structure(captures):
+    """The structure rule the analysis and the viewer's structure-only view share (`analysis.structure_mask`): a
+    fit's stray clump beside the structure (20 Gaussians 5 cm off a 3000-point column) is left out, as one isolated
+    point is; the column stays whole, and the floor goes by its own rule."""
     rng = np.random.default_rng(2)
     column = np.column_stack([rng.uniform(-0.02, 0.02, 3000), rng.uniform(-0.02, 0.02, 3000),
-                              rng.uniform(0.0, 0.6, 3000)])
+                              rng.uniform(0.02, 0.6, 3000)])
     clump = rng.normal([0.1, 0.0, 0.3], 0.003, (20, 3))
     floor = np.column_stack([rng.uniform(-0.3, 0.3, 200), rng.uniform(-0.3, 0.3, 200), np.zeros(200)])
-    points = np.concatenate([column, clump, floor])
-    keep = np.r_[np.ones(3020, bool), np.zeros(200, bool)]
-    out, hidden = without_floaters(points, keep)
-    assert hidden == 20 and out[:3000].all() and not out[3000:].any()
-    assert without_floaters(column, np.ones(3000, bool))[1] == 0
+    keep, rule = structure_mask(captures[0], np.concatenate([column, clump, floor]), AnalyzeSettings())
+    assert keep[:3000].all() and not keep[3000:].any(), rule
+    assert "20 left out: floaters" in rule, rule
+    assert "floaters" not in structure_mask(captures[0], column, AnalyzeSettings())[1]
 
 
 def test_modes_the_analysis_did_not_judge_are_grey_and_say_why(data, window, captures):

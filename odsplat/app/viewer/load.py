@@ -8,8 +8,6 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from odsplat.analysis import AnalysisDocument, AnalyzeSettings, read_analysis, read_results_h5, structure_mask
@@ -24,8 +22,6 @@ log = logging.getLogger(__name__)
 
 MOVING_FACTOR = 3.0      # a Gaussian moves when its rms motion is this many times the quietest quarter's median
 SHAPE_NEIGHBOURS = 8     # surface points a Gaussian's mode shape is interpolated from
-FLOATER_GAP = 2.0        # a cluster of the structure's Gaussians this many spacings from the rest stands apart
-FLOATER_SHARE = 0.01     # and is a floater when it holds fewer than this share of them
 
 
 def load_viewer(capture: Capture | str, *, need_analysis: bool = True) -> ViewerData:
@@ -115,36 +111,10 @@ def _scene(capture: Capture, sc, doc: AnalysisDocument | None) -> Scene:
     # the analysis's own floor margin and box, where it saved them
     settings = AnalyzeSettings(**(doc.structure_settings() if doc is not None else {}))
     keep, rule = structure_mask(capture, means, settings, moving=moving)
-    keep, n_floaters = without_floaters(means, keep)
-    if n_floaters:
-        rule += f"; {n_floaters} Gaussians in small clusters apart from the structure hidden (floaters)"
     return Scene(means, q0.astype(np.float32), (g.scales.double().numpy() * r).astype(np.float32),
                  g.opacities.double().numpy().astype(np.float32), g.colors.double().numpy().astype(np.float32),
                  np.asarray(sc.background, np.float32), np.asarray(sc.times_s, float), disp, rot.astype(np.float32),
                  keep, rule, rms)
-
-
-def without_floaters(points_m: np.ndarray, keep: np.ndarray,
-                     min_share: float = FLOATER_SHARE) -> tuple[np.ndarray, int]:
-    """`keep` less the kept points in clusters apart from the rest (no kept point within FLOATER_GAP x their
-    spacing) that hold under `min_share` of them: the stray Gaussians a fit leaves beside the structure, which the
-    analysis's rule (one isolated point at a time) keeps when they come in a clump. Returns the mask and how many
-    it hid."""
-    idx = np.flatnonzero(keep)
-    if len(idx) < 4 * SHAPE_NEIGHBOURS:
-        return keep, 0
-    p = np.asarray(points_m, float)[idx]
-    tree = cKDTree(p)
-    spacing = float(np.median(tree.query(p, k=SHAPE_NEIGHBOURS + 1)[0][:, -1]))
-    pairs = tree.query_pairs(FLOATER_GAP * max(spacing, 1e-12), output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(p), len(p)))
-    _, label = connected_components(graph, directed=False)
-    small = np.bincount(label) < min_share * len(p)
-    if not small[label].any():
-        return keep, 0
-    out = keep.copy()
-    out[idx[small[label]]] = False
-    return out, int(small[label].sum())
 
 
 def _signals(capture: Capture, doc: AnalysisDocument | None, sensors: tuple[SensorInfo, ...], notes: list[str]):
