@@ -32,6 +32,7 @@ from .ods import (
 from .report import write_report
 from .result import AnalysisResult, Sensor, VideoModes
 from .results_h5 import read_results_h5, write_results_h5
+from .shape3d import surface_mesh
 from .tracking import Tracks, good_points, project_displacement, track_points
 from .uff import read_uff, write_uff
 from .video2d import has_video2d, read_video2d
@@ -45,5 +46,5 @@ __all__ = ["AnalysisDocument", "AnalysisResult", "AnalyzeSettings", "CoherenceRe
            "estimate_frf", "fit_decay", "fit_modes", "force_transform", "good_points", "has_video2d", "lsce_poles",
            "lscf", "lsfd", "mac", "modal_scale_factor", "pencil_poles", "project_displacement", "read_analysis",
            "read_results_h5", "read_uff", "read_video2d", "receptance", "run", "select_poles", "split_hits",
-           "stabilisation", "stable_poles", "structure_mask", "track_points", "write_report", "write_results_h5",
-           "write_uff"]
+           "stabilisation", "stable_poles", "structure_mask", "surface_mesh", "track_points", "write_report",
+           "write_results_h5", "write_uff"]

@@ -85,6 +85,18 @@ def drop_floaters(points_m: np.ndarray, faces: np.ndarray,
     return keep, kept_faces[(kept_faces >= 0).all(axis=1)]
 
 
+def surface_mesh(points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The structure's surface as the report and the viewer draw it: (the indices of the points it keeps, (F, 3)
+    faces over them): at most MAX_VERTICES of the points, evenly (`outputs.surface_subset`), their alpha shape
+    (`alpha_faces`) less its floaters (`drop_floaters`). No faces where the points span no volume."""
+    from .outputs import surface_subset
+
+    p = np.asarray(points_m, float)
+    pick = surface_subset(len(p), MAX_VERTICES)
+    keep, faces = drop_floaters(p[pick], alpha_faces(p[pick]))
+    return pick[keep], faces
+
+
 def _rounded(x: np.ndarray) -> list:
     """Numbers to DIGITS significant digits (relative to the array's largest), as nested lists for JSON."""
     x = np.asarray(x, float)
@@ -99,16 +111,14 @@ def shapes_document(result: AnalysisResult) -> dict | None:
     """What the page draws: {"kind", "schema", "surface": {"points_m", "faces", "lines"}, "modes": [...]}, each
     mode {"mode", "freq_hz", "damping", "source", "judged" (above the video's noise floor), "re", "im"} (its
     displacement at the points, (N, 3), normalised to a largest amplitude of 1). None where no shape can be drawn."""
-    from .outputs import sensor_lines, surface_subset
+    from .outputs import sensor_lines
 
     m, v = result.modes, result.video
     video_rows = {int(k): r for r, k in enumerate(v.mode_index)} if v is not None and len(v.surface_points_m) else {}
     placed = bool(result.sensors) and all(s.placed for s in result.sensors)
     if video_rows:
-        pick = surface_subset(len(v.surface_points_m), MAX_VERTICES)
-        points = np.asarray(v.surface_points_m, float)[pick]
-        keep, faces = drop_floaters(points, alpha_faces(points))
-        pick, points, lines = pick[keep], points[keep], []
+        pick, faces = surface_mesh(v.surface_points_m)
+        points, lines = np.asarray(v.surface_points_m, float)[pick], []
         source = "video"
     elif placed:
         points = np.stack([s.position_m for s in result.sensors])

@@ -67,6 +67,8 @@ class ViewSettings:
     turntable: bool = False                 # the export's camera turns once around the structure
     camera: int | None = None               # look through capture camera N (from 0)
     structure_only: bool = False            # hide what does not move (the floor, the background)
+    surface: bool = False                   # draw the structure as its surface (triangles over the analysis's
+    #                                         surface points, as the report's 3D shapes), not as its Gaussians
     colour: str = "image"                   # the Gaussians' own colours, or their displacement amplitude (with a
     #                                         scale bar)
     size_px: tuple[int, int] = (640, 480)   # image width and height in px
@@ -88,7 +90,7 @@ def view_state(data: Any, s: ViewSettings) -> Any:
     """The viewer's state for `s` on a capture's `data` (viewer.load_viewer), checked against what it has: the
     mode or ODS line by its number, the motion only with a reconstruction, the camera by its index."""
     state = default_state(data, alpha=s.alpha, structure_only=s.structure_only, colour=s.colour,
-                          width_px=s.size_px[0], height_px=s.size_px[1])
+                          width_px=s.size_px[0], height_px=s.size_px[1], surface=s.surface)
     if s.mode is not None or s.ods is not None:
         kind, field, number = ("mode", "mode", s.mode) if s.ods is None else ("ods", "ods", s.ods)
         index = [k for k, m in enumerate(data.modes) if m.kind == kind]
@@ -100,6 +102,9 @@ def view_state(data: Any, s: ViewSettings) -> Any:
         if data.scene is None:
             raise InputError("ViewSettings.motion", "no reconstruction: only the modes can be shown (--mode K)")
         state = replace(state, mode=None, time_s=start_time_s(data, None))
+    if s.surface and data.surface is None:
+        raise InputError("ViewSettings.surface", "the analysis has no video surface to draw (no reconstruction, or "
+                                                 "its surface points span no surface): leave out --surface")
     if s.alpha is None:
         state = replace(state, alpha=visible_alpha(data, state))
     if s.time_s is not None:

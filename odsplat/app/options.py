@@ -187,6 +187,7 @@ VIEW_FLAGS: tuple[Flag, ...] = (
     Flag("--turntable", "turntable"),
     Flag("--camera", "camera", metavar="N"),
     Flag("--structure-only", "structure_only"),
+    Flag("--surface", "surface"),
     Flag("--colour", "colour", choices=("image", "displacement")),
     Flag("--size", "size_px", metavar="W H"),
 )

@@ -250,6 +250,10 @@ class ViewerWindow:
         self.structure_box = QtWidgets.QCheckBox("structure only")
         self.structure_box.toggled.connect(lambda on: self.set_state(structure_only=on))
         panel.addWidget(self.structure_box)
+        self.surface_box = QtWidgets.QCheckBox("the structure as its surface (triangles, as in the report)")
+        self.surface_box.setEnabled(self.data.surface is not None)
+        self.surface_box.toggled.connect(lambda on: self.set_state(surface=on))
+        panel.addWidget(self.surface_box)
         self.use_box = QtWidgets.QCheckBox("only inside the box (drag it below; z from the spin boxes)")
         self.use_box.toggled.connect(lambda on: self._on_box())
         panel.addWidget(self.use_box)
@@ -414,6 +418,7 @@ class ViewerWindow:
                 self.time_label.setText(f"phase {360 * ((s.time_s * m.freq_hz) % 1):.0f}° "
                                         f"(animation time {1e3 * s.time_s:.3f} ms)")
             self.structure_box.setChecked(s.structure_only)
+            self.surface_box.setChecked(s.surface)
             self.colour_combo.setCurrentIndex(COLOUR_MODES.index(s.colour))
             self.camera_combo.setCurrentIndex(0 if s.snap is None else s.snap + 1)
             self.caption.setText(f"{self._caption()}   render {1e3 * self.render_s:.0f} ms" if

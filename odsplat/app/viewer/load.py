@@ -10,8 +10,15 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from odsplat.analysis import AnalysisDocument, AnalyzeSettings, read_analysis, read_results_h5, structure_mask
-from odsplat.app.viewer.model import Mode, Scene, SensorInfo, ViewerData
+from odsplat.analysis import (
+    AnalysisDocument,
+    AnalyzeSettings,
+    read_analysis,
+    read_results_h5,
+    structure_mask,
+    surface_mesh,
+)
+from odsplat.app.viewer.model import Mode, Scene, SensorInfo, Surface, ViewerData
 from odsplat.reconstruction import Camera, DynamicScene, PoseResult
 from odsplat.spine.errors import InputError, OdsplatError
 from odsplat.spine.impulse import fit_pulse, impact_onsets
@@ -35,11 +42,12 @@ def load_viewer(capture: Capture | str, *, need_analysis: bool = True) -> Viewer
     impulse, times, force, accel = _signals(capture, doc, sensors, notes)
     modes = _modes(doc, results, sensors, notes)
     freq, h1, frf_names = _frfs(results, sensors)
-    scene = None
+    scene, surface = None, None
     if scene_data is not None:
         scene = _scene(capture, scene_data, doc)
         # each mode's shape on the Gaussians when first asked for (`Mode.gaussians`)
         modes = tuple(replace(m, shape_on_gaussians=_mode_shape_on(results, m, scene)) for m in modes)
+        surface, modes = _surface(results, modes, scene)
     if scene is not None and scene.structure.any():
         pts = scene.means_m[scene.structure]
     elif sensors:      # the sensors and the floor under them (the view without a reconstruction shows both)
@@ -50,7 +58,7 @@ def load_viewer(capture: Capture | str, *, need_analysis: bool = True) -> Viewer
     lo, hi = np.percentile(pts, 2, axis=0), np.percentile(pts, 98, axis=0)
     extent = float(max(np.linalg.norm(hi - lo), 0.2))
     return ViewerData(capture.root.name, capture, scene, tuple(cameras), (lo + hi) / 2, extent, sensors, modes, freq,
-                      h1, frf_names, times, force, accel, impulse, tuple(notes))
+                      h1, frf_names, times, force, accel, impulse, tuple(notes), surface)
 
 
 def _sensors(capture: Capture) -> tuple[SensorInfo, ...]:
@@ -208,6 +216,38 @@ def _mode_shape_on(results, mode: Mode, scene: Scene):
         return (g * scene.structure[:, None]).astype(np.complex64)
 
     return shape
+
+
+def _surface(results, modes: tuple[Mode, ...], scene: Scene) -> tuple[Surface | None, tuple[Mode, ...]]:
+    """The structure's surface (`analysis.surface_mesh` over the points the video's shapes are given at) and each
+    mode's shape at its vertices; (None, the modes) where the analysis has no video shape or the points span no
+    surface."""
+    if results is None or results.geometry is None:
+        return None, modes
+    shapes = {s.name: s for s in results.shapes if s.name.startswith("video ")}
+    if not shapes:
+        return None, modes
+    node = {int(i): k for k, i in enumerate(results.geometry.node_ids)}
+    ids = np.asarray(next(iter(shapes.values())).node_ids, int)
+    pts = results.geometry.coords_m[[node[int(i)] for i in ids]]
+    pick, faces = surface_mesh(pts)
+    if not len(faces):
+        return None, modes
+    nearest = cKDTree(scene.means_m).query(pts[pick])[1]
+    surface = Surface(pts[pick], faces, np.asarray(nearest, int))
+    at = {int(i): k for k, i in enumerate(ids[pick])}
+
+    def on_surface(m: Mode) -> np.ndarray | None:
+        vid = shapes.get(m.shape_names()[1])
+        if vid is None:
+            return None
+        out = np.zeros((len(pick), 3), complex)
+        for i, v in zip(vid.node_ids, np.asarray(vid.values)):
+            if int(i) in at:
+                out[at[int(i)]] = v
+        return out
+
+    return surface, tuple(replace(m, surface=on_surface(m)) for m in modes)
 
 
 def _frfs(results, sensors):

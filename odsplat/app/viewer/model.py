@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace
 import cv2
 import numpy as np
 
-from odsplat.app.viewer.draw import draw_floor, draw_overlays, plasma
+from odsplat.app.viewer.draw import draw_floor, draw_overlays, plasma, project
 from odsplat.reconstruction import Camera, quat_from_rotvec, quat_multiply, rasterize_image
 from odsplat.spine.geometry import camera_center_m, look_at
 from odsplat.spine.store import Capture
@@ -46,6 +46,7 @@ class Mode:
     sensors_accel: np.ndarray | None = None   # (S,) complex m/N along each sensor's direction
     sensors_video: np.ndarray | None = None   # (S,) complex m/N, the video's shape at the sensors
     kind: str = "mode"               # or "ods": an ODS line, the receptance at freq_hz (m/N) of every point
+    surface: np.ndarray | None = None         # (V,) x 3 complex m/N: the video's shape at the surface's vertices
     not_judged: str = ""             # why the video's verdict did not judge it (below the noise floor, ...), or ""
     # its shape on every Gaussian, computed the first time it is asked for (`gaussians`): the window's first frame
     # needs none of them, and each is an interpolation over every Gaussian
@@ -97,6 +98,16 @@ class Scene:
 
 
 @dataclass(frozen=True)
+class Surface:
+    """The structure's surface as triangles (`analysis.surface_mesh` over the analysis's surface points): the report's
+    3D shapes are drawn on the same one."""
+
+    points_m: np.ndarray      # (V, 3) at rest
+    faces: np.ndarray         # (F, 3) vertex indices
+    nearest: np.ndarray       # (V,) the Gaussian nearest each vertex: the measured motion there
+
+
+@dataclass(frozen=True)
 class ViewerData:
     """Everything the viewer shows of one capture; a part the capture lacks is None (or empty)."""
 
@@ -116,6 +127,7 @@ class ViewerData:
     accel_m_s2: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))         # (S, T)
     impulse_n_s: float = 1.0             # the hit's impulse: a mode is drawn at its amplitude after this hit
     notes: tuple[str, ...] = ()
+    surface: Surface | None = None       # where the analysis has a video surface
 
     @property
     def time_range_s(self) -> tuple[float, float]:
@@ -183,6 +195,7 @@ class ViewState:
     colour: str = "image"            # or "displacement"
     show_cameras: bool = True
     show_sensors: bool = True
+    surface: bool = False            # the structure drawn as the analysis's surface (triangles), not its Gaussians
     width_px: int = WIDTH_PX
     height_px: int = HEIGHT_PX
 
@@ -355,6 +368,9 @@ def render_view(data: ViewerData, state: ViewState, *, overlays: bool = True) ->
     else:
         disp, rot = motion_at(data, state)
         keep = visible(data, state)
+        mesh = state.surface and data.surface is not None
+        if mesh:            # the structure is drawn as the surface below, over what else is shown
+            keep &= ~sc.structure
         every = bool(keep.all())
         pick = (lambda a: a) if every else (lambda a: a[keep])  # noqa: E731  (no copies when all are drawn)
         means = pick(sc.means_m) + np.float32(state.alpha) * pick(disp)
@@ -373,14 +389,66 @@ def render_view(data: ViewerData, state: ViewState, *, overlays: bool = True) ->
             background = sc.background[:1]
         view = np.eye(4)
         view[:3, :3], view[:3, 3] = cam.R, cam.t
-        image, _ = rasterize_image(means.astype(np.float32, copy=False), quats, pick(sc.scales_m),
-                                   pick(sc.opacities), colours, view, cam.K, w, h, background=background)
+        if len(means):
+            image, _ = rasterize_image(means.astype(np.float32, copy=False), quats, pick(sc.scales_m),
+                                       pick(sc.opacities), colours, view, cam.K, w, h, background=background)
+        else:
+            image = np.broadcast_to(background, (h, w, len(background))).copy()
         img = cv2.convertScaleAbs(image, alpha=255.0)       # rounded, saturated to 0..255
         img = cv2.cvtColor(img, cv2.COLOR_GRAY2RGB) if img.ndim == 2 or img.shape[2] == 1 else img
+        if mesh:
+            _draw_surface(img, data, state, cam, disp)
     if overlays:
         draw_overlays(img, data, state, cam,
                       colour_scale(data, state) if state.colour == "displacement" and sc is not None else None)
     return img
+
+
+def surface_motion(data: ViewerData, state: ViewState, disp: np.ndarray) -> np.ndarray:
+    """(V, 3) physical displacement of the surface's vertices in the state: a mode's shape there (as `motion_at`'s
+    on the Gaussians), the measured motion of the Gaussian nearest each."""
+    surf = data.surface
+    if state.mode is not None:
+        m = data.modes[state.mode]
+        if m.surface is None:
+            return np.zeros_like(surf.points_m)
+        gain = 2 * data.impulse_n_s if m.kind == "mode" else 1.0
+        return gain * np.real(m.surface * np.exp(2j * np.pi * m.freq_hz * state.time_s))
+    return np.asarray(disp, float)[surf.nearest]
+
+
+SHADE_AMBIENT = 0.35     # the surface's shade: this, plus the rest times |cos| of the angle to the view
+
+
+def _draw_surface(img: np.ndarray, data: ViewerData, state: ViewState, cam, disp: np.ndarray) -> None:
+    """The structure's surface, moved by the state's motion magnified alpha times, in place: its triangles far to
+    near (the painter's order), each shaded by its angle to the view and coloured by the amplitude (colour
+    "displacement") or by the nearest Gaussian's trained grey."""
+    surf = data.surface
+    moved = surf.points_m + state.alpha * surface_motion(data, state, disp)
+    uv, front = project(cam, moved)
+    tri = moved[surf.faces]                                              # (F, 3, 3)
+    ok = front[surf.faces].all(axis=1)
+    depth = (tri @ np.asarray(cam.R)[2] + np.asarray(cam.t)[2]).mean(axis=1)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    to_eye = camera_center_m(cam.R, cam.t) - tri.mean(axis=1)
+    cos = np.abs(np.sum(normal * to_eye, axis=1)) / np.maximum(
+        np.linalg.norm(normal, axis=1) * np.linalg.norm(to_eye, axis=1), 1e-30)
+    shade = SHADE_AMBIENT + (1 - SHADE_AMBIENT) * cos
+    if state.colour == "displacement":
+        top, _ = colour_scale(data, state)
+        amp = (np.linalg.norm(np.abs(data.modes[state.mode].surface), axis=1) if state.mode is not None
+               and data.modes[state.mode].surface is not None else np.linalg.norm(surface_motion(data, state, disp),
+                                                                                   axis=1))
+        base = plasma(amp / max(top, 1e-30)).astype(float)[surf.faces].mean(axis=1)          # (F, 3) 0..255
+    else:
+        grey = data.scene.grey[surf.nearest, 0].astype(float)[surf.faces].mean(axis=1)
+        base = np.repeat(255 * np.clip(grey, 0, 1)[:, None], 3, axis=1)
+    colours = np.clip(base * shade[:, None], 0, 255).astype(np.uint8)
+    corners = np.round(uv[surf.faces] * 16).astype(np.int64)              # 4 bits of sub-pixel
+    inside = ok & (np.abs(corners).max(axis=(1, 2)) < 2 ** 27)
+    for f in np.flatnonzero(inside)[np.argsort(-depth[inside])]:
+        cv2.fillConvexPoly(img, corners[f].astype(np.int32), tuple(int(c) for c in colours[f]), cv2.LINE_AA, shift=4)
 
 
 def _turned(quats: np.ndarray, rotvec_rad: np.ndarray) -> np.ndarray:
