@@ -68,3 +68,16 @@ def test_a_link_where_the_clips_go_is_refused_and_nothing_is_deleted_through_it(
     assert r.exit_code == 2 and len(r.output.strip().splitlines()) == 1, r.output
     assert "mode_clips" in r.output and "link" in r.output, r.output
     assert (elsewhere / "mode_01.mp4").read_bytes() == b"not ours"
+
+
+def test_a_reconstruction_the_viewer_cannot_read_leaves_the_page_without_clips(piped_original, tmp_path, caplog):
+    """The clips are the page's extra: a damaged trajectories.npz (cut short after the analysis ran) leaves the
+    report written without them, and a warning naming the file."""
+    cap = piped_copy(piped_original, tmp_path / "c" / "cap")
+    npz = cap / "derived" / "reconstruction" / "trajectories.npz"
+    npz.write_bytes(npz.read_bytes()[:1000])
+    r = CliRunner().invoke(main, ["report", str(cap), "--clips"])
+    assert r.exit_code == 0, (r.output, r.exception)
+    assert "no mode clips" in caplog.text and "trajectories.npz" in caplog.text, caplog.text
+    assert not list((cap / "derived" / "mode_clips").glob("*.mp4"))
+    assert "data:video/mp4" not in _modes_section((cap / "derived" / "analysis" / "report.html").read_text())

@@ -16,6 +16,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from odsplat.spine.checks import PLAYBACK_FPS, Range, check_fields
+from odsplat.spine.errors import OdsplatError
 from odsplat.spine.framefile import prune_outputs
 from odsplat.spine.store import Capture
 
@@ -46,18 +47,18 @@ def clip_path(capture: Capture, number: int) -> Path:
 def write_mode_clips(capture: Capture, settings: ReportSettings) -> list[Path]:
     """Each mode's clip (module docstring) for a capture with a reconstruction and the analysis's video shapes;
     returns the files written. Clips of an earlier run that this one does not write are removed, so the page never
-    shows a stale one."""
+    shows a stale one. A reconstruction the viewer cannot read leaves the page without clips, with a warning."""
     folder = capture.paths.mode_clips_dir
     written: list[Path] = []
-    if settings.mode_clips and capture.paths.gaussians_ply.is_file():
+    data = _viewer_data(capture) if settings.mode_clips and capture.paths.gaussians_ply.is_file() else None
+    if data is not None and data.scene is None:
+        log.warning("report: no mode clips: %s", "; ".join(data.notes) or "the reconstruction could not be read")
+    elif data is not None:
         from odsplat.app.display import ViewSettings, view_state
-        from odsplat.app.viewer import export_video, load_viewer
+        from odsplat.app.viewer import export_video
 
-        data = load_viewer(capture)
-        modes = [m for m in data.modes if m.kind == "mode" and m.freq_hz > 0] if data.scene is not None else []
+        modes = [m for m in data.modes if m.kind == "mode" and m.freq_hz > 0 and m.gaussians is not None]
         for m in tqdm(modes, desc="report: mode clips", unit="mode"):
-            if m.gaussians is None:          # no video shape for this mode
-                continue
             view = ViewSettings(mode=m.number, structure_only=True, colour="displacement",
                                 size_px=settings.clip_size_px)
             capture.paths.ensure(folder)
@@ -66,6 +67,17 @@ def write_mode_clips(capture: Capture, settings: ReportSettings) -> list[Path]:
     if folder.is_dir():
         prune_outputs(folder, written)
     return written
+
+
+def _viewer_data(capture: Capture):
+    """The viewer's data of the capture, or None (a warning) where it cannot be read."""
+    from odsplat.app.viewer import load_viewer
+
+    try:
+        return load_viewer(capture)
+    except OdsplatError as e:
+        log.warning("report: no mode clips: %s", e)
+        return None
 
 
 def write_report(capture: Capture, settings: ReportSettings | None = None) -> Path:
