@@ -73,8 +73,14 @@ def test_quick_demo_prints_the_rigs_modes_and_where_things_are(quick_demo):
     print(f"the quick demo took {seconds:.0f} s")   # reported, not asserted: a loaded machine is slower
     for k in range(1, 6):
         assert f"[demo {k}/5]" in text
-    # QC caught both injected faults, and the session redid them
-    assert "2 rejected (double_hit x1, dropped_samples x1)" in text
+    # QC caught both injected faults, and the session redid them. On a loaded machine the simulated rig's links can
+    # lose more (its DAQ and camera stream in real time, as the hardware does): QC rejects those takes too and the
+    # session redoes them (a CI run rejected a third), so only losses and timeouts may come on top.
+    summary = re.search(r"(\d+)/(\d+) views accepted.*?(\d+) rejected \(([^)]*)\)", text)
+    assert summary and summary.group(1) == summary.group(2), text[-3000:]
+    reasons = {k: int(n) for k, n in re.findall(r"(\w+) x(\d+)", summary.group(4))}
+    assert reasons.get("double_hit") == 1 and reasons.get("dropped_samples", 0) >= 1, reasons
+    assert set(reasons) <= {"double_hit", "dropped_samples", "dropped_frames", "camera_timeout"}, reasons
     rows = _block(text, SIM_NAME)
     known = make_structure("arm").freqs_hz
     printed = np.array([f for f, _, _ in rows])

@@ -425,7 +425,8 @@ def _draw_surface(img: np.ndarray, data: ViewerData, state: ViewState, cam, disp
     near (the painter's order), each shaded by its angle to the view and coloured by the amplitude (colour
     "displacement") or by the nearest Gaussian's trained grey."""
     surf = data.surface
-    moved = surf.points_m + state.alpha * surface_motion(data, state, disp)
+    motion = surface_motion(data, state, disp)
+    moved = surf.points_m + state.alpha * motion
     uv, front = project(cam, moved)
     tri = moved[surf.faces]                                              # (F, 3, 3)
     ok = front[surf.faces].all(axis=1)
@@ -437,9 +438,8 @@ def _draw_surface(img: np.ndarray, data: ViewerData, state: ViewState, cam, disp
     shade = SHADE_AMBIENT + (1 - SHADE_AMBIENT) * cos
     if state.colour == "displacement":
         top, _ = colour_scale(data, state)
-        amp = (np.linalg.norm(np.abs(data.modes[state.mode].surface), axis=1) if state.mode is not None
-               and data.modes[state.mode].surface is not None else np.linalg.norm(surface_motion(data, state, disp),
-                                                                                   axis=1))
+        shape = data.modes[state.mode].surface if state.mode is not None else None
+        amp = np.linalg.norm(np.abs(shape) if shape is not None else motion, axis=1)   # a mode: its amplitude
         base = plasma(amp / max(top, 1e-30)).astype(float)[surf.faces].mean(axis=1)          # (F, 3) 0..255
     else:
         grey = data.scene.grey[surf.nearest, 0].astype(float)[surf.faces].mean(axis=1)
