@@ -352,7 +352,15 @@ def modal_displacement(path, basis, shapes_m, n_times: int, n_points: int) -> np
     if basis.ndim != 2 or basis.shape[0] != n_times or shapes_m.shape != (n_points, basis.shape[1], 3):
         raise InputError(f"{path}: basis, shapes_m", f"expected ({n_times}, K) and ({n_points}, K, 3); got "
                          f"{basis.shape} and {shapes_m.shape}")
-    return np.einsum("tk,nkc->tnc", basis, shapes_m)
+    return modal_product(basis, shapes_m)
+
+
+def modal_product(basis: np.ndarray, shapes: np.ndarray) -> np.ndarray:
+    """(T, N, 3): basis (T, K) times shapes (N, K, 3), as one matrix product (BLAS: on the demo's 247 x 22k x K, 0.04
+    s against 0.4 s for numpy's einsum of the same sum)."""
+    basis, shapes = np.asarray(basis, float), np.asarray(shapes, float)
+    n, k = shapes.shape[:2]
+    return (basis @ shapes.transpose(1, 0, 2).reshape(k, 3 * n)).reshape(len(basis), n, 3)
 
 
 def modal_quats(basis, rot_shapes_rad, quats_rest, chunk: int = 16) -> np.ndarray:
@@ -535,7 +543,7 @@ class DynamicScene:
         """(T, N, 3) each Gaussian's rotation from rest as trained (x source_alpha), as a rotation vector: a modal
         model's basis times its rotation shapes, the per-timestep model's from its orientations."""
         if self.basis is not None:
-            return np.einsum("tk,nkc->tnc", self.basis, self.rot_shapes_rad)
+            return modal_product(self.basis, self.rot_shapes_rad)
         q = quat_normalize(torch.as_tensor(self.quats, dtype=torch.float64))
         return quat_to_rotvec(quat_multiply(q, quat_conjugate(q[:1]))).numpy()
 

@@ -23,3 +23,14 @@ def test_bench_viewer_prints_one_json_line_with_sane_figures(bench_script, captu
     assert result["viewer_threads"] in (1, result["threads"])
     assert result["ratio"] == round(result["fps"] / result["baseline_fps"], 2)
     assert result["meets_target"] == (result["fps"] >= result["target_fps"])
+
+
+def test_bench_viewer_startup_times_the_command_to_its_first_frame(bench_script, captures, capsys):
+    """bench/viewer_startup.py: `odsplat view` in fresh processes up to the first frame, beside the floor of
+    imports any Qt viewer of a torch model pays; the figures, not their size (a busy machine is slower)."""
+    cap, _, _ = captures
+    out = bench_script("viewer_startup").main([str(cap.root), "--runs", "1"])
+    line = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert line == out and line["bench"] == "viewer_startup" and line["runs"] == 1
+    assert line["first_frame_s"] > line["floor_s"] > 0 and len(line["first_frame_s_all"]) == 1
+    assert abs(line["over_floor_s"] - (line["first_frame_s"] - line["floor_s"])) <= 0.0015
