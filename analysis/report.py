@@ -421,20 +421,28 @@ RENDER_WIDTH_PX = 480     # the render's frames, downscaled, as one animated Web
 _RENDER_FOLDER = "derived/reconstruction/render"
 
 
-MAX_INLINE_VIDEO_BYTES = 16 * 2**20     # a render.mp4 larger than this is shown as its frames (a WebP) instead
+MAX_INLINE_VIDEO_BYTES = 16 * 2**20     # an mp4 larger than this is not inlined (the render's shows as its frames)
+
+
+def _inline_mp4(folder: Path, name: str, where: str, writer: str) -> tuple[str | None, str]:
+    """The folder's own mp4 `name` (`_own_file`) as a data: URI and ""; or None and why not ("not found", not the
+    folder's own, too large to inline, unreadable)."""
+    own = _own_file(folder, name, where, writer)
+    if isinstance(own, str):
+        return None, own
+    if own.stat().st_size > MAX_INLINE_VIDEO_BYTES:
+        return None, f"larger than {MAX_INLINE_VIDEO_BYTES // 2**20} MB, not inlined"
+    try:
+        return _data_uri("video/mp4", _read_own(own)), ""
+    except OSError as e:
+        return None, f"could not be read ({e.strerror or e})"
 
 
 def _render_mp4(folder: Path, n_frames: int) -> dict | None:
-    """The render's H.264 mp4 (render.mp4 in `folder`, the folder's own) inline as a video: {"n_frames", "video",
-    "left_out"}; None where there is none, or it is too large to inline."""
-    own = _own_file(folder, "render.mp4", _RENDER_FOLDER, "odsplat render")
-    if isinstance(own, str) or own.stat().st_size > MAX_INLINE_VIDEO_BYTES:
-        return None
-    try:
-        data = _read_own(own)
-    except OSError:
-        return None
-    return {"n_frames": n_frames, "src": None, "video": _data_uri("video/mp4", data), "left_out": []}
+    """The render's H.264 mp4 (render.mp4 in `folder`) inline as a video: {"n_frames", "video", "left_out"}; None
+    where there is none, or it cannot be inlined (`_inline_mp4`)."""
+    video, _ = _inline_mp4(folder, "render.mp4", _RENDER_FOLDER, "odsplat render")
+    return None if video is None else {"n_frames": n_frames, "src": None, "video": video, "left_out": []}
 
 
 def _render(folder: Path) -> dict | None:
@@ -547,21 +555,14 @@ def mode_clips(capture: Capture, n_modes: int) -> dict[int, dict]:
         return out
     for k in range(1, n_modes + 1):
         name = capture.paths.mode_clip(k).name
-        own = _own_file(folder, name, _CLIPS_FOLDER, "the report stage")
-        if own == "not found":
+        src, why = _inline_mp4(folder, name, _CLIPS_FOLDER, "the report stage")
+        if why == "not found":
             continue
-        if isinstance(own, Path) and own.stat().st_size > MAX_INLINE_VIDEO_BYTES:
-            own = f"larger than {MAX_INLINE_VIDEO_BYTES // 2**20} MB, not inlined"
-        try:
-            src = _data_uri("video/mp4", _read_own(own)) if isinstance(own, Path) else None
-        except OSError as e:
-            own = f"could not be read ({e.strerror or e})"
-            src = None
         if src is None:
-            log.warning("report: %s/%s: %s; left out", _CLIPS_FOLDER, name, own)
+            log.warning("report: %s/%s: %s; left out", _CLIPS_FOLDER, name, why)
         out[k] = {"src": src, "caption": (f"mode {k} on the reconstruction's Gaussians through one cycle, magnified "
                                           "so that its largest motion is 5 % of the structure's size (the factor "
-                                          "is on the clip)") if src else f"{_CLIPS_FOLDER}/{name}: {own}"}
+                                          "is on the clip)") if src else f"{_CLIPS_FOLDER}/{name}: {why}"}
     return out
 
 

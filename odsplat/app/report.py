@@ -39,11 +39,6 @@ class ReportSettings:
                             "clip_fps": PLAYBACK_FPS, "clip_size_px": Range(at_least=16, at_most=4096, integer=True)})
 
 
-def clip_path(capture: Capture, number: int) -> Path:
-    """Where mode `number`'s (1-based, the analysis's numbering) clip is written."""
-    return capture.paths.mode_clip(number)
-
-
 def write_mode_clips(capture: Capture, settings: ReportSettings) -> list[Path]:
     """Each mode's clip (module docstring) for a capture with a reconstruction and the analysis's video shapes;
     returns the files written. Clips of an earlier run that this one does not write are removed, so the page never
@@ -62,7 +57,7 @@ def write_mode_clips(capture: Capture, settings: ReportSettings) -> list[Path]:
             view = ViewSettings(mode=m.number, structure_only=True, colour="displacement",
                                 size_px=settings.clip_size_px)
             capture.paths.ensure(folder)
-            written.append(export_video(data, view_state(data, view), clip_path(capture, m.number),
+            written.append(export_video(data, view_state(data, view), capture.paths.mode_clip(m.number),
                                         n_frames=settings.clip_frames, fps=settings.clip_fps, progress=False))
     if folder.is_dir():
         prune_outputs(folder, written)
@@ -91,4 +86,4 @@ def write_report(capture: Capture, settings: ReportSettings | None = None) -> Pa
     return write_page(capture)
 
 
-__all__ = ["ReportSettings", "clip_path", "write_mode_clips", "write_report"]
+__all__ = ["ReportSettings", "write_mode_clips", "write_report"]

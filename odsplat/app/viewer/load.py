@@ -156,8 +156,7 @@ def _modes(doc: AnalysisDocument | None, results, sensors: tuple[SensorInfo, ...
         return ()
     macs = {k: p.mac for k, p in doc.pair_by_mode().items()}
     shapes = {} if results is None else {s.name: s for s in results.shapes}
-    node = {} if results is None or results.geometry is None else \
-        {int(i): k for k, i in enumerate(results.geometry.node_ids)}
+
     def at_sensors(mode: Mode) -> Mode:
         acc_name, vid_name = mode.shape_names()
         acc, vid = shapes.get(acc_name), shapes.get(vid_name)
@@ -165,8 +164,8 @@ def _modes(doc: AnalysisDocument | None, results, sensors: tuple[SensorInfo, ...
         if acc is not None and len(sensors) and len(acc.node_ids) == len(sensors):
             at = np.array([np.dot(acc.values[i], s.direction) for i, s in enumerate(sensors)])
         at_video = None
-        if vid is not None and node and len(sensors):
-            pts = results.geometry.coords_m[[node[int(i)] for i in vid.node_ids]]
+        if vid is not None and results.geometry is not None and len(sensors):
+            pts = _node_points(results, vid)
             at_video = np.array([np.dot(v, s.direction) for v, s in
                                  zip(_interpolate(pts, vid.values, np.array([s.position_m for s in sensors]), 16),
                                      sensors)])
@@ -180,6 +179,12 @@ def _modes(doc: AnalysisDocument | None, results, sensors: tuple[SensorInfo, ...
     if out and results is None:
         notes.append("no results.h5: mode shapes unavailable")
     return tuple(out)
+
+
+def _node_points(results, shape) -> np.ndarray:
+    """(P, 3) metres: where a shape of results.h5 is given, its nodes' coordinates in the geometry."""
+    node = {int(i): k for k, i in enumerate(results.geometry.node_ids)}
+    return results.geometry.coords_m[[node[int(i)] for i in shape.node_ids]]
 
 
 def _interpolate(points_m: np.ndarray, values: np.ndarray, at_m: np.ndarray, k: int,
@@ -209,8 +214,7 @@ def _mode_shape_on(results, mode: Mode, scene: Scene):
         return None
 
     def shape() -> np.ndarray:
-        node = {int(i): k for k, i in enumerate(results.geometry.node_ids)}
-        pts = results.geometry.coords_m[[node[int(i)] for i in vid.node_ids]]
+        pts = _node_points(results, vid)
         spacing = float(np.median(cKDTree(pts).query(pts, k=2)[0][:, 1])) if len(pts) > 1 else 1.0
         g = _interpolate(pts, vid.values, scene.means_m.astype(float), SHAPE_NEIGHBOURS, 3 * spacing)
         return (g * scene.structure[:, None]).astype(np.complex64)
@@ -227,9 +231,8 @@ def _surface(results, modes: tuple[Mode, ...], scene: Scene) -> tuple[Surface | 
     shapes = {s.name: s for s in results.shapes if s.name.startswith("video ")}
     if not shapes:
         return None, modes
-    node = {int(i): k for k, i in enumerate(results.geometry.node_ids)}
-    ids = np.asarray(next(iter(shapes.values())).node_ids, int)
-    pts = results.geometry.coords_m[[node[int(i)] for i in ids]]
+    first = next(iter(shapes.values()))
+    ids, pts = np.asarray(first.node_ids, int), _node_points(results, first)
     pick, faces = surface_mesh(pts)
     if not len(faces):
         return None, modes

@@ -234,6 +234,19 @@ def start_time_s(data: ViewerData, mode: int | None) -> float:
     return peak_time_s(data.scene) if data.scene is not None else data.time_range_s[0]
 
 
+def mode_gain(data: ViewerData, m: Mode) -> float:
+    """What a shape (m/N) is multiplied by to show metres: a mode's free decay right after this test's hit, at its
+    start, 2 |A| J along its shape (A in m/N as the analysis gives it, J the hit's impulse); an ODS line's steady
+    response to a harmonic force of 1 N at its frequency (its receptance, m/N)."""
+    return 2 * data.impulse_n_s if m.kind == "mode" else 1.0
+
+
+def mode_motion(data: ViewerData, m: Mode, shape: np.ndarray, time_s: float) -> np.ndarray:
+    """A mode's physical displacement (metres) at `time_s` of its animation, from its complex shape (m/N) at some
+    points: on the Gaussians (`motion_at`) or on the surface's vertices (`surface_motion`)."""
+    return mode_gain(data, m) * np.real(shape * np.exp(2j * np.pi * m.freq_hz * time_s))
+
+
 def largest_motion_m(data: ViewerData, state: ViewState) -> float:
     """The largest physical displacement the state shows (metres, before magnification): a mode's at the start of
     its free decay after this test's hit (2 |A| J; an ODS line per newton), over the structure's Gaussians or, without
@@ -241,7 +254,7 @@ def largest_motion_m(data: ViewerData, state: ViewState) -> float:
     sc = data.scene
     if state.mode is not None:
         m = data.modes[state.mode]
-        gain = 2 * data.impulse_n_s if m.kind == "mode" else 1.0
+        gain = mode_gain(data, m)
         if m.gaussians is not None and sc is not None and sc.structure.any():
             return gain * float(np.percentile(np.linalg.norm(np.abs(m.gaussians[sc.structure]), axis=1), 99))
         return gain * float(np.max(np.abs(m.sensors_accel), initial=0.0)) if m.sensors_accel is not None else 0.0
@@ -317,12 +330,8 @@ def motion_at(data: ViewerData, state: ViewState) -> tuple[np.ndarray, np.ndarra
         m = data.modes[state.mode]
         if m.gaussians is None:
             return np.zeros_like(sc.means_m), np.zeros_like(sc.means_m)
-        phase = np.exp(2j * np.pi * m.freq_hz * state.time_s)
-        # a mode: its free decay right after this test's hit, at its start: 2 |A| J along its shape (A in m/N as
-        # the analysis gives it, J the hit's impulse); an ODS line: the steady response to a harmonic force of 1 N
-        # at its frequency (its receptance, m/N). The rotation is not known and left at rest.
-        gain = 2 * data.impulse_n_s if m.kind == "mode" else 1.0
-        return (gain * np.real(m.gaussians * phase)).astype(np.float32), np.zeros_like(sc.means_m)
+        # the rotation is not known and left at rest
+        return mode_motion(data, m, m.gaussians, state.time_s).astype(np.float32), np.zeros_like(sc.means_m)
     ts = sc.times_s
     t = float(np.clip(state.time_s, ts[0], ts[-1]))
     k = int(np.clip(np.searchsorted(ts, t, side="right") - 1, 0, max(len(ts) - 2, 0)))
@@ -410,10 +419,7 @@ def surface_motion(data: ViewerData, state: ViewState, disp: np.ndarray) -> np.n
     surf = data.surface
     if state.mode is not None:
         m = data.modes[state.mode]
-        if m.surface is None:
-            return np.zeros_like(surf.points_m)
-        gain = 2 * data.impulse_n_s if m.kind == "mode" else 1.0
-        return gain * np.real(m.surface * np.exp(2j * np.pi * m.freq_hz * state.time_s))
+        return np.zeros_like(surf.points_m) if m.surface is None else mode_motion(data, m, m.surface, state.time_s)
     return np.asarray(disp, float)[surf.nearest]
 
 
