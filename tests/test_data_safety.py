@@ -287,6 +287,43 @@ def test_a_full_disk_gives_one_line_for_every_stage_and_the_raw_takes_survive(pi
         assert refused >= 5   # most stages write more than 300 kB: the test does reach the full disk
 
 
+_RELEASE_ON_A_FULL_DISK = """
+import sys
+import numpy as np
+from odsplat.spine.errors import exit_if_hdf5_unclosed, quiet_hdf5_releases, storage_error
+from odsplat.spine.space import writing_h5
+quiet_hdf5_releases()
+folder = sys.argv[1]
+try:
+    with writing_h5(folder + "/x.h5") as f:
+        ds = f.create_dataset("a", shape=(64, 128, 128), dtype="u1", chunks=(1, 128, 128))
+        ds[:] = np.random.default_rng(0).integers(0, 255, ds.shape, dtype="u1")   # 1 MB, in the chunk cache
+        with open(folder + "/filler", "wb") as fh:
+            try:
+                fh.write(bytes(64 * 2**20))
+            except OSError:
+                pass
+        del ds   # released with no room for its chunks: the library's error has nowhere to go but stderr
+except Exception as exc:
+    print("odsplat: error:", storage_error(exc), file=sys.stderr)
+    exit_if_hdf5_unclosed()
+print("closed", file=sys.stderr)
+"""
+
+
+def test_an_hdf5_object_released_on_a_full_disk_gives_one_line(tmp_path):
+    """A dataset released while its chunks cannot be written fails where Python can only print (a traceback and
+    "Exception ignored", which CI once caught in sync's output on a full disk): one warning line, the file not
+    closed (closing it then crashes the library), and the process ends with its error line, exit 2."""
+    with _tmpfs(tmp_path / "disk", 4 * 2**20) as disk:
+        if disk is None:
+            pytest.skip("no tmpfs here (not root, or mount refused)")
+        r = subprocess.run([sys.executable, "-c", _RELEASE_ON_A_FULL_DISK, str(disk)], capture_output=True,
+                           text=True, timeout=120, env={**os.environ, "ODSPLAT_RESERVE_BYTES": "0"})
+        _assert_one_line(r, "x.h5", "no space left")
+        assert "an HDF5 object not released" in r.stderr and "closed" not in r.stderr.split("error:")[-1]
+
+
 @pytest.mark.timeout(600)
 def test_a_full_disk_while_recording_keeps_what_was_flushed(tmp_path):
     """`odsplat capture --sim --auto` onto a disk that fills during the first take: one line, exit 2; the take's

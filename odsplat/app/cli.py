@@ -34,7 +34,7 @@ from odsplat.app.pipeline import frames_and_views, run, run_stage
 from odsplat.app.pipeline import status as stage_status
 from odsplat.app.stages import TABLE, Stage, resolve
 from odsplat.spine.checks import PLAYBACK_FPS, WORKERS, check_number, maybe
-from odsplat.spine.errors import InputError, OdsplatError, exit_if_hdf5_unclosed, storage_error
+from odsplat.spine.errors import InputError, OdsplatError, exit_if_hdf5_unclosed, quiet_hdf5_releases, storage_error
 from odsplat.spine.integrity import listed_take_problems, verify_capture
 from odsplat.spine.lock import capture_lock
 from odsplat.spine.sensors import apply_geometry, geometry_toml, read_geometry
@@ -68,6 +68,7 @@ def main(verbose: int) -> None:
     """odsplat: motion-magnified 3D operational deflection shapes from impact tests."""
     level = logging.WARNING - 10 * min(verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    quiet_hdf5_releases()
 
 
 def _set_wait(ctx: click.Context, _param: click.Parameter, value: bool) -> None:

@@ -5,7 +5,9 @@ import errno
 import os
 import re
 import shutil
+import sys
 from os import PathLike
+from typing import Any
 
 
 class OdsplatError(Exception):
@@ -85,12 +87,12 @@ def storage_error(exc: BaseException) -> StorageError | None:
         seen.add(id(exc))
         code, name = (exc.errno, exc.filename) if isinstance(exc, OSError) else (None, None)
         if isinstance(exc, (OSError, RuntimeError)):
-            if code is None:   # h5py puts the C library's errno and the file's name in its message
+            if code is None or name is None:   # h5py puts the C library's errno and the file's name in its message
                 text = str(exc)
                 found = _H5_ERRNO.search(text)
-                code = int(found[1]) if found else None
+                code = code if code is not None else int(found[1]) if found else None
                 named = _H5_NAME.search(text)
-                name = named[1] if named else None
+                name = name if name is not None else named[1] if named else None
                 if code is None and "No space left" in text:
                     code = errno.ENOSPC
             if code in _STORAGE:
@@ -106,6 +108,46 @@ def storage_error(exc: BaseException) -> StorageError | None:
     return None
 
 
+_hdf5_dropped: list[StorageError] = []   # objects whose release failed on a storage error (`quiet_hdf5_releases`)
+
+
+def quiet_hdf5_releases() -> None:
+    """An h5py object released while its file cannot be written (a full disk: a dataset's cached chunks have
+    nowhere to go) fails where Python can only print the error: Cython prints its traceback (`sys.excepthook`),
+    then "Exception ignored" (`sys.unraisablehook`). Such a failure is logged in one line instead and remembered:
+    `close_h5` then refuses to close any more files (the library may crash doing it) and the process ends as
+    `exit_if_hdf5_unclosed` says. The file was being written under a temporary name and is discarded; the stage's
+    error line says why. Anything else is printed as before. Set in each process that writes HDF5 (the command
+    line, the pool's workers)."""
+    if getattr(sys.unraisablehook, "_odsplat", False):
+        return
+    previous_unraisable, previous_except = sys.unraisablehook, sys.excepthook
+
+    def released(exc: BaseException | None, tb: Any) -> StorageError | None:
+        while tb is not None:
+            if tb.tb_frame.f_code.co_filename.endswith("_objects.pyx"):
+                return storage_error(exc) if exc is not None else None
+            tb = tb.tb_next
+        return None
+
+    def unraisable(args: Any) -> None:
+        storage = released(args.exc_value, args.exc_traceback)
+        if storage is None:
+            previous_unraisable(args)
+            return
+        _hdf5_dropped.append(storage)
+        import logging
+
+        logging.getLogger("odsplat.spine.space").warning("an HDF5 object not released: %s", storage)
+
+    def excepthook(kind: type, exc: BaseException, tb: Any) -> None:
+        if released(exc, tb) is None:   # the first print of the same failure: the unraisable hook logs it
+            previous_except(kind, exc, tb)
+
+    unraisable._odsplat = True  # type: ignore[attr-defined]
+    sys.unraisablehook, sys.excepthook = unraisable, excepthook
+
+
 def exit_if_hdf5_unclosed() -> None:
     """Before exiting on a storage error: a file whose close failed even with the space reserve given back
     (`odsplat.spine.space`) makes the HDF5 library crash at the interpreter's exit, when it closes what is still open.
@@ -113,7 +155,7 @@ def exit_if_hdf5_unclosed() -> None:
     import sys
 
     space = sys.modules.get("odsplat.spine.space")
-    if space is not None and space._leaked:
+    if (space is not None and space._leaked) or _hdf5_dropped:
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(2)

@@ -14,6 +14,8 @@ import os
 import signal
 from concurrent.futures import ProcessPoolExecutor
 
+from odsplat.spine.errors import quiet_hdf5_releases
+
 _PR_SET_PDEATHSIG = 1
 
 
@@ -27,6 +29,7 @@ def process_pool(workers: int, fresh: bool = False) -> ProcessPoolExecutor:
 
 
 def _die_with(parent_pid: int) -> None:
+    quiet_hdf5_releases()   # a spawned worker starts without the command line's hooks
     name = ctypes.util.find_library("c")
     if name is not None:
         try:

@@ -21,6 +21,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from odsplat.spine import errors
 from odsplat.spine.errors import StorageError, free_bytes, human_bytes
 
 log = logging.getLogger(__name__)
@@ -119,6 +120,9 @@ def close_h5(f: Any, reserve: Reserve | None) -> None:
     with folder_lock(folder) if folder is not None else contextlib.nullcontext():
         if reserve is not None:
             reserve.release()
+        if errors._hdf5_dropped:   # an object's release failed on a full disk: closing may crash the library
+            _leaked.append(f)
+            raise StorageError(getattr(f, "filename", "an HDF5 file"), errors._hdf5_dropped[0].problem)
         try:
             f.close()
         except (OSError, RuntimeError) as exc:
