@@ -53,10 +53,11 @@ class PhaseMagnifier(StreamingMagnifier):
     def __init__(self, alpha: float, temporal: TemporalFilter | None = None, *, n_orientations: int = 4,
                  sigma_px: float = 2.0, reference: str | torch.Tensor = "first", attenuate_other: bool = False,
                  n_scales: int | None = None, twidth: float = 1.0, top_band: bool = False, warp: bool = False,
-                 noise_sd: float | None = None, batch_frames: int = 8):
+                 noise_sd: float | None = None, scales_per_octave: int = 1, batch_frames: int = 8):
         if not sigma_px >= 0:
             raise InputError("sigma_px", f"the phase smoothing width must be >= 0 px, got {sigma_px}")
         self.n_orientations, self.n_scales, self.twidth, self.top_band = n_orientations, n_scales, twidth, top_band
+        self.scales_per_octave = scales_per_octave
         self.sigma_px, self.attenuate_other, self.warp = float(sigma_px), bool(attenuate_other), bool(warp)
         if noise_sd is not None and not noise_sd >= 0:
             raise InputError("noise_sd", f"the frames' noise sd must be >= 0 (in [0, 1] units) or None "
@@ -77,7 +78,8 @@ class PhaseMagnifier(StreamingMagnifier):
     def _setup(self, height_px: int, width_px: int, device: torch.device) -> int:
         if self.pyramid is None or (self.pyramid.height_px, self.pyramid.width_px) != (height_px, width_px):
             self.pyramid = ComplexSteerablePyramid(height_px, width_px, self.n_scales, self.n_orientations,
-                                                   self.twidth, top_band=self.top_band, device=device)
+                                                   self.twidth, top_band=self.top_band,
+                                                   scales_per_octave=self.scales_per_octave, device=device)
             self._gauss = []
             for h, w in self.pyramid.band_shapes:
                 wy = 2 * math.pi * torch.fft.fftfreq(h, device=device)

@@ -7,7 +7,10 @@ residual keeps the top octave (r from 2**-twidth up), scale s is the octave band
 2**-s and 2**-(s+1), split into `n_orientations` one-sided angular sectors (complex bands, an analytic
 signal along the sector's direction), and the low-pass residual keeps what is below the coarsest scale.
 After each scale the spectrum is cropped to half size, so scale s lives on a grid of about
-(H / 2**s, W / 2**s) pixels. With `top_band` the first edge moves up an octave: the top octave becomes
+(H / 2**s, W / 2**s) pixels. With `scales_per_octave` n (Wadhwa et al.'s half- and quarter-octave
+pyramids) the edges are 1/n octave apart, the transitions 1/n octave wide (`twidth` / n), and the grid is
+halved once the low-pass fits the smaller one, every n scales: narrower bands, whose envelopes carry less of
+the motion the phase cannot move. With `top_band` the first edge moves up an octave: the top octave becomes
 a full-resolution band 0, and the high-pass residual keeps only the corners beyond Nyquist.
 Orientation k passes wave vectors at angle pi * k / n_orientations from the +x (column) axis towards
 the +y (row, downward) axis. The transform is a tight frame: `reconstruct` of an unmodified pyramid
@@ -77,14 +80,18 @@ class ComplexSteerablePyramid:
     """
 
     def __init__(self, height_px: int, width_px: int, n_scales: int | None = None, n_orientations: int = 4,
-                 twidth: float = 1.0, *, top_band: bool = False, device: torch.device | str | None = None):
+                 twidth: float = 1.0, *, top_band: bool = False, scales_per_octave: int = 1,
+                 device: torch.device | str | None = None):
         if height_px < 1 or width_px < 1:
             raise InputError("pyramid", f"image size must be positive, got {height_px} x {width_px}")
-        fit = max_scales(height_px, width_px)
+        if scales_per_octave not in (1, 2, 4):
+            raise InputError("pyramid", f"scales_per_octave must be 1, 2 or 4, got {scales_per_octave}")
+        per = int(scales_per_octave)
+        fit = max_scales(height_px, width_px) * per
         # An explicit request may go coarser than the default, down to 4 px bands, not further.
-        most = max(fit, max_scales(height_px, width_px, 4)) + int(top_band)
+        most = max(fit, max_scales(height_px, width_px, 4) * per) + int(top_band) * per
         if n_scales is None:
-            n_scales = fit + int(top_band) if fit else 0
+            n_scales = fit + int(top_band) * per if fit else 0
         if n_scales < 1 or n_scales > most:
             raise InputError("pyramid", f"{n_scales} scales do not fit a {height_px} x {width_px} image "
                                         f"(at most {most}, at least 1; images need {MIN_BAND_SIDE_PX} px "
@@ -95,6 +102,7 @@ class ComplexSteerablePyramid:
             raise InputError("pyramid", f"twidth must be positive, got {twidth}")
         self.height_px, self.width_px = height_px, width_px
         self.n_scales, self.n_orientations, self.twidth = n_scales, n_orientations, float(twidth)
+        self.scales_per_octave = per
         self.top_band = bool(top_band)
         self.device = torch.device(device) if device is not None else torch.device("cpu")
         self._build_filters()
@@ -110,7 +118,8 @@ class ComplexSteerablePyramid:
         r[0, 0] = 2.0 ** -(self.n_scales + 8)  # DC: below every band, inside every low-pass
         log_r = torch.log2(r)
         theta = torch.atan2(wy, wx)
-        tw = self.twidth
+        step = 1.0 / self.scales_per_octave   # octaves between edges
+        tw = self.twidth * step
 
         # The first split: at Nyquist (r = 1) normally; one octave higher with a top band, so that the
         # high-pass residual keeps only the corners beyond Nyquist and the Nyquist lines, where w and -w
@@ -138,7 +147,7 @@ class ComplexSteerablePyramid:
         crops = 0
         for s in range(self.n_scales):
             self.band_shapes.append((h, w))
-            edge = top - (s + 1.0)
+            edge = top - (s + 1.0) * step
             himask = _rising(log_r, edge, tw)
             sectors = []
             for k in range(K):
@@ -154,7 +163,7 @@ class ComplexSteerablePyramid:
             self._analysis.append((2.0 * sector).float().to(dev))
             self._synthesis.append(sector.float().to(dev))
             self._lomask.append(_falling(log_r, edge, tw).float().to(dev))
-            if edge > -(crops + 1):  # the low-pass still reaches above half this grid's Nyquist: keep it
+            if edge > -(crops + 1) + 1e-9:  # the low-pass still reaches above half this grid's Nyquist: keep it
                 self._crop.append(None)
                 continue
             crops += 1

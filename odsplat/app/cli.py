@@ -460,18 +460,27 @@ def export_video(capture_dir: Path, take: str | None, source: str, out: Path | N
 @click.option("--batch-size", type=int, default=8, show_default=True)
 @click.option("--crop", type=int, default=64, show_default=True, help="Training patch side in pixels (multiple of 4).")
 @click.option("--lr", type=float, default=5e-4, show_default=True)
-@click.option("--channels", type=int, default=16, show_default=True, help="Network width.")
+@click.option("--size", type=click.Choice(["small", "paper"]), default=None,
+              help="A named network size: small (0.11 M parameters, shipped) or paper (0.87 M, Oh et al.'s).")
+@click.option("--channels", type=int, default=16, show_default=True, help="Network width (without --size).")
 @click.option("--threads", type=int, default=1, show_default=True)
+@click.option("--device", default="cpu", show_default=True, help="Where the network trains: cpu, cuda.")
+@click.option("--workers", type=int, default=0, show_default=True,
+              help="Processes making the synthetic batches ahead of the network (0: in line).")
 @click.option("--seed", type=int, default=0, show_default=True)
 @click.option("--resume", is_flag=True, help="Continue from OUT.ckpt.")
-def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, crop: int, lr: float, channels: int,
-             threads: int, seed: int, resume: bool) -> None:
+@click.option("--init", type=click.Path(path_type=Path, dir_okay=False), default=None,
+              help="Start from these weights (of the same size) instead of at random: fine-tuning.")
+def train_mm(out: Path, steps: int, max_minutes: float | None, batch_size: int, crop: int, lr: float,
+             size: str | None, channels: int, threads: int, device: str, workers: int, seed: int,
+             resume: bool, init: Path | None) -> None:
     """Train the learned motion magnifier (Oh et al. 2018) on procedural synthetic data
-    (docs/magnification-learned.md)."""
+    (docs/magnification-learned.md). Writes OUT, its checkpoint OUT.ckpt and its log (OUT without .pt + .log.json)."""
     from odsplat.processing import TrainConfig, train
 
     report = train(TrainConfig(out=out, steps=steps, max_minutes=max_minutes, batch_size=batch_size, crop=crop, lr=lr,
-                               channels=channels, threads=threads, seed=seed, resume=resume))
+                               size=size, channels=channels, threads=threads, device=device, workers=workers,
+                               seed=seed, resume=resume, init=init))
     click.echo(f"{report.steps} steps in {report.wall_s:.0f} s: validation SSIM {report.val_ssim:.3f} "
                f"(do nothing {report.val_ssim_frame_b:.3f}), PSNR {report.val_psnr:.2f} dB, "
                f"gain {report.val_gain:.2f}; "

@@ -4,7 +4,10 @@ rendered exactly alpha times larger (Oh et al. 2018's recipe, with procedural te
 Every layer (a background and 0-N foreground objects) is a band-limited texture with a soft mask. A layer
 is moved by a Fourier phase ramp, which translates a band-limited image exactly by any real displacement, so
 frame b (the layer shifted by d), the ground truth (shifted by alpha * d) and frame a (not shifted) differ by
-motion only. Layers are composited back to front (premultiplied colour). Sensor noise goes on the inputs only.
+motion only. Layers are composited back to front (premultiplied colour). The textures are those of a test:
+speckle paint, tags (AprilTag-like bit grids), sharp edges of parts, smooth paint with its shading, and
+general noise, stripes, checkers and blobs. Sensor noise goes on the inputs only: by default a camera's
+(`noise="camera"`: shot noise of a full well of electrons, read noise, quantisation to 8, 10 or 12 bits).
 """
 from __future__ import annotations
 
@@ -13,6 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+
+from odsplat.spine.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -29,10 +34,18 @@ class SynthConfig:
     p_object_static: float = 0.1
     p_gray: float = 0.3
     p_noise: float = 0.8
-    gauss_sigma: tuple[float, float] = (0.002, 0.05)  # in [0, 1] units
-    poisson_gain: tuple[float, float] = (0.0, 0.003)  # variance = gain * intensity
+    noise: str = "camera"  # camera: shot + read + quantisation (below); gauss: gauss_sigma and poisson_gain
+    full_well_e: tuple[float, float] = (800.0, 20000.0)  # electrons at full scale, log-uniform
+    read_noise_e: tuple[float, float] = (2.0, 25.0)  # electrons rms, log-uniform
+    bit_depths: tuple[int, ...] = (8, 10, 12)
+    gauss_sigma: tuple[float, float] = (0.002, 0.05)  # noise="gauss": in [0, 1] units
+    poisson_gain: tuple[float, float] = (0.0, 0.003)  # noise="gauss": variance = gain * intensity
     blur_sigma: float = 0.7  # band limit of every layer, pixels
     color_perturb: bool = True
+
+    def __post_init__(self) -> None:
+        if self.noise not in ("camera", "gauss"):
+            raise InputError("SynthConfig.noise", f"camera or gauss, got {self.noise!r}")
 
 
 @dataclass
@@ -67,10 +80,13 @@ def _smooth_noise(rng: np.random.Generator, s: int, scale: float) -> np.ndarray:
     return (out - lo) / (hi - lo + 1e-12)
 
 
-def _pattern(rng: np.random.Generator, s: int) -> np.ndarray:
-    """One scalar pattern in [0, 1] on an s x s canvas."""
+PATTERNS = ("noise", "stripes", "checkers", "blobs", "speckle", "tags", "paint", "edges")
+
+
+def pattern(rng: np.random.Generator, s: int, kind: str | None = None) -> np.ndarray:
+    """One scalar pattern in [0, 1] on an s x s canvas: of `kind` (one of PATTERNS), or of one drawn at random."""
     x, y = _grid(s)
-    kind = rng.integers(0, 5)
+    kind = PATTERNS.index(kind) if kind is not None else rng.integers(0, len(PATTERNS))
     theta = rng.uniform(0, math.pi)
     u = x * math.cos(theta) + y * math.sin(theta)
     v = -x * math.sin(theta) + y * math.cos(theta)
@@ -92,17 +108,33 @@ def _pattern(rng: np.random.Generator, s: int) -> np.ndarray:
             d2 = (x - cx) ** 2 + (y - cy) ** 2
             blob = (d2 < r * r).astype(np.float64) if rng.random() < 0.5 else np.exp(-d2 / (2 * r * r))
             p = np.maximum(p, blob * rng.uniform(0.3, 1.0))
-    else:  # sparse dots / speckle, like a painted speckle pattern on a test structure
+    elif kind == 4:  # sparse dots / speckle, like a painted speckle pattern on a test structure
         p = (_smooth_noise(rng, s, rng.uniform(0.8, 2.5)) > rng.uniform(0.5, 0.7)).astype(np.float64)
+    elif kind == 5:  # tags: AprilTag-like grids of bits in a black border, on white, tiled
+        cell = rng.uniform(1.5, 5.0)
+        bits = rng.integers(0, 2, (64, 64))
+        i, j = (np.floor((w - w.min()) / cell).astype(int) for w in (u, v))
+        pos_i, pos_j = i % 10, j % 10   # a tag is 10 cells: a white margin, a black border, 6 x 6 bits
+        inner = (pos_i >= 2) & (pos_i <= 7) & (pos_j >= 2) & (pos_j <= 7)
+        border = (pos_i >= 1) & (pos_i <= 8) & (pos_j >= 1) & (pos_j <= 8) & ~inner
+        p = np.where(inner, bits[i % 64, j % 64], np.where(border, 0.0, 1.0)).astype(np.float64)
+    elif kind == 6:  # smooth paint: a gentle gradient with faint grain (little texture to follow)
+        p = 0.5 + 0.5 * u / max(float(np.ptp(u)), 1.0) + rng.uniform(0.02, 0.1) * _smooth_noise(rng, s, 1.0)
+    else:  # edges: a few parts' sharp outlines (half planes and steps)
+        p = np.zeros((s, s))
+        for _ in range(rng.integers(1, 5)):
+            a = rng.uniform(0, 2 * math.pi)
+            side = (x - rng.uniform(0, s)) * math.cos(a) + (y - rng.uniform(0, s)) * math.sin(a) > 0
+            p += rng.uniform(0.3, 1.0) * side
     p = p - p.min()
     return p / (p.max() + 1e-12)
 
 
 def _texture(rng: np.random.Generator, s: int) -> np.ndarray:
     """(3, s, s) in [0, 1]: one or two patterns mapped between random colours, with a smooth shading."""
-    p = _pattern(rng, s)
+    p = pattern(rng, s)
     if rng.random() < 0.4:
-        q = _pattern(rng, s)
+        q = pattern(rng, s)
         p = p * q if rng.random() < 0.5 else 0.5 * (p + q)
     c0, c1 = rng.uniform(0, 1, 3), rng.uniform(0, 1, 3)
     if np.abs(c1 - c0).max() < 0.2:  # no invisible textures
@@ -182,6 +214,19 @@ def _noise(rng: np.random.Generator, img: np.ndarray, sigma: float, gain: float)
     return np.clip(img + np.sqrt(var) * rng.standard_normal(img.shape), 0, 1)
 
 
+def _log_uniform(rng: np.random.Generator, lo_hi: tuple[float, float]) -> float:
+    return float(math.exp(rng.uniform(math.log(lo_hi[0]), math.log(lo_hi[1]))))
+
+
+def camera_noise(rng: np.random.Generator, img: np.ndarray, full_well_e: float, read_noise_e: float,
+                 bits: int) -> np.ndarray:
+    """`img` (intensity in [0, 1] of full scale) as a camera records it: Poisson shot noise of its electrons,
+    Gaussian read noise, clipped at full scale and quantised to `bits` bits; back in [0, 1]."""
+    electrons = rng.poisson(np.clip(img, 0, 1) * full_well_e) + read_noise_e * rng.standard_normal(img.shape)
+    levels = 2 ** bits - 1
+    return np.clip(np.round(electrons / full_well_e * levels), 0, levels) / levels
+
+
 def make_sample(seed: int | tuple[int, ...] | list[int], cfg: SynthConfig = SynthConfig()) -> SynthSample:
     """One sample, a deterministic function of `seed` (an int or a sequence of ints) and `cfg`."""
     rng = np.random.default_rng(list(seed) if isinstance(seed, (tuple, list)) else seed)
@@ -217,9 +262,14 @@ def make_sample(seed: int | tuple[int, ...] | list[int], cfg: SynthConfig = Synt
         bc, yc = b, y
 
     if rng.random() < cfg.p_noise:
-        sigma = rng.uniform(*cfg.gauss_sigma)
-        pg = rng.uniform(*cfg.poisson_gain) if rng.random() < 0.5 else 0.0
-        a, b, bc = (_noise(rng, f, sigma, pg) for f in (a, b, bc))
+        if cfg.noise == "camera":
+            well, read = _log_uniform(rng, cfg.full_well_e), _log_uniform(rng, cfg.read_noise_e)
+            bits = int(rng.choice(cfg.bit_depths))
+            a, b, bc = (camera_noise(rng, f, well, read, bits) for f in (a, b, bc))
+        else:
+            sigma = rng.uniform(*cfg.gauss_sigma)
+            pg = rng.uniform(*cfg.poisson_gain) if rng.random() < 0.5 else 0.0
+            a, b, bc = (_noise(rng, f, sigma, pg) for f in (a, b, bc))
 
     t = lambda f: torch.from_numpy(np.ascontiguousarray(f, dtype=np.float32))  # noqa: E731
     return SynthSample(t(a), t(b), t(y), alpha, t(bc), t(yc), d_bg, d_objs)
@@ -235,4 +285,4 @@ def make_batch(seed: int, index: int, n: int, cfg: SynthConfig = SynthConfig()) 
     return out
 
 
-__all__ = ["SynthConfig", "SynthSample", "make_batch", "make_sample"]
+__all__ = ["PATTERNS", "SynthConfig", "SynthSample", "camera_noise", "pattern", "make_batch", "make_sample"]

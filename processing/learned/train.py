@@ -5,6 +5,7 @@ V texture and M shape representations, b' and y' the colour-perturbed frame b an
 """
 from __future__ import annotations
 
+import json
 import logging
 import math
 import time
@@ -15,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from odsplat.processing.learned.network import MagNet, from_net, to_net
+from odsplat.processing.learned.network import SIZES, MagNet, from_net, load_magnet, to_net
 from odsplat.processing.learned.synth import SynthConfig, make_batch, make_sample
 from odsplat.processing.metrics import estimate_translation, psnr, ssim
 from odsplat.spine.atomic import atomic_open
@@ -33,6 +34,7 @@ class TrainConfig:
     `max_minutes` of wall time, whichever comes first."""
 
     out: Path = Path("magnet.pt")
+    size: str | None = None  # a named network size (network.SIZES: small, paper); it sets the three below
     steps: int = 20000
     batch_size: int = 8
     crop: int = 64
@@ -41,6 +43,7 @@ class TrainConfig:
     seed: int = 0
     threads: int = 1
     resume: bool = False
+    init: Path | None = None  # start from these weights (a MagNet file of the same size) rather than at random
     channels: int = 16
     enc_blocks: int = 3
     dec_blocks: int = 3
@@ -51,7 +54,17 @@ class TrainConfig:
     checkpoint_every: int = 250
     log_every: int = 100
     progress: bool = True
+    device: str = "cpu"  # "cuda" for the long run where a GPU is lent (the data is made on the CPU)
+    workers: int = 0  # processes making the batches ahead of the network (0: made in line)
     synth: SynthConfig = field(default_factory=SynthConfig)
+
+    def __post_init__(self) -> None:
+        if self.size is not None:
+            if self.size not in SIZES:
+                raise InputError("size", f"the learned magnifier's size is one of {', '.join(SIZES)}, "
+                                         f"got {self.size!r}")
+            self.channels, self.enc_blocks, self.dec_blocks = (SIZES[self.size][k] for k in
+                                                               ("channels", "enc_blocks", "dec_blocks"))
 
 
 @dataclass
@@ -97,11 +110,12 @@ def weights_payload(net: MagNet) -> dict:
 def validate(net: MagNet, cfg: SynthConfig, n: int) -> dict[str, float]:
     """SSIM/PSNR against the ground truth on `n` held-out samples, and the gain on pure translations."""
     net.eval()
+    dev = next(net.parameters()).device
     b = make_batch(VAL_SEED, 0, n, cfg)
     out = []
     for i in range(0, n, 16):
-        pred = net(to_net(b["frame_a"][i:i + 16]), to_net(b["frame_b"][i:i + 16]), b["alpha"][i:i + 16])
-        out.append(from_net(pred, 3))
+        pred = net(*(to_net(b[k][i:i + 16].to(dev)) for k in ("frame_a", "frame_b")), b["alpha"][i:i + 16].to(dev))
+        out.append(from_net(pred, 3).cpu())
     y = torch.cat(out)
     res = {"ssim": ssim(y, b["target"]), "psnr": psnr(y, b["target"]),
            "ssim_frame_b": ssim(b["frame_b"], b["target"]), "psnr_frame_b": psnr(b["frame_b"], b["target"])}
@@ -111,7 +125,7 @@ def validate(net: MagNet, cfg: SynthConfig, n: int) -> dict[str, float]:
     gains = []
     for i in range(8):
         s = make_sample((VAL_SEED, 10_000 + i), tcfg)
-        yy = from_net(net(to_net(s.frame_a[None]), to_net(s.frame_b[None]), s.alpha), 3)[0]
+        yy = from_net(net(to_net(s.frame_a[None].to(dev)), to_net(s.frame_b[None].to(dev)), s.alpha), 3)[0].cpu()
         dx, dy = estimate_translation(s.frame_a, yy)
         tx, ty = (s.alpha * c for c in s.background_displacement)
         gains.append((dx * tx + dy * ty) / (tx * tx + ty * ty))
@@ -120,8 +134,46 @@ def validate(net: MagNet, cfg: SynthConfig, n: int) -> dict[str, float]:
     return res
 
 
+class _Batches(torch.utils.data.Dataset):
+    """Batch k of a run: a deterministic function of (seed, k), the same in whichever process makes it."""
+
+    def __init__(self, seed: int, batch_size: int, synth: SynthConfig, steps: int):
+        self.seed, self.batch_size, self.synth, self.steps = seed, batch_size, synth, steps
+
+    def __len__(self) -> int:
+        return self.steps
+
+    def __getitem__(self, k: int) -> dict[str, torch.Tensor]:
+        return make_batch(self.seed, k * self.batch_size, self.batch_size, self.synth)
+
+
+def _batches(cfg: TrainConfig, synth: SynthConfig, first: int):
+    """Batches `first`..`cfg.steps - 1` in order; made by `cfg.workers` fresh processes ahead of the network."""
+    data = _Batches(cfg.seed, cfg.batch_size, synth, cfg.steps)
+    if cfg.workers < 1:
+        return (data[k] for k in range(first, cfg.steps))
+    return torch.utils.data.DataLoader(data, batch_size=None, sampler=range(first, cfg.steps),
+                                       num_workers=cfg.workers, multiprocessing_context="spawn", prefetch_factor=4,
+                                       pin_memory=cfg.device.startswith("cuda"))
+
+
+def log_path(out: Path) -> Path:
+    """The training log beside the weights: `magnet.pt` -> `magnet.log.json`."""
+    return out.with_name(out.stem + ".log.json")
+
+
+def _write_log(cfg: TrainConfig, net: MagNet, step: int, wall_s: float, history: list[dict], out: Path) -> None:
+    settings = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()}
+    doc = {"network": dict(net.config), "parameters": sum(p.numel() for p in net.parameters()), "steps": step,
+           "wall_s": round(wall_s, 1), "torch": torch.__version__, "settings": settings, "validation": history}
+    with atomic_open(log_path(out), "w") as f:
+        json.dump(doc, f, indent=1)
+        f.write("\n")
+
+
 def train(cfg: TrainConfig) -> TrainReport:
-    """Train (or resume) a MagNet; writes `cfg.out` atomically at every checkpoint and at the end."""
+    """Train (or resume) a MagNet; writes `cfg.out` atomically at every checkpoint and at the end, with its
+    resumable checkpoint (`<out>.ckpt`) and its log (`log_path`: the settings and every validation)."""
     if cfg.crop % 4 or cfg.crop < 16:
         raise InputError("crop", f"the crop must be a multiple of 4 and at least 16, got {cfg.crop}")
     if cfg.seed == VAL_SEED:
@@ -134,7 +186,12 @@ def train(cfg: TrainConfig) -> TrainReport:
     ckpt_path = out.with_name(out.name + ".ckpt")
     synth = SynthConfig(**{**asdict(cfg.synth), "size": cfg.crop})
 
-    net = MagNet(cfg.channels, cfg.enc_blocks, cfg.dec_blocks)
+    try:
+        device = torch.device(cfg.device)
+        torch.empty(0, device=device)
+    except (RuntimeError, AssertionError) as exc:
+        raise InputError("device", f"{cfg.device!r} cannot be used here ({' '.join(str(exc).split())[:120]})") from None
+    net = MagNet(cfg.channels, cfg.enc_blocks, cfg.dec_blocks).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     step, elapsed_before, history = 0, 0.0, []
     if cfg.resume:
@@ -148,6 +205,15 @@ def train(cfg: TrainConfig) -> TrainReport:
         step, elapsed_before = int(ck["step"]), float(ck["wall_s"])
         history = list(ck.get("history", []))
         log.info("resumed from %s at step %d", ckpt_path, step)
+    elif cfg.init is not None:
+        try:
+            start = load_magnet(cfg.init)
+        except (OSError, RuntimeError, KeyError, TypeError, ValueError) as exc:
+            raise InputError(cfg.init, f"not a MagNet weights file ({' '.join(str(exc).split())[:120]})") from None
+        if start.config != net.config:
+            raise InputError(cfg.init, f"a network {start.config}, not the requested {net.config}")
+        net.load_state_dict(start.state_dict())
+        log.info("starting from the weights %s", cfg.init)
 
     def lr_at(k: int) -> float:
         return cfg.lr_final + 0.5 * (cfg.lr - cfg.lr_final) * (1 + math.cos(math.pi * min(k / cfg.steps, 1.0)))
@@ -157,18 +223,19 @@ def train(cfg: TrainConfig) -> TrainReport:
         _atomic_save({**weights_payload(net), "optimizer": opt.state_dict(), "step": step, "wall_s": wall,
                       "history": history}, ckpt_path)
         _atomic_save(weights_payload(net), out)
+        _write_log(cfg, net, step, wall, history, out)
 
     t0 = time.monotonic()
     recent: list[float] = []
     net.train()
     bar = tqdm(total=cfg.steps, initial=step, disable=not cfg.progress, desc="train-mm", unit="step")
-    while step < cfg.steps:
+    for batch in _batches(cfg, synth, step):
         if cfg.max_minutes is not None and elapsed_before + time.monotonic() - t0 > 60 * cfg.max_minutes:
             log.info("time limit of %.1f min reached at step %d", cfg.max_minutes, step)
             break
         for g in opt.param_groups:
             g["lr"] = lr_at(step)
-        batch = make_batch(cfg.seed, step * cfg.batch_size, cfg.batch_size, synth)
+        batch = {k: v.to(device, non_blocking=True) for k, v in batch.items()}
         loss, parts = losses(net, batch, cfg.reg_weight)
         opt.zero_grad(set_to_none=True)
         loss.backward()
@@ -199,4 +266,4 @@ def train(cfg: TrainConfig) -> TrainReport:
                        v["ssim_frame_b"], v["psnr_frame_b"], v["gain"], history)
 
 
-__all__ = ["TrainConfig", "TrainReport", "losses", "train", "validate"]
+__all__ = ["TrainConfig", "TrainReport", "log_path", "losses", "train", "validate"]

@@ -2,22 +2,36 @@
 streaming."""
 from __future__ import annotations
 
+import json
 import math
+from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from odsplat.processing.filters import make_filter
 from odsplat.processing.learned.magnifier import DEFAULT_WEIGHTS, LearnedMagnifier
 from odsplat.processing.learned.network import MagNet, from_net, load_magnet, to_net
-from odsplat.processing.learned.synth import SynthConfig, make_batch, make_sample
-from odsplat.processing.learned.train import TrainConfig, losses, train
+from odsplat.processing.learned.synth import PATTERNS, SynthConfig, camera_noise, make_batch, make_sample, pattern
+from odsplat.processing.learned.train import TrainConfig, log_path, losses, train
 from odsplat.processing.metrics import estimate_translation, psnr, ssim
 from odsplat.spine.errors import InputError
 
 # One textured plane moving rigidly, no noise: the displacement is known exactly.
 PLANE = SynthConfig(size=64, objects=(0, 0), p_background_moves=1.0, p_noise=0.0, p_gray=0.0,
                     alpha_range=(10.0, 10.0), min_magnified_px=2.0, max_magnified_px=4.0)
+
+
+def test_the_papers_size():
+    """Oh et al.'s network: about 0.9 M parameters (a 32-channel trunk, 9 decoder blocks); ours is 0.11 M."""
+    count = lambda net: sum(p.numel() for p in net.parameters())  # noqa: E731
+    assert 0.8e6 < count(MagNet.of_size("paper")) < 1.0e6 and count(MagNet.of_size("small")) < 0.12e6
+    assert TrainConfig(size="paper").dec_blocks == 9
+    with pytest.raises(InputError, match="size"):
+        MagNet.of_size("huge")
+    with pytest.raises(InputError, match="device"):
+        train(TrainConfig(out=Path("unused.pt"), device="nonsense", progress=False))
 
 
 def test_network_shapes_and_size():
@@ -83,8 +97,38 @@ def test_synthetic_samples_deterministic_and_varied():
     for k in ("frame_a", "frame_b", "target", "frame_b_c", "target_c"):
         assert 0 <= float(batch[k].min()) and float(batch[k].max()) <= 1
     # Noise goes on the inputs only: the clean target of a static scene is frame a without noise.
-    noisy = make_sample(0, SynthConfig(objects=(0, 0), p_background_moves=0.0, p_noise=1.0, gauss_sigma=(0.04, 0.04)))
+    noisy = make_sample(0, SynthConfig(objects=(0, 0), p_background_moves=0.0, p_noise=1.0, noise="gauss",
+                                       gauss_sigma=(0.04, 0.04)))
     assert psnr(noisy.frame_a, noisy.target) < 35
+    camera = make_sample(0, SynthConfig(objects=(0, 0), p_background_moves=0.0, p_noise=1.0))
+    assert psnr(camera.frame_a, camera.target) < 60 and torch.equal(camera.target, noisy.target)
+
+
+def test_camera_noise_is_shot_read_and_quantisation():
+    """A flat grey at half scale through a 10 000 e- well with 10 e- read noise: the sd of sqrt(5000 + 100)
+    electrons; at 8 bits every value is a multiple of 1/255 (1.8 LSB sd), at 12 bits the same sd comes through."""
+    rng = np.random.default_rng(0)
+    flat = np.full((200, 200), 0.5)
+    twelve = camera_noise(rng, flat, 10_000.0, 10.0, 12)
+    assert float(twelve.std()) == pytest.approx(math.sqrt(5100) / 10_000, rel=0.05)
+    assert float(twelve.mean()) == pytest.approx(0.5, abs=1e-3)
+    eight = camera_noise(rng, flat, 10_000.0, 10.0, 8)
+    assert np.allclose(eight * 255, np.round(eight * 255)) and len(np.unique(eight)) <= 20   # +-5 sd of 1.8 LSB
+    assert float(camera_noise(rng, np.ones((50, 50)), 1000.0, 5.0, 10).max()) == 1.0   # clipped at full scale
+
+
+def test_synthetic_textures_include_a_tests_surfaces():
+    """Tags are black-bordered grids of bits on white (two levels, both present); paint is a faint gradient
+    (low contrast at any pixel's neighbourhood); edges are steps (few levels); every kind spans [0, 1]."""
+    rng = np.random.default_rng(3)
+    for kind in PATTERNS:
+        p = pattern(rng, 96, kind)
+        assert p.shape == (96, 96) and float(p.min()) == 0.0 and float(p.max()) == pytest.approx(1.0)
+    tags = pattern(rng, 96, "tags")
+    assert set(np.unique(np.round(tags, 6))) == {0.0, 1.0} and 0.2 < float(tags.mean()) < 0.8
+    paint = pattern(rng, 96, "paint")
+    assert float(np.abs(np.diff(paint, axis=1)).max()) < 0.2
+    assert len(np.unique(np.round(pattern(rng, 96, "edges"), 6))) <= 16
 
 
 def test_metrics():
@@ -127,6 +171,15 @@ def test_train_writes_weights_and_resumes(tmp_path):
     assert rep2.steps == 3
     net = load_magnet(out)
     assert net.config == {"channels": 8, "enc_blocks": 1, "dec_blocks": 1}
+    # The log beside the weights: the settings, the network and each validation, the resumed run's included.
+    doc = json.loads(log_path(out).read_text())
+    assert log_path(out).name == "m.log.json" and doc["steps"] == 3 and doc["network"] == net.config
+    assert [v["step"] for v in doc["validation"]] == [2, 3] and doc["settings"]["crop"] == 32
+    # A worker process makes the same batches as the trainer in line: the same weights, bit for bit.
+    inline, ahead = (train(TrainConfig(**{**cfg.__dict__, "out": tmp_path / f"{n}.pt", "workers": w}))
+                     for n, w in (("inline", 0), ("ahead", 1)))
+    a, b = load_magnet(inline.out).state_dict(), load_magnet(ahead.out).state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
     with pytest.raises(InputError):
         train(TrainConfig(out=tmp_path / "none.pt", resume=True, progress=False))
     with pytest.raises(InputError):

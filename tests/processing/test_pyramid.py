@@ -31,6 +31,21 @@ def test_unmodified_pyramid_reconstructs_the_image(h, w, k, twidth, top):
         assert b.is_complex() and tuple(b.shape) == (3, k, *pyr.band_shapes[s])
 
 
+@pytest.mark.parametrize("per,top", [(2, False), (4, False), (2, True)])
+def test_half_and_quarter_octave_pyramids_reconstruct_and_halve_the_grid_every_octave(per, top):
+    """Wadhwa et al.'s finer pyramids: `per` scales an octave, each as narrow; still a tight frame; the grid halves
+    once an octave (after every `per` scales), and the coarsest band is as coarse as the octave pyramid's."""
+    torch.manual_seed(2)
+    pyr = ComplexSteerablePyramid(67, 96, scales_per_octave=per, top_band=top)
+    octave = ComplexSteerablePyramid(67, 96, top_band=top)
+    assert pyr.n_scales == per * octave.n_scales and pyr.lowpass_shape == octave.lowpass_shape
+    assert pyr.band_shapes[::per] == octave.band_shapes
+    x = torch.rand(2, 67, 96)
+    assert float((pyr.reconstruct(pyr.build(x)) - x).norm() / x.norm()) < 1e-4
+    with pytest.raises(InputError, match="scales_per_octave"):
+        ComplexSteerablePyramid(64, 64, scales_per_octave=3)
+
+
 def test_default_scales_stop_at_8_px_bands():
     assert max_scales(128, 128) == 5  # bands 128, 64, 32, 16, 8
     assert ComplexSteerablePyramid(64, 96).band_shapes == [(64, 96), (32, 48), (16, 24), (8, 12)]
