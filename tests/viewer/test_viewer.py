@@ -471,4 +471,14 @@ def test_an_ods_line_is_listed_animated_at_its_frequency_and_read_per_newton(dat
     d_half, d_period = np.abs(frames[1] - frames[0]).mean(), np.abs(frames[2] - frames[0]).mean()
     assert d_half > 0.05 and d_period < 0.02 * d_half
     assert data.mode_nearest(60.0) < n_modes                  # a click on the FRF selects modes only
+    # the sensors' arrows move as the structure does: per newton for an ODS line, 2 |A| J for a mode (they once
+    # took a mode's gain for every line, 2 J times too far)
+    from odsplat.app.viewer.model import sensor_shifts_m
+
+    state = replace(window.state, time_s=0.0)
+    np.testing.assert_allclose(sensor_shifts_m(data, state), np.real(line.sensors_accel), rtol=1e-12)
+    mode = replace(state, mode=0)
+    np.testing.assert_allclose(sensor_shifts_m(data, mode),
+                               2 * data.impulse_n_s * np.real(data.modes[0].sensors_accel), rtol=1e-12)
+    assert not sensor_shifts_m(data, replace(state, mode=None)).any()
     window.mode_list.setCurrentRow(0)

@@ -85,12 +85,11 @@ def _draw_sensors(img: np.ndarray, data: ViewerData, state: ViewState, cam) -> N
     """Each accelerometer as an arrow along its direction; with a mode selected, moved by the accelerometers' shape
     (magnified like the Gaussians) and its arrow scaled by the motion along it."""
     length = 0.1 * data.extent_m
-    mode = data.modes[state.mode] if state.mode is not None else None
-    phase = np.exp(2j * np.pi * mode.freq_hz * state.time_s) if mode is not None else 1.0
+    from odsplat.app.viewer.model import sensor_shifts_m
+
+    moved = state.alpha * sensor_shifts_m(data, state)
     for i, s in enumerate(data.sensors):
-        shift = 0.0
-        if mode is not None and mode.sensors_accel is not None:
-            shift = float(state.alpha * 2 * data.impulse_n_s * np.real(mode.sensors_accel[i] * phase))
+        shift = float(moved[i])
         base = s.position_m + shift * s.direction
         uv, ok = project(cam, np.array([s.position_m, base, base + length * s.direction]))
         if not ok.all():

@@ -247,6 +247,16 @@ def mode_motion(data: ViewerData, m: Mode, shape: np.ndarray, time_s: float) -> 
     return mode_gain(data, m) * np.real(shape * np.exp(2j * np.pi * m.freq_hz * time_s))
 
 
+def sensor_shifts_m(data: ViewerData, state: ViewState) -> np.ndarray:
+    """Each accelerometer's physical displacement along its direction (metres, before magnification) in the state:
+    the selected mode's at its animation time, with that mode's gain (a mode's free decay, an ODS line per newton);
+    zeros without a mode or without the accelerometers' shape."""
+    m = data.modes[state.mode] if state.mode is not None else None
+    if m is None or m.sensors_accel is None:
+        return np.zeros(len(data.sensors))
+    return mode_motion(data, m, np.asarray(m.sensors_accel), state.time_s)
+
+
 def largest_motion_m(data: ViewerData, state: ViewState) -> float:
     """The largest physical displacement the state shows (metres, before magnification): a mode's at the start of
     its free decay after this test's hit (2 |A| J; an ODS line per newton), over the structure's Gaussians or, without
