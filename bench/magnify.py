@@ -61,8 +61,13 @@ def render_clip(size: int, n_frames: int, eye_m, alphas, *, peak_n: float = 60.0
     return inputs, truths, mask
 
 
+# Each method's own options (`--learned-weights` sets the learned network's weights file).
+OPTIONS: dict[str, tuple] = {}
+
+
 def magnify(method: str, alpha: float, frames: np.ndarray, band: bool, chunk: int = 16) -> np.ndarray:
-    s = MagnifySettings(method=method, alpha=alpha, band_hz=BAND_HZ if band else None)
+    s = MagnifySettings(method=method, alpha=alpha, band_hz=BAND_HZ if band else None,
+                        options=OPTIONS.get(method, ()))
     mag = make_magnifier(s, FPS)
     x = torch.from_numpy(frames)[:, None]
     out = [mag.push(x[i:i + chunk]) for i in range(0, len(x), chunk)] + [mag.flush()]
@@ -161,8 +166,11 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=192)
     ap.add_argument("--frames", type=int, default=96)
     ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--learned-weights", type=Path, default=None, help="the learned weights (default: shipped)")
     ap.add_argument("--rss-child", nargs=3, metavar=("METHOD", "N", "STREAMED"), help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.learned_weights is not None:
+        OPTIONS["learned"] = (("weights", str(args.learned_weights)),)
     if args.rss_child:
         m, n, streamed = args.rss_child
         rss_child(m, int(n), bool(int(streamed)))

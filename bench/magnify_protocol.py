@@ -73,11 +73,15 @@ def shifted(img: np.ndarray, dx: float, dy: float = 0.0) -> np.ndarray:
     return np.real(np.fft.ifft2(np.fft.fft2(img) * np.exp(-2j * np.pi * (fx * dx + fy * dy))))
 
 
+# Each method's own options (`--learned-weights` sets the learned network's weights file).
+OPTIONS: dict[str, tuple] = {}
+
+
 def magnify_pair(method: str, alpha: float, first: np.ndarray, second: np.ndarray) -> np.ndarray:
     """The second frame magnified alpha times against the first."""
     if method == "textbook":
         return second + (alpha - 1.0) * (second - first)
-    mag = make_magnifier(MagnifySettings(method=method, alpha=alpha), FPS)
+    mag = make_magnifier(MagnifySettings(method=method, alpha=alpha, options=OPTIONS.get(method, ())), FPS)
     x = torch.from_numpy(np.stack([first, second]).astype(np.float32))[:, None]
     out = torch.cat([mag.push(x), mag.flush()])[:, 0].numpy()
     return out[1].astype(np.float64)
@@ -118,8 +122,12 @@ def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--learned-weights", type=Path, default=None, help="the learned weights (default: shipped)")
     ap.add_argument("--textures", default=",".join(TEXTURES))
     a = ap.parse_args(argv)
+    OPTIONS.clear()
+    if a.learned_weights is not None:
+        OPTIONS["learned"] = (("weights", str(a.learned_weights)),)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)
     torch.manual_seed(0)
     images = {k: texture(k, a.size, seed=i) for i, k in enumerate(a.textures.split(","))}

@@ -5,6 +5,8 @@ Records a capture (force held constant take to take), syncs it, magnifies every 
 estimates poses with pycolmap and the tags, trains dynamic 3D Gaussians on all views but the held-out ones,
 and renders the held-out views (at their estimated poses) at every timestep, magnified by alpha. The orders:
 - paper: 2D-magnified views, a fit per timestep (Luiten et al.);
+- paper_learned (not run by default): the same on views magnified by the learned network (Oh et al. 2018, the
+  shipped weights or `--learned-weights`): the paper's own first stage;
 - modal_magnified: 2D-magnified views, the modal model (reconstruction/modal.py);
 - modal_raw: the unmagnified views, the modal model, magnified in 3D at render time;
 - linear_raw: the unmagnified views at full resolution, every timestep in one linear solve on a node graph
@@ -260,6 +262,7 @@ def run_config(capture, poses, settings: ReconstructSettings, holdout, gts, alph
 
 ORDERS = {  # name: (training frames, motion model)
     "paper": ("magnified/phase", "timestep"),
+    "paper_learned": ("magnified/learned", "timestep"),
     "modal_magnified": ("magnified/phase", "modal"),
     "modal_raw": ("sync", "modal"),
     "linear_raw": ("sync", "linear"),
@@ -287,6 +290,8 @@ def main(argv: list[str] | None = None) -> dict:
                     help="also vary views, pose noise and rgb noise (for the first of --orders)")
     ap.add_argument("--magnify-option", action="append", default=[], metavar="KEY=VALUE",
                     help="a keyword of the phase magnifier, e.g. warp=true (repeatable)")
+    ap.add_argument("--learned-weights", type=Path, default=None,
+                    help="the learned magnifier's weights for paper_learned (default: the shipped ones)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--keep", type=Path, default=None, help="record the capture here and keep it")
@@ -323,6 +328,10 @@ def run_seed(args, out: Path) -> dict:
     if not cap.paths.magnified_dir("phase").exists():
         magnify_capture(cap, MagnifySettings(method="phase", alpha=args.alpha, every_view=True,
                                              options=parse_options(args.magnify_option)), progress=False)
+    if "paper_learned" in args.orders and not cap.paths.magnified_dir("learned").exists():
+        learned = (("weights", str(args.learned_weights)),) if args.learned_weights is not None else ()
+        magnify_capture(cap, MagnifySettings(method="learned", alpha=args.alpha, every_view=True, options=learned),
+                        progress=False)
     figures["sync_magnify_s"] = time.perf_counter() - t
     t = time.perf_counter()
     if cap.paths.poses_json.exists():
@@ -373,7 +382,8 @@ def run_seed(args, out: Path) -> dict:
                                  alpha=args.alpha, width_px=args.width, iters_t0=args.iters_t0,
                                  iters_step=args.iters_step, iters_modal=args.iters_modal,
                                  prior_fraction=args.prior_fraction, threads=args.threads,
-                                 magnify_options=args.magnify_option, seed=args.seed))
+                                 magnify_options=args.magnify_option, seed=args.seed,
+                                 learned_weights=str(args.learned_weights) if args.learned_weights else None))
     return figures
 
 
