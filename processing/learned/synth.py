@@ -35,8 +35,8 @@ class SynthConfig:
     p_gray: float = 0.3
     p_noise: float = 0.8
     noise: str = "camera"  # camera: shot + read + quantisation (below); gauss: gauss_sigma and poisson_gain
-    full_well_e: tuple[float, float] = (800.0, 20000.0)  # electrons at full scale, log-uniform
-    read_noise_e: tuple[float, float] = (2.0, 25.0)  # electrons rms, log-uniform
+    full_well_e: tuple[float, float] = (200.0, 20000.0)  # electrons at full scale, log-uniform
+    read_noise_e: tuple[float, float] = (2.0, 15.0)  # electrons rms, log-uniform
     bit_depths: tuple[int, ...] = (8, 10, 12)
     gauss_sigma: tuple[float, float] = (0.002, 0.05)  # noise="gauss": in [0, 1] units
     poisson_gain: tuple[float, float] = (0.0, 0.003)  # noise="gauss": variance = gain * intensity
