@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import errno
+import logging
 import os
 import re
 import shutil
@@ -136,8 +137,6 @@ def quiet_hdf5_releases() -> None:
             previous_unraisable(args)
             return
         _hdf5_dropped.append(storage)
-        import logging
-
         logging.getLogger("odsplat.spine.space").warning("an HDF5 object not released: %s", storage)
 
     def excepthook(kind: type, exc: BaseException, tb: Any) -> None:
@@ -152,8 +151,6 @@ def exit_if_hdf5_unclosed() -> None:
     """Before exiting on a storage error: a file whose close failed even with the space reserve given back
     (`odsplat.spine.space`) makes the HDF5 library crash at the interpreter's exit, when it closes what is still open.
     The process then ends at once (its error line written, its streams flushed), skipping that exit."""
-    import sys
-
     space = sys.modules.get("odsplat.spine.space")
     if (space is not None and space._leaked) or _hdf5_dropped:
         sys.stdout.flush()

@@ -63,6 +63,13 @@ SIZES = {"small": {"channels": 16, "enc_blocks": 3, "dec_blocks": 3},
          "paper": {"channels": 32, "enc_blocks": 3, "dec_blocks": 9}}
 
 
+def size_config(name: str) -> dict[str, int]:
+    """A named size's MagNet arguments (SIZES), or one line saying which names there are."""
+    if name not in SIZES:
+        raise InputError("size", f"the learned magnifier's size is one of {', '.join(SIZES)}, got {name!r}")
+    return dict(SIZES[name])
+
+
 class MagNet(nn.Module):
     """Oh et al. 2018's network. `channels` is the width of the half-resolution trunk (the paper: 32);
     the first layer has half of it and the decoder twice it (texture + shape concatenated). `MagNet.of_size`
@@ -83,9 +90,7 @@ class MagNet(nn.Module):
 
     @classmethod
     def of_size(cls, name: str) -> "MagNet":
-        if name not in SIZES:
-            raise InputError("size", f"the learned magnifier's size is one of {', '.join(SIZES)}, got {name!r}")
-        return cls(**SIZES[name])
+        return cls(**size_config(name))
 
     def encode(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(N, 3, H, W) in [-1, 1] -> texture (N, C, H/4, W/4), shape (N, C, H/2, W/2)."""
@@ -148,4 +153,4 @@ def load_magnet(path, map_location: str | torch.device = "cpu") -> MagNet:
 
 
 __all__ = ["SIZES", "MagNet", "Manipulator", "ResBlock", "crop_to", "from_net", "load_magnet", "pad_to_multiple",
-           "to_net"]
+           "size_config", "to_net"]

@@ -86,31 +86,34 @@ PATTERNS = ("noise", "stripes", "checkers", "blobs", "speckle", "tags", "paint",
 def pattern(rng: np.random.Generator, s: int, kind: str | None = None) -> np.ndarray:
     """One scalar pattern in [0, 1] on an s x s canvas: of `kind` (one of PATTERNS), or of one drawn at random."""
     x, y = _grid(s)
-    kind = PATTERNS.index(kind) if kind is not None else rng.integers(0, len(PATTERNS))
+    if kind is None:
+        kind = PATTERNS[rng.integers(0, len(PATTERNS))]
+    elif kind not in PATTERNS:
+        raise InputError("pattern", f"one of {', '.join(PATTERNS)}, got {kind!r}")
     theta = rng.uniform(0, math.pi)
     u = x * math.cos(theta) + y * math.sin(theta)
     v = -x * math.sin(theta) + y * math.cos(theta)
-    if kind == 0:  # multi-octave noise
+    if kind == "noise":  # multi-octave noise
         octaves = rng.integers(1, 4)
         p = sum(_smooth_noise(rng, s, rng.uniform(0.7, 8.0)) / (o + 1) for o in range(octaves))
-    elif kind == 1:  # stripes, smooth or hard
+    elif kind == "stripes":  # stripes, smooth or hard
         period = rng.uniform(3.0, 20.0)
         p = 0.5 + 0.5 * np.sin(2 * math.pi * u / period + rng.uniform(0, 2 * math.pi))
         if rng.random() < 0.5:
             p = (p > 0.5).astype(np.float64)
-    elif kind == 2:  # checkers
+    elif kind == "checkers":  # checkers
         period = rng.uniform(4.0, 20.0)
         p = ((np.floor(u / period) + np.floor(v / period)) % 2).astype(np.float64)
-    elif kind == 3:  # blobs: discs and Gaussians
+    elif kind == "blobs":  # blobs: discs and Gaussians
         p = np.zeros((s, s))
         for _ in range(rng.integers(5, 40)):
             cx, cy, r = rng.uniform(0, s), rng.uniform(0, s), rng.uniform(1.5, s / 6)
             d2 = (x - cx) ** 2 + (y - cy) ** 2
             blob = (d2 < r * r).astype(np.float64) if rng.random() < 0.5 else np.exp(-d2 / (2 * r * r))
             p = np.maximum(p, blob * rng.uniform(0.3, 1.0))
-    elif kind == 4:  # sparse dots / speckle, like a painted speckle pattern on a test structure
+    elif kind == "speckle":  # sparse dots / speckle, like a painted speckle pattern on a test structure
         p = (_smooth_noise(rng, s, rng.uniform(0.8, 2.5)) > rng.uniform(0.5, 0.7)).astype(np.float64)
-    elif kind == 5:  # tags: AprilTag-like grids of bits in a black border, on white, tiled
+    elif kind == "tags":  # tags: AprilTag-like grids of bits in a black border, on white, tiled
         cell = rng.uniform(1.5, 5.0)
         bits = rng.integers(0, 2, (64, 64))
         i, j = (np.floor((w - w.min()) / cell).astype(int) for w in (u, v))
@@ -118,7 +121,7 @@ def pattern(rng: np.random.Generator, s: int, kind: str | None = None) -> np.nda
         inner = (pos_i >= 2) & (pos_i <= 7) & (pos_j >= 2) & (pos_j <= 7)
         border = (pos_i >= 1) & (pos_i <= 8) & (pos_j >= 1) & (pos_j <= 8) & ~inner
         p = np.where(inner, bits[i % 64, j % 64], np.where(border, 0.0, 1.0)).astype(np.float64)
-    elif kind == 6:  # smooth paint: a gentle gradient with faint grain (little texture to follow)
+    elif kind == "paint":  # smooth paint: a gentle gradient with faint grain (little texture to follow)
         p = 0.5 + 0.5 * u / max(float(np.ptp(u)), 1.0) + rng.uniform(0.02, 0.1) * _smooth_noise(rng, s, 1.0)
     else:  # edges: a few parts' sharp outlines (half planes and steps)
         p = np.zeros((s, s))

@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from odsplat.processing.learned.network import SIZES, MagNet, from_net, load_magnet, to_net
+from odsplat.processing.learned.network import MagNet, from_net, load_magnet, size_config, to_net
 from odsplat.processing.learned.synth import SynthConfig, make_batch, make_sample
 from odsplat.processing.metrics import estimate_translation, psnr, ssim
 from odsplat.spine.atomic import atomic_open
@@ -60,11 +60,9 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         if self.size is not None:
-            if self.size not in SIZES:
-                raise InputError("size", f"the learned magnifier's size is one of {', '.join(SIZES)}, "
-                                         f"got {self.size!r}")
-            self.channels, self.enc_blocks, self.dec_blocks = (SIZES[self.size][k] for k in
-                                                               ("channels", "enc_blocks", "dec_blocks"))
+            sized = size_config(self.size)
+            self.channels, self.enc_blocks, self.dec_blocks = (sized[k] for k in ("channels", "enc_blocks",
+                                                                                  "dec_blocks"))
 
 
 @dataclass
