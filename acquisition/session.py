@@ -131,6 +131,8 @@ class SessionSettings:
                              f"must lie in 0..{self.n_frames - 1}, got {self.pretrigger_frames}")
         if self.max_attempts < 1:
             raise InputError("SessionSettings.max_attempts", f"must be at least 1, got {self.max_attempts}")
+        if not self.hit_timeout_s > 0:
+            raise InputError("SessionSettings.hit_timeout_s", f"must be > 0 s, got {self.hit_timeout_s}")
 
 
 @dataclass(frozen=True)
@@ -335,6 +337,7 @@ class CaptureSession:
         record: TriggeredRecord | None = None
         fire: FireRecord | None = None
         error: str | None = None
+        lost_waiting = 0  # samples lost on the link while no trigger came
         clipped: set[str] = set()
         can_records: list[CANRecord] = []
         can_error = self._start_can()
@@ -364,6 +367,7 @@ class CaptureSession:
             clipped = set(daq.clipped)
         except DAQError as e:
             error = str(e)
+            lost_waiting = getattr(e, "lost_samples", 0)
             log.error("view %d: %s", view.index, error)
             record = self._salvage(daq)
             if record is not None and self._can is not None and can_error is None:
@@ -382,7 +386,7 @@ class CaptureSession:
             log.error("view %d: %s", view.index, camera_error)
             camera.stop()
         outcome = self._write(cap, name, view, record, status, clipped, error, daq.channels, camera_error, fire,
-                              can_records, can_error)
+                              can_records, can_error, lost_waiting)
         if self.hammer is not None and fire is not None and outcome.qc is not None:
             self._learn_gain(fire, outcome.qc)
         return outcome, record
@@ -457,7 +461,7 @@ class CaptureSession:
     def _write(self, cap: Capture, name: str, view: Viewpoint, record: TriggeredRecord | None, status,
                clipped: set[str], error: str | None, channels: Sequence[DAQChannel], camera_error: str | None = None,
                fire: FireRecord | None = None, can_records: Sequence[CANRecord] = (),
-               can_error: str | None = None) -> TakeOutcome:
+               can_error: str | None = None, lost_waiting: int = 0) -> TakeOutcome:
         camera = self.bench.camera
         info = camera.describe()
         frames = camera.frames() if status is not None else iter(())
@@ -507,7 +511,8 @@ class CaptureSession:
                 writer.set_qc(qc.to_qcinfo())
             else:
                 qc = None
-                flags = ("daq_error",) + (("camera_timeout",) if camera_error else ())
+                flags = (("daq_error",) + (("dropped_samples",) if lost_waiting else ())
+                         + (("camera_timeout",) if camera_error else ()))
                 writer.set_trigger(TriggerInfo(camera_trigger_frame=trigger_index))
                 detail = "; ".join(filter(None, (error or "no DAQ data", camera_error)))
                 writer.set_qc(QCInfo("rejected", flags, detail))

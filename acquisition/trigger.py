@@ -79,7 +79,12 @@ class TriggeredRecord:
 
 
 class NoTrigger(DAQError):
-    """The force never crossed the trigger level in time."""
+    """The force never crossed the trigger level in time; `lost_samples` were lost on the link while waiting (a
+    hit there is never seen: the take counts as one with dropped samples)."""
+
+    def __init__(self, message: str, lost_samples: int = 0):
+        super().__init__(message)
+        self.lost_samples = lost_samples
 
 
 def wait_for_hit(daq: SerialDAQ, trigger: HammerTrigger, timeout_s: float, *, start_sample: int = 0,
@@ -97,8 +102,10 @@ def wait_for_hit(daq: SerialDAQ, trigger: HammerTrigger, timeout_s: float, *, st
     crossing = None
     while crossing is None:
         if time.monotonic() > deadline:
-            raise NoTrigger(
-                f"{daq.name}: {trigger.channel!r} did not reach {trigger.level_n:g} N within {timeout_s:g} s")
+            lost = sum(min(g.stop, pos) - max(g.first_sample, start_sample) for g in daq.gaps_in(start_sample, pos))
+            why = f"; {lost} samples were lost on the link meanwhile: the hit may be among them" if lost else ""
+            raise NoTrigger(f"{daq.name}: {trigger.channel!r} did not reach {trigger.level_n:g} N within "
+                            f"{timeout_s:g} s{why}", lost)
         try:
             daq.wait_for(pos + 1, timeout_s=poll_s)
         except DAQError:

@@ -332,6 +332,8 @@ def config_(capture_dir: Path, config_path: Path | None, sets: tuple[str, ...], 
               help="Floor tags QC wants in view (0: none; sync and poses deal with views that show too few).")
 @click.option("--static-photos", is_flag=True, help="Also take one still photo per view into OUT/static/.")
 @click.option("--max-attempts", type=int, default=5, show_default=True, help="Takes per view before moving on.")
+@click.option("--hit-timeout", "hit_timeout_s", type=float, default=60.0, show_default=True,
+              help="Seconds to wait for the hit once the DAQ is armed; a take without one is redone.")
 @click.option("--size", default="400x300", show_default=True, help="With --sim: image size WxH in px.")
 @click.option("--hammer", type=click.Choice(["auto", "manual"]), default=None,
               help="Fire an automatic hammer on every take, or let the engineer hit. Default: auto with --sim --auto "
@@ -408,7 +410,7 @@ def _session_settings(out: Path, lab: Any, engineer: bool, o: dict[str, Any], wh
         n_frames=o["n_frames"], pretrigger_frames=o["pretrigger_frames"], fps=o["fps"],
         trigger=HammerTrigger(level_n=o["trigger_n"], pretrigger_s=o["pretrigger_s"], record_s=o["record_s"]),
         limits=QCLimits(force_band_n=o["force_band"], min_tags=o["min_tags"]), max_attempts=o["max_attempts"],
-        static_photos=o["static_photos"], hammer=hammer)
+        hit_timeout_s=o["hit_timeout_s"], static_photos=o["static_photos"], hammer=hammer)
 
 
 def _sim_rig(o: dict[str, Any]) -> Any:

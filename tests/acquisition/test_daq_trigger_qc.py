@@ -129,6 +129,20 @@ def test_no_hit_times_out_and_bad_configs_name_the_channel(scene):
         HammerTrigger(pretrigger_s=2.0, record_s=1.0)
 
 
+def test_a_hit_lost_on_the_link_times_out_saying_samples_were_lost(scene):
+    # Packets 40-199 (50-250 ms) never arrive: the hit at ~0.1 s is in them, so the trigger cannot see it; the
+    # session flags such a take dropped_samples (not only daq_error) from the count the timeout carries.
+    rig = SimRig(scene)
+    url = rig.daq_url(f"acq-{uuid.uuid4().hex[:8]}", realtime=1, block=32, drop=",".join(map(str, range(40, 200))))
+    with SerialDAQ.from_url(url, rig.daq_channels(), FS) as daq:
+        daq.start()
+        rig.hit(delay_s=0.1)
+        with pytest.raises(NoTrigger, match="5120 samples were lost on the link meanwhile") as e:
+            wait_for_hit(daq, HammerTrigger(), timeout_s=0.6)
+        daq.stop()
+    assert e.value.lost_samples == 160 * 32
+
+
 def test_first_crossing_and_find_impacts_on_plain_arrays():
     x = np.array([0, 5, np.nan, 12, 15, 3, 11])
     assert first_crossing(x, 10) == 3

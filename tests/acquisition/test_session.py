@@ -44,8 +44,8 @@ def _env() -> dict[str, str]:
 def test_sim_manual_hammer_records_27_accepted_views_and_redoes_every_fault(tmp_path):
     out = tmp_path / "cap"
     spec = ",".join(f"{k}:{v}" for k, v in FAULTS.items())
-    run = subprocess.run(_capture_cmd(out, "--hammer", "manual", "--sim-faults", spec), capture_output=True, text=True,
-                         env=_env(), cwd=REPO, timeout=280)
+    cmd = _capture_cmd(out, "--hammer", "manual", "--sim-faults", spec, "--hit-timeout", "10")
+    run = subprocess.run(cmd, capture_output=True, text=True, env=_env(), cwd=REPO, timeout=280)
     assert run.returncode == 0, run.stderr[-3000:]
     assert "27/27 views accepted" in run.stdout
     cap = Capture.open(out)
