@@ -67,6 +67,8 @@ class FitSettings:
     prune_opacity: float = 0.005
     max_scale: float = 0.1                  # prune Gaussians larger than this (x scene radius)
     opacity_reset_every: int = 0            # 0: never (short fits); 3DGS uses 3000
+    min_scale_px: float = 0.5               # no Gaussian thinner than this many training pixels where the nearest
+                                            # view sees it (Mip-Splatting's 3D filter, as a floor on the scales)
     max_gaussians: int = 60_000
     # per-timestep fits
     lr_means_dynamic: float = 1.6e-4
@@ -95,6 +97,7 @@ class FitSettings:
             "densify_every": Range(at_least=1, at_most=MAX_ITERATIONS, integer=True),
             "grad_threshold": Range(above=0, at_most=1), "percent_dense": Range(above=0, at_most=1),
             "prune_opacity": FRACTION, "max_scale": Range(above=0, at_most=100), "opacity_reset_every": ITERATIONS,
+            "min_scale_px": Range(at_least=0, at_most=10),
             "max_gaussians": Range(at_least=0, at_most=10_000_000, integer=True),
             "lr_means_dynamic": LEARNING_RATE, "lr_quats_dynamic": LEARNING_RATE, "rigid_weight": WEIGHT,
             "rot_weight": WEIGHT, "iso_weight": WEIGHT, "k_neighbours": NEIGHBOURS, "average_last": FRACTION,
@@ -202,6 +205,14 @@ class _StaticFit:
                       fresh[keep])
         return len(clone), len(split), int(pruned.sum())
 
+    def floor_scales(self, cameras: FootprintCameras, px: float) -> None:
+        """Raise every scale to `px` pixels of the finest view that sees the Gaussian (its footprint there, depth /
+        focal length): what no training image resolves is not made thinner than that, so a render at a finer
+        resolution shows no needles (Mip-Splatting's 3D filter, as a floor)."""
+        with torch.no_grad():
+            floor = torch.log(px * cameras.finest_footprint(self.params["means"].detach()))[:, None]
+            self.params["log_scales"].copy_(torch.maximum(self.params["log_scales"], floor))
+
     def reset_opacity(self) -> None:
         """Cap opacities at 0.01 (3DGS): floaters must earn their opacity back or be pruned."""
         with torch.no_grad():
@@ -232,11 +243,33 @@ class _StaticFit:
         self._reset_stats()
 
 
+class FootprintCameras:
+    """The training cameras batched, for the size of a pixel where each point is seen best."""
+
+    def __init__(self, cameras: list[Camera], dtype: torch.dtype):
+        self.R = torch.stack([cam.viewmat(dtype)[:3, :3] for cam in cameras])           # (V, 3, 3)
+        self.t = torch.stack([cam.viewmat(dtype)[:3, 3] for cam in cameras])[:, None]    # (V, 1, 3)
+        K = torch.stack([cam.K_tensor(dtype) for cam in cameras])
+        self.f, self.c = K[:, None, [0, 1], [0, 1]], K[:, None, [0, 1], [2, 2]]          # (V, 1, 2)
+        self.size = torch.tensor([[cam.width_px, cam.height_px] for cam in cameras], dtype=dtype)[:, None]
+
+    def finest_footprint(self, means: torch.Tensor) -> torch.Tensor:
+        """(N,) the smallest depth / focal length over the cameras that see each point (in front, inside the
+        image); a large value (1e3) for a point no camera sees."""
+        pc = torch.einsum("vab,nb->vna", self.R, means) + self.t
+        z = pc[..., 2]
+        uv = self.f * pc[..., :2] / z.clamp_min(1e-9)[..., None] + self.c
+        seen = (z > 1e-3) & ((uv >= 0) & (uv < self.size)).all(-1)
+        footprint = torch.where(seen, z / self.f[..., 0], torch.full_like(z, 1e3))
+        return footprint.min(dim=0).values
+
+
 def fit_static(g: Gaussians, views: list[tuple[Camera, torch.Tensor]], s: FitSettings) -> tuple[Gaussians, dict]:
     """Fit every parameter to images of the structure at rest: [(camera, (H, W, C) image)], a random view per step."""
     if not views:
         raise InputError("views", "the t=0 fit needs at least one posed image")
     fit = _StaticFit(g, s)
+    footprints = FootprintCameras([cam for cam, _ in views], g.means.dtype)
     rng = np.random.default_rng(s.seed)
     until = int(s.densify_until_frac * s.iters_t0)
     losses, t0 = [], time.perf_counter()
@@ -257,6 +290,8 @@ def fit_static(g: Gaussians, views: list[tuple[Camera, torch.Tensor]], s: FitSet
             log.debug("iteration %d: cloned %d, split %d, pruned %d -> %d", it + 1, c, sp, pr, len(fit.params["means"]))
         if s.opacity_reset_every and (it + 1) % s.opacity_reset_every == 0 and it + 1 < until:
             fit.reset_opacity()
+        if s.min_scale_px:
+            fit.floor_scales(footprints, s.min_scale_px)
         if it % 50 == 0:
             bar.set_postfix(loss=f"{np.mean(losses[-50:]):.4f}", n=len(fit.params["means"]))
     bar.close()
