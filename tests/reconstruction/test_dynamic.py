@@ -92,7 +92,10 @@ def test_no_gaussian_is_thinner_than_half_a_training_pixel_so_a_finer_render_has
     truth = render(scene.mesh(), pc, scene.atlas).image.astype(np.float32)
     novel = Camera(pc.K, pc.R, pc.t, 192, 144, "novel").in_scene(frame)
     footprints = FootprintCameras([v.camera for v in tv], torch.float32)
-    blur = lambda x: cv2.GaussianBlur(x, (0, 0), 1.5)  # what 64 px can hold, at 192 px
+
+    def blur(x):  # what 64 px can hold, at 192 px
+        return cv2.GaussianBlur(x, (0, 0), 1.5)
+
     out = {}
     for px in (0.0, 0.5):
         g = Gaussians.from_points(frame.to_scene(pts), np.full((len(pts), 1), 0.5))
