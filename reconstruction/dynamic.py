@@ -255,13 +255,13 @@ class FootprintCameras:
 
     def finest_footprint(self, means: torch.Tensor) -> torch.Tensor:
         """(N,) the smallest depth / focal length over the cameras that see each point (in front, inside the
-        image); a large value (1e3) for a point no camera sees."""
+        image); 0 for a point no camera sees (no image says anything of its size)."""
         pc = torch.einsum("vab,nb->vna", self.R, means) + self.t
         z = pc[..., 2]
         uv = self.f * pc[..., :2] / z.clamp_min(1e-9)[..., None] + self.c
         seen = (z > 1e-3) & ((uv >= 0) & (uv < self.size)).all(-1)
-        footprint = torch.where(seen, z / self.f[..., 0], torch.full_like(z, 1e3))
-        return footprint.min(dim=0).values
+        footprint = torch.where(seen, z / self.f[..., 0], torch.full_like(z, math.inf)).min(dim=0).values
+        return torch.where(torch.isfinite(footprint), footprint, torch.zeros_like(footprint))
 
 
 def fit_static(g: Gaussians, views: list[tuple[Camera, torch.Tensor]], s: FitSettings) -> tuple[Gaussians, dict]:

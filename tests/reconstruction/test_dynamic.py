@@ -115,7 +115,7 @@ def test_finest_footprint_is_depth_over_focal_length_in_the_nearest_view_that_se
     far = Camera(near.K, np.eye(3), np.array([0.0, 0, 2.0]), 64, 48)
     pts = torch.tensor([[0.0, 0.0, 3.0], [5.0, 0.0, 3.0], [0.0, 0.0, -9.0]])  # seen by both, by neither (x 2)
     got = FootprintCameras([near, far], torch.float32).finest_footprint(pts)
-    assert got[0].item() == pytest.approx(0.03) and got[1].item() == got[2].item() == pytest.approx(1e3)
+    assert got[0].item() == pytest.approx(0.03) and got[1].item() == got[2].item() == 0  # unseen: no floor
 
 
 @pytest.mark.parametrize("average_last", [0.0, 0.5])
