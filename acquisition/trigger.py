@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,6 +46,11 @@ def first_crossing(x: np.ndarray, level: float, *, previous: float = -np.inf) ->
     return int(hits[0]) if hits.size else None
 
 
+def lost_between(gaps: Iterable[dp.SampleGap], first: int, stop: int) -> int:
+    """How many of samples first..stop-1 the gaps (each overlapping that range) lost."""
+    return int(sum(min(g.stop, stop) - max(g.first_sample, first) for g in gaps))
+
+
 @dataclass
 class TriggeredRecord:
     """A record cut around a trigger: samples first_sample..stop_sample-1 of every DAQ channel, in SI units."""
@@ -69,7 +74,7 @@ class TriggeredRecord:
 
     @property
     def lost_samples(self) -> int:
-        return int(sum(min(g.stop, self.stop_sample) - max(g.first_sample, self.first_sample) for g in self.gaps))
+        return lost_between(self.gaps, self.first_sample, self.stop_sample)
 
     def channel(self, name: str) -> np.ndarray:
         try:
@@ -102,7 +107,7 @@ def wait_for_hit(daq: SerialDAQ, trigger: HammerTrigger, timeout_s: float, *, st
     crossing = None
     while crossing is None:
         if time.monotonic() > deadline:
-            lost = sum(min(g.stop, pos) - max(g.first_sample, start_sample) for g in daq.gaps_in(start_sample, pos))
+            lost = lost_between(daq.gaps_in(start_sample, pos), start_sample, pos)
             why = f"; {lost} samples were lost on the link meanwhile: the hit may be among them" if lost else ""
             raise NoTrigger(f"{daq.name}: {trigger.channel!r} did not reach {trigger.level_n:g} N within "
                             f"{timeout_s:g} s{why}", lost)

@@ -247,8 +247,8 @@ class FootprintCameras:
     """The training cameras batched, for the size of a pixel where each point is seen best."""
 
     def __init__(self, cameras: list[Camera], dtype: torch.dtype):
-        self.R = torch.stack([cam.viewmat(dtype)[:3, :3] for cam in cameras])           # (V, 3, 3)
-        self.t = torch.stack([cam.viewmat(dtype)[:3, 3] for cam in cameras])[:, None]    # (V, 1, 3)
+        views = torch.stack([cam.viewmat(dtype) for cam in cameras])
+        self.R, self.t = views[:, :3, :3], views[:, None, :3, 3]                          # (V, 3, 3), (V, 1, 3)
         K = torch.stack([cam.K_tensor(dtype) for cam in cameras])
         self.f, self.c = K[:, None, [0, 1], [0, 1]], K[:, None, [0, 1], [2, 2]]          # (V, 1, 2)
         self.size = torch.tensor([[cam.width_px, cam.height_px] for cam in cameras], dtype=dtype)[:, None]

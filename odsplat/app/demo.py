@@ -269,7 +269,8 @@ def simulated_capture(root: Path, scale: DemoScale, echo: Callable[[str], None],
                               pretrigger_frames=scale.pretrigger_frames, max_attempts=d["max_attempts"],
                               trigger=HammerTrigger(pretrigger_s=d["pretrigger_s"], record_s=d["record_s"]),
                               hammer=hammer, limits=QCLimits(min_tags=d["min_tags"]),
-                              hit_timeout_s=10.0)  # the rig's hammer strikes within ms; a hit lost on the link
+                              hit_timeout_s=10.0)  # the rig's hammer strikes within ms: only a hit lost on the
+                                                   # link waits, and not a minute
     with open_bench(sim=rig, hammer=hammer is not None) as bench:
         report = CaptureSession(root, session, bench, feedback=TakeLines(echo)).run()
     echo(report.summary())
